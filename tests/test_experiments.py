@@ -1,0 +1,51 @@
+"""The experiment scripts run end to end on tiny configs (their full runs live in experiments/)."""
+
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+
+
+def _load(name):
+    """Import an experiment script as a module; spawned workers find it on the same path."""
+    if str(ROOT / "experiments") not in sys.path:
+        sys.path.insert(0, str(ROOT / "experiments"))
+    return importlib.import_module(name)
+
+
+def test_fig2_runs(tmp_path):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "period: 1.0\nkernels: [{label: caption, sigma: 0.05}]\nbands: [2]\nsnr_db: [0, 30]\nrepetitions: 300\n"
+        "methods: [coherent, ls]\noutlier: 0.1\nseed: 0\ntwo_d: {grid: [5, 5], snr_db: [30]}\n"
+        "timing: {samples: 16, locations: 2000, slow_locations: 500, repeats: 1}\n"
+    )
+    result = _load("fig2_crb").main(["--config", str(config), "--output", str(tmp_path)])
+    saved = json.loads((tmp_path / "tiny.json").read_text())
+    assert saved["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"] == pytest.approx(
+        result["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"])
+    assert 0.7 < saved["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"] < 1.4
+    assert (tmp_path / "tiny.png").stat().st_size > 10000
+
+
+def test_fig2_rejects_unknown_keys(tmp_path):
+    config = tmp_path / "typo.yaml"
+    config.write_text((ROOT / "configs" / "fig2.yaml").read_text() + "repetitons: 5\n")
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['repetitons'\]"):
+        _load("fig2_crb").main(["--config", str(config), "--output", str(tmp_path)])
+
+
+def test_bench_runs(tmp_path):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "samples: 16\nkernel_sigma: 0.05\nsnr_db: 20.0\nlocations: 4000\nslow_locations: 500\n"
+        "scipy_locations: 20\nrepeats: 1\nseed: 0\nrows: [[coherent, float32], [ls, float64]]\n"
+    )
+    rows = _load("bench_fri").main(["--config", str(config), "--output", str(tmp_path)])
+    assert [r["method"] for r in rows] == ["coherent", "ls", "argmax + parabola", "scipy least_squares"]
+    assert all(r["locations_per_second"] > 0 and r["mse_over_crb"] > 0.5 for r in rows)
+    assert (tmp_path / "bench_fri.png").exists()

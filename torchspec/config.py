@@ -1,0 +1,83 @@
+"""Strict YAML configs: a file loads into a frozen dataclass, and an unknown or missing key is
+an error that names the file and the key (a typo must never pass silently)."""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from pathlib import Path
+
+import yaml
+
+__all__ = ["ConfigError", "load_config", "from_mapping"]
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be read into its settings."""
+
+
+def _convert(value, kind, where: str):
+    origin = typing.get_origin(kind)
+    args = typing.get_args(kind)
+    if dataclasses.is_dataclass(kind):
+        return from_mapping(value, kind, where)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _convert(value, inner[0], where) if len(inner) == 1 else value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where} must be a list; got {value!r}.")
+        item = args[0] if args else typing.Any
+        items = [_convert(v, item, f"{where}[{k}]") for k, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where} must be a number; got {value!r}.")
+        return float(value)
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer; got {value!r}.")
+        return value
+    if kind is str and not isinstance(value, str):
+        raise ConfigError(f"{where} must be a string; got {value!r}.")
+    if kind is bool and not isinstance(value, bool):
+        raise ConfigError(f"{where} must be true or false; got {value!r}.")
+    return value
+
+
+def from_mapping(data, cls, where: str = "config"):
+    """Build the frozen dataclass ``cls`` from a mapping, recursively, rejecting unknown keys."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where} must be a mapping of keys to values; got {type(data).__name__}.")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {unknown}; known keys are {sorted(fields)}.")
+    values = {}
+    for name, field in fields.items():
+        if name in data:
+            values[name] = _convert(data[name], hints[name], f"{where}.{name}")
+        elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+            raise ConfigError(f"{where} is missing the key {name!r}.")
+    return cls(**values)
+
+
+def load_config(path: str | Path, cls):
+    """Read the YAML file ``path`` into the frozen dataclass ``cls``.
+
+    Raises:
+        ConfigError: the file is missing or not YAML, a key is unknown or missing, or a value
+            has the wrong type; the message names the file and the key.
+    """
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {path}: {exc.strerror or exc}.") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config {path} is not valid YAML: {exc}.") from None
+    return from_mapping({} if data is None else data, cls, where=str(path))

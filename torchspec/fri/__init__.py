@@ -1,0 +1,295 @@
+"""Finite-rate-of-innovation location of blurred peaks.
+
+A peak blurred by an unknown *symmetric* kernel keeps its location in the phase of its
+Fourier coefficients: ``Y[m] = a_m e^{-i 2 pi m x / tau}`` with the kernel's spectrum ``a_m``
+real. A handful of samples of the blurred peak therefore locate it exactly, where point-wise
+sampling would only bracket it. :func:`locate` does this for any batch of 1D or 2D problems.
+
+References:
+    "Accurate recovery of a specularity from a few samples of the reflectance function",
+    ICASSP 2016 (EPFL): the method this package is built on (Sec. 3-4, Fig. 2).
+    Vetterli, Marziliano, Blu, "Sampling signals with finite rate of innovation", IEEE TSP 2002.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from . import pulses
+from ._coefficients import frequency_list, scattered, uniform
+from ._multi import locate_multi
+from ._single import locate_single
+
+__all__ = ["Location", "METHODS", "locate", "pulses"]
+
+METHODS = ("coherent", "ml", "ls", "esprit", "cadzow")
+"""``coherent`` is the default for one pulse, ``esprit`` for several; ``coherent`` and ``ml``
+locate one pulse only."""
+
+SNR_HALF_QUALITY = 20.0
+"""The SNR of the fitted spectrum (its energy over the residual noise variance) at which quality
+is 1/2. Measured on the paper's setups (Gaussian kernels, M = 2 and 8): outliers (error above a
+tenth of the period) run at 2-10 % near an SNR of 12 and below 0.2 % above 40."""
+
+
+@dataclass(frozen=True)
+class Location:
+    """The result of :func:`locate`.
+
+    Attributes:
+        position: ``(*)`` in 1D, ``(*, 2)`` in 2D, ``(*, K)`` for K pulses (ascending), in
+            ``[0, period)``; NaN where the samples were not finite.
+        quality: ``(*)`` in ``[0, 1]``: 1 for a clean, well-conditioned problem, falling as the
+            residual that a symmetric pulse cannot explain grows against the explained part
+            (noise, an asymmetric kernel, a second peak) or as a scattered layout loses
+            conditioning; 0 for non-finite samples. Mask with e.g. ``quality > 0.5``.
+        std: like ``position``: the standard deviation of the position predicted from the data
+            (residual noise over the Fisher information of the estimated spectrum). NaN for K >= 2.
+    """
+
+    position: Tensor
+    quality: Tensor
+    std: Tensor
+
+
+def _periods(period) -> tuple[float, ...]:
+    values = tuple(period) if isinstance(period, Sequence) else (period,)
+    if len(values) not in (1, 2):
+        raise ValueError(f"period must be a number (1D) or a pair (2D); got {period!r}.")
+    for p in values:
+        if not isinstance(p, (int, float)) or isinstance(p, bool) or not math.isfinite(p) or p <= 0:
+            raise ValueError(f"period must be finite and > 0; got {period!r}.")
+    return tuple(float(p) for p in values)
+
+
+def _bands(num_coefficients, dims: int, *, grid: tuple[int, ...] | None, scattered: int = 0) -> tuple[int, ...]:
+    """``(M,)`` or ``(M1, M2)``: given, or the default for a ``grid`` or ``scattered`` samples."""
+    if num_coefficients is None:
+        if grid is not None:
+            return tuple(max((n - 1) // 2, 1) for n in grid)
+        # About twice as many samples as real unknowns keeps a random layout conditioned.
+        if dims == 1:
+            return (max((scattered // 2 - 1) // 2, 1),)
+        side = max((math.isqrt(max(scattered // 2, 1)) - 1) // 2, 1)
+        return (side, side)
+    values = (num_coefficients,) * dims if isinstance(num_coefficients, int) else tuple(num_coefficients)
+    if len(values) != dims or not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+        raise ValueError(
+            f"num_coefficients must be an int or {dims} ints for a {dims}D problem; got {num_coefficients!r}."
+        )
+    if min(values) < 1:
+        raise ValueError(f"num_coefficients must be >= 1; got {num_coefficients!r}.")
+    return values
+
+
+def _check_samples(samples) -> Tensor:
+    samples = torch.as_tensor(samples)
+    if samples.is_complex() or samples.dtype not in (torch.float32, torch.float64):
+        raise ValueError(
+            f"samples must be a real float32 or float64 tensor; got {samples.dtype}. "
+            "Convert with .float() or .double()."
+        )
+    return samples
+
+
+def locate(
+    samples: Tensor,
+    *,
+    period: float | Sequence[float],
+    method: str | None = None,
+    num_coefficients: int | Sequence[int] | None = None,
+    positions: Tensor | None = None,
+    num_pulses: int = 1,
+) -> Location:
+    """Locate the peak(s) of blurred pulses from a few samples, batched over any leading dims.
+
+    The samples are of a periodic signal (period ``tau``): one pulse blurred by an unknown
+    symmetric kernel, plus any constant offset (a negative one too: the DC term is never
+    used). Exact without noise whenever the samples hold the coefficients ``|m| <= M``
+    without aliasing (lowpass samples, or a kernel narrow against ``tau / N``).
+
+    Args:
+        samples: 1D ``(*, N)`` at ``t_n = n * period / N``; 2D ``(*, N1, N2)`` at
+            ``(n1 tau1 / N1, n2 tau2 / N2)``; scattered ``(*, N)`` at ``positions``.
+            float32 or float64, on any device; the result follows.
+        period: ``tau`` (1D) or ``(tau1, tau2)`` (2D).
+        method: one of :data:`METHODS`; ``None`` picks ``coherent`` (one pulse) or ``esprit``.
+        num_coefficients: ``M`` (or ``(M1, M2)``): Fourier coefficients ``m = 1..M`` used.
+            Default: every bin below Nyquist, ``(N - 1) // 2`` (the Nyquist bin of an even N is
+            real and carries no phase); for scattered layouts the largest band with about two
+            samples per unknown.
+        positions: scattered sample positions, ``(N,)`` shared or ``(*, N)`` per problem in 1D,
+            ``(N, 2)`` or ``(*, N, 2)`` in 2D. Coefficients come from regularised least
+            squares; the layout's condition number lowers ``quality``.
+        num_pulses: ``K``; ``K >= 2`` (1D, uniform or scattered) assumes geometric spectra
+            (Lorentzian kernels) and needs ``M >= 2K``.
+
+    Returns:
+        :class:`Location` with ``position``, ``quality`` and ``std``.
+
+    Raises:
+        ValueError: a malformed call, naming the argument and shape at fault. Per-problem
+            trouble (non-finite samples, a rank-deficient per-problem layout) is not raised:
+            that problem gets a NaN position and zero quality.
+
+    Example:
+        >>> a = pulses.spectrum("gaussian", torch.tensor(0.05, dtype=torch.float64), 8)
+        >>> y = pulses.sample(a, torch.tensor([[0.3]], dtype=torch.float64), num_samples=17)
+        >>> round(float(locate(y, period=1.0).position[0]), 12)
+        0.3
+
+    References:
+        "Accurate recovery of a specularity from a few samples of the reflectance function",
+        ICASSP 2016, Sec. 3-4.
+    """
+    call = _parse(samples, period, method, num_coefficients, positions, num_pulses)
+    samples, dims = call.samples, len(call.periods)
+    out_tail = () if (dims == 1 and num_pulses == 1) else ((dims,) if num_pulses == 1 else (num_pulses,))
+    if math.prod(call.batch) == 0:
+        empty = samples.new_zeros((*call.batch, *out_tail))
+        return Location(position=empty, quality=samples.new_zeros(tuple(call.batch)), std=empty.clone())
+    y, dc, finite, condition = _coefficients_of(call)
+
+    scale = torch.tensor(call.periods, dtype=y.real.dtype, device=y.device) / (2.0 * math.pi)
+    if num_pulses == 1:
+        theta, variance, snr = locate_single(y, dc, call.bands, call.method)
+        std = variance.sqrt() * scale
+        quality = 1.0 / (1.0 + (SNR_HALF_QUALITY / snr) ** 3)
+    else:
+        theta, gap = locate_multi(y, num_pulses, call.method)
+        std = torch.full_like(theta, math.nan)
+        quality = (1.0 - gap).clamp(0.0, 1.0) ** 2
+    period = scale * (2.0 * math.pi)
+    position = torch.remainder(theta * scale, period)
+    position = torch.where(position >= period, position - period, position)  # rounding up to the period
+    if num_pulses > 1:
+        position = position.sort(-1).values
+    quality = quality / (1.0 + condition * math.sqrt(torch.finfo(y.real.dtype).eps))
+    quality = torch.where(finite & torch.isfinite(quality), quality, torch.zeros_like(quality)).clamp(0.0, 1.0)
+    position = torch.where(finite[:, None], position, torch.full_like(position, math.nan))
+    std = torch.where(finite[:, None], std, torch.full_like(std, math.nan))
+    return Location(
+        position=position.reshape((*call.batch, *out_tail)),
+        quality=quality.reshape(tuple(call.batch)),
+        std=std.reshape((*call.batch, *out_tail)),
+    )
+
+
+class _Call(NamedTuple):
+    samples: Tensor
+    periods: tuple[float, ...]
+    method: str
+    bands: tuple[int, ...]
+    batch: torch.Size
+    positions: Tensor | None
+
+
+def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> _Call:
+    """Check a call of :func:`locate`; raise ``ValueError`` naming the argument at fault."""
+    samples = _check_samples(samples)
+    periods = _periods(period)
+    dims = len(periods)
+    if not isinstance(num_pulses, int) or isinstance(num_pulses, bool) or num_pulses < 1:
+        raise ValueError(f"num_pulses must be an int >= 1; got {num_pulses!r}.")
+    if method is None:
+        method = "coherent" if num_pulses == 1 else "esprit"
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}.")
+    if num_pulses > 1 and method in ("coherent", "ml"):
+        raise ValueError(
+            f"method {method!r} locates one pulse; for num_pulses={num_pulses} use 'esprit', 'cadzow' or 'ls'."
+        )
+    if num_pulses > 1 and dims == 2:
+        raise ValueError(f"num_pulses must be 1 in 2D; got {num_pulses}.")
+
+    if positions is None:
+        if samples.dim() < dims:
+            raise ValueError(
+                f"samples must have at least {dims} dims ({'(*, N1, N2)' if dims == 2 else '(*, N)'}) "
+                f"for period {period!r}; got shape {tuple(samples.shape)}."
+            )
+        sizes = tuple(samples.shape[samples.dim() - dims :])
+        bands = _bands(num_coefficients, dims, grid=sizes)
+        for axis, (n, m) in enumerate(zip(sizes, bands, strict=True)):
+            if n < 2 * m + 1:
+                raise ValueError(
+                    f"samples has {n} samples along axis {axis - dims} (shape {tuple(samples.shape)}); "
+                    f"num_coefficients={m} needs at least 2M + 1 = {2 * m + 1}. Pass fewer coefficients."
+                )
+        batch = samples.shape[: samples.dim() - dims]
+    else:
+        positions = torch.as_tensor(positions)
+        if positions.dtype != samples.dtype or positions.device != samples.device:
+            raise ValueError(
+                f"positions must match samples' dtype and device ({samples.dtype}, {samples.device}); "
+                f"got ({positions.dtype}, {positions.device})."
+            )
+        if samples.dim() < 1:
+            raise ValueError(f"samples must have shape (*, N) with positions; got shape {tuple(samples.shape)}.")
+        n = samples.shape[-1]
+        tail = (n,) if dims == 1 else (n, 2)
+        if positions.dim() < len(tail) or tuple(positions.shape[positions.dim() - len(tail) :]) != tail:
+            raise ValueError(
+                f"positions must have shape {'(*, N)' if dims == 1 else '(*, N, 2)'} with N = {n} "
+                f"(samples shape {tuple(samples.shape)}); got shape {tuple(positions.shape)}."
+            )
+        if not bool(torch.isfinite(positions).all()):
+            raise ValueError("positions must be finite; got NaN or Inf.")
+        bands = _bands(num_coefficients, dims, grid=None, scattered=n)
+        unknowns = 1 + 2 * len(frequency_list(bands))
+        if n < unknowns:
+            raise ValueError(
+                f"a scattered layout of {n} samples cannot resolve num_coefficients={bands}: "
+                f"that is {unknowns} real unknowns. Pass fewer coefficients or more samples."
+            )
+        batch = samples.shape[:-1]
+        if positions.dim() > len(tail):
+            try:
+                batch = torch.broadcast_shapes(batch, positions.shape[: positions.dim() - len(tail)])
+            except RuntimeError:
+                raise ValueError(
+                    f"positions shape {tuple(positions.shape)} does not broadcast with samples shape "
+                    f"{tuple(samples.shape)}."
+                ) from None
+    if num_pulses > 1 and bands[0] < 2 * num_pulses:
+        raise ValueError(f"num_pulses={num_pulses} needs num_coefficients >= {2 * num_pulses}; got {bands[0]}.")
+    return _Call(samples, periods, method, bands, batch, positions)
+
+
+def _coefficients_of(call: _Call) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(Y (B, P), dc (B,), finite (B,), condition (B,))`` of the flattened problems, with the
+    coefficients of non-finite problems (and of rank-deficient per-problem layouts) zeroed."""
+    dims = len(call.periods)
+    if call.positions is None:
+        shape = call.samples.shape[call.samples.dim() - dims :]
+        flat = call.samples.reshape(-1, *shape)
+        y, dc = uniform(flat, call.bands)
+        finite = torch.isfinite(dc)  # one NaN or Inf sample poisons the mean
+        condition = torch.ones_like(dc)
+    else:
+        flat = call.samples.expand(*call.batch, call.samples.shape[-1]).reshape(-1, call.samples.shape[-1])
+        tail = call.positions.shape[call.positions.dim() - dims :]
+        shared = call.positions.dim() == dims
+        layout = call.positions if shared else call.positions.expand(*call.batch, *tail).reshape(-1, *tail)
+        finite = torch.isfinite(flat.sum(-1))  # one NaN or Inf sample poisons the sum
+        y, dc, condition = scattered(torch.where(finite[:, None], flat, 0.0), layout, call.bands, call.periods)
+        resolvable = condition * torch.finfo(flat.dtype).eps * max(flat.shape[-1], y.shape[-1]) < 1
+        if shared:
+            if not bool(resolvable):
+                raise ValueError(
+                    f"the scattered layout cannot resolve num_coefficients={call.bands}: its design matrix is "
+                    f"rank-deficient (condition number {float(condition):.3g}); positions repeat or "
+                    "cluster. Pass fewer coefficients or spread the positions."
+                )
+            condition = condition.expand(flat.shape[0])
+        else:
+            finite = finite & resolvable
+    y = torch.where(finite[:, None], y, torch.zeros_like(y))
+    dc = torch.where(finite, dc, torch.zeros_like(dc))
+    return y, dc, finite, condition
