@@ -49,3 +49,17 @@ def test_bench_runs(tmp_path):
     assert [r["method"] for r in rows] == ["coherent", "ls", "argmax + parabola", "scipy least_squares"]
     assert all(r["locations_per_second"] > 0 and r["mse_over_crb"] > 0.5 for r in rows)
     assert (tmp_path / "bench_fri.png").exists()
+
+
+def test_noise_free_runs(tmp_path):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "kernels: [{kind: box, width: 0.3}]\nsamples: [5, 16]\ngrids: [[6, 6]]\nlocations: 50\n"
+        "offset: -1.0\nseed: 0\n"
+    )
+    rows = _load("noise_free").main(["--config", str(config), "--output", str(tmp_path)])
+    assert len(rows) == 3 * 2  # sizes x dtypes
+    for row in rows:
+        bound = 1e-10 if row["dtype"] == "float64" else 1e-5
+        assert max(row["max_error"].values()) < bound, row
+    assert (tmp_path / "noise_free.png").exists()

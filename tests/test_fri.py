@@ -97,6 +97,15 @@ def test_batching_2d_and_empty():
     assert ts.fri.locate(y[:0], period=(1.0, 1.0)).position.shape == (0, 3, 2)
 
 
+def test_numpy_and_tensor_scalars_are_accepted():
+    import numpy as np
+
+    y, x = _planted("gaussian", 0.05, 17, 4, F64, "cpu")
+    for period, bands in [(np.float64(1.0), np.int64(8)), (torch.tensor(1.0), 8), (1, (np.int32(6),))]:
+        position = ts.fri.locate(y, period=period, num_coefficients=bands).position
+        assert circular_error(position, x).abs().max().item() < 1e-10
+
+
 def test_result_is_frozen():
     y, _ = _planted("gaussian", 0.05, 9, 2, F64, "cpu")
     result = ts.fri.locate(y, period=1.0)
