@@ -14,7 +14,6 @@ process, so its peak memory (the rise of ``ru_maxrss`` during the call) is its o
 
 from __future__ import annotations
 
-import argparse
 import math
 import multiprocessing
 import resource
@@ -154,7 +153,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchspec._atomic import atomic_path
+    from torchspec._atomic import save_figure
 
     fig, ax = plt.subplots(figsize=(7, 5))
     for k, row in enumerate(rows):
@@ -169,19 +168,16 @@ def _plot(rows: list[dict], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
+    from _common import parse_args
+
     from torchspec._atomic import write_json
     from torchspec.config import load_config
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=Path(__file__).parents[1] / "configs" / "bench_fri.yaml")
-    parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results")
-    args = parser.parse_args(argv)
+    args = parse_args(__doc__, "bench_fri.yaml", argv)
     settings = load_config(args.config, Settings)
     jobs = [tuple(r) for r in settings.rows] + [("argmax + parabola", "float64"), ("scipy least_squares", "float64")]
     context = multiprocessing.get_context("spawn")

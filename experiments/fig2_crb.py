@@ -15,7 +15,6 @@ error in the JSON) and the outlier rate per point.
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import time
@@ -23,9 +22,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+from _common import parse_args
 
 import torchspec as ts
-from torchspec._atomic import atomic_path, write_json
+from torchspec._atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.fri import pulses
 
@@ -186,9 +186,7 @@ def _plot(result: dict, path: Path) -> None:
     axes[0, 0].legend(fontsize=8)
     axes[0, 2].legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _print(result: dict) -> None:
@@ -211,10 +209,7 @@ def _print(result: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=Path(__file__).parents[1] / "configs" / "fig2.yaml")
-    parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results")
-    args = parser.parse_args(argv)
+    args = parse_args(__doc__, "fig2.yaml", argv)
     settings = load_config(args.config, Settings)
     generator = torch.Generator().manual_seed(settings.seed)
     started = time.perf_counter()

@@ -12,15 +12,15 @@ Takes ~12 minutes on 2 cores, most of it Cadzow on the 64 x 64 grids.
 
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+from _common import parse_args
 
 import torchspec as ts
-from torchspec._atomic import atomic_path, write_json
+from torchspec._atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.fri import pulses
 
@@ -101,16 +101,11 @@ def _plot(rows: list[dict], path: Path) -> None:
         ax.set_title(f"{dtype}: log10 worst |error| over all methods (bound {BOUND[dtype]:g})")
         fig.colorbar(image, ax=ax)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=Path(__file__).parents[1] / "configs" / "noise_free.yaml")
-    parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results")
-    args = parser.parse_args(argv)
+    args = parse_args(__doc__, "noise_free.yaml", argv)
     settings = load_config(args.config, Settings)
     rows = run(settings)
     print(f"worst |error| (periods) over {settings.locations} locations, every size, per kernel and dtype:")

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from . import crb, fri
-from ._atomic import atomic_path, write_json
+from ._atomic import save_figure, write_json
 
 __all__ = ["run"]
 
@@ -85,6 +85,4 @@ def _write(output: Path, summary: dict, truth, position, error) -> None:
     right.hist(error.norm(dim=-1).clamp(min=1e-6).log10().numpy(), bins=60)
     right.set(xlabel="log10 |error|", ylabel="pixels", title=f"MSE / CRB = {summary['mse_over_crb']:.3f}")
     fig.tight_layout()
-    with atomic_path(output / "demo.png") as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, output / "demo.png", dpi=100)

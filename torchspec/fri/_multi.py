@@ -15,40 +15,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ._hankel import cadzow, hankel, rows_for, signal_subspace
+
 __all__ = ["locate_multi"]
 
 CADZOW_ITERATIONS = 20
 
 
-def _hankel(seq: Tensor, rows: int) -> Tensor:
-    """``(B, rows, M - rows + 1)`` Hankel matrix of ``seq (B, M)``."""
-    cols = seq.shape[-1] - rows + 1
-    index = torch.arange(rows, device=seq.device)[:, None] + torch.arange(cols, device=seq.device)[None, :]
-    return seq[:, index]
-
-
-def _rows(length: int, k: int) -> int:
-    """Hankel rows: as square as possible, with at least K + 1 rows and K columns."""
-    return min(max(length // 2 + 1, k + 1), length - k + 1)
-
-
-def _cadzow(seq: Tensor, k: int) -> Tensor:
-    rows = _rows(seq.shape[-1], k)
-    cols = seq.shape[-1] - rows + 1
-    index = (torch.arange(rows)[:, None] + torch.arange(cols)[None, :]).reshape(-1).to(seq.device)
-    ones = torch.ones(index.shape, dtype=seq.real.dtype, device=seq.device)
-    count = torch.zeros(seq.shape[-1], dtype=seq.real.dtype, device=seq.device).index_add_(0, index, ones)
-    for _ in range(CADZOW_ITERATIONS):
-        u, s, vh = torch.linalg.svd(_hankel(seq, rows), full_matrices=False)
-        low = (u[..., :k] * s[..., None, :k].to(u.dtype)) @ vh[..., :k, :]
-        seq = torch.zeros_like(seq).index_add_(-1, index, low.reshape(low.shape[0], -1)) / count
-    return seq
-
-
 def _esprit(seq: Tensor, k: int) -> Tensor:
     """TLS-ESPRIT roots ``(B, K)``."""
-    u, _, _ = torch.linalg.svd(_hankel(seq, _rows(seq.shape[-1], k)), full_matrices=False)
-    signal = u[..., :k]  # (B, L, K)
+    signal = signal_subspace(hankel(seq, rows_for(seq.shape[-1], k))[:, None], k)  # (B, L, K)
     both = torch.cat([signal[:, :-1], signal[:, 1:]], dim=-1)  # (B, L - 1, 2K)
     _, _, vh = torch.linalg.svd(both, full_matrices=True)
     v = vh.conj().transpose(-1, -2)  # (B, 2K, 2K)
@@ -80,9 +56,9 @@ def locate_multi(y: Tensor, k: int, method: str) -> tuple[Tensor, Tensor]:
         (K+1)-th to the K-th singular value of the Hankel matrix, 0 without noise and near 1
         where noise or a (K+1)-th pulse fills the signal subspace.
     """
-    seq = _cadzow(y, k) if method == "cadzow" else y
+    seq = cadzow(y, k, CADZOW_ITERATIONS) if method == "cadzow" else y
     roots = _prony(seq, k) if method == "ls" else _esprit(seq, k)
-    s = torch.linalg.svdvals(_hankel(y, _rows(y.shape[-1], k)))
+    s = torch.linalg.svdvals(hankel(y, rows_for(y.shape[-1], k)))
     if s.shape[-1] > k:
         gap = s[..., k] / s[..., k - 1].clamp(min=torch.finfo(s.dtype).tiny)
     else:

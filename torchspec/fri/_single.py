@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from ._coefficients import axis_rows, frequencies
+from ._hankel import cadzow, hankel, rows_for, signal_subspace
 
 __all__ = ["locate_single"]
 
@@ -255,35 +256,6 @@ def _pick_peak(yr: Tensor, yi: Tensor, freq: Tensor, theta: Tensor) -> Tensor:
 # --- root methods -------------------------------------------------------------------------
 
 
-def _hankel(seq: Tensor) -> Tensor:
-    """``(..., L1, L2)`` Hankel matrices of sequences ``(..., L)``, ``L1 = L // 2 + 1``."""
-    rows = seq.shape[-1] // 2 + 1
-    index = torch.arange(rows, device=seq.device)[:, None] + torch.arange(seq.shape[-1] - rows + 1, device=seq.device)
-    return seq[..., index]
-
-
-def _principal(h: Tensor) -> Tensor:
-    """Principal left singular vector ``(..., L1)`` of the side-by-side ``h (..., S, L1, L2)``."""
-    gram = torch.einsum("...sik,...sjk->...ij", h, h.conj())
-    return torch.linalg.eigh(gram)[1][..., -1]
-
-
-def _cadzow(seq: Tensor) -> Tensor:
-    """Fixed-iteration rank-1 Cadzow denoising of each sequence ``(B, S, L)``."""
-    length = seq.shape[-1]
-    if length < 3:
-        return seq
-    rows = length // 2 + 1
-    index = (torch.arange(rows)[:, None] + torch.arange(length - rows + 1)).reshape(-1).to(seq.device)
-    count = torch.bincount(index, minlength=length).to(seq.real.dtype)
-    for _ in range(CADZOW_ITERATIONS):
-        h = _hankel(seq)
-        u = torch.linalg.eigh(h @ h.conj().transpose(-1, -2))[1][..., -1:]
-        low = (u @ (u.conj().transpose(-1, -2) @ h)).flatten(-2)
-        seq = torch.zeros_like(seq).index_add_(-1, index, low) / count
-    return seq
-
-
 def _root(y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str) -> Tensor:
     """``theta (B, D)`` from the common root of every row along each axis."""
     table = torch.cat([dc.abs().to(y.dtype)[:, None], y, y.conj()], -1)
@@ -291,11 +263,11 @@ def _root(y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str) -> Tensor:
     for axis in range(len(bands)):
         seq = table[:, torch.tensor(axis_rows(bands, axis), device=y.device)]  # (B, S, M + 1)
         if method == "cadzow":
-            seq = _cadzow(seq)
+            seq = cadzow(seq, 1, CADZOW_ITERATIONS)
         if method == "ls":  # the paper's equation (5): least-squares annihilation, summed over rows
             z = (seq[..., 1:] * seq[..., :-1].conj()).sum((-2, -1))
         else:
-            v = _principal(_hankel(seq))
+            v = signal_subspace(hankel(seq, rows_for(seq.shape[-1], 1)), 1)[..., 0]
             z = (v[..., :-1].conj() * v[..., 1:]).sum(-1)
         theta.append(-torch.angle(z))  # Y_m = a_m e^{-i m theta}: the root is e^{-i theta}
     return torch.stack(theta, -1)
