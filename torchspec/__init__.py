@@ -1,7 +1,23 @@
 """torchspec: reflectance of nearly flat objects from a few HDR photographs under an extended
 light, by finite-rate-of-innovation location of the specular peak and batched fitting."""
 
-from . import crb, fri
+from . import brdf, crb, fri, geometry, lights
 from ._version import __version__
+from .brdf import SVBRDF
+from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
+from .render import render
 
-__all__ = ["__version__", "crb", "fri"]
+__all__ = [
+    "SVBRDF",
+    "__version__",
+    "brdf",
+    "crb",
+    "fri",
+    "geometry",
+    "lights",
+    "read_capture",
+    "read_svbrdf",
+    "render",
+    "write_capture",
+    "write_svbrdf",
+]

@@ -1,0 +1,90 @@
+"""An independent brute-force evaluation of the measurement model, for tests only.
+
+Shares no code with the package: the Ward BRDF is written from capture-format.md with explicit
+``tan(theta_h)`` and ``phi_h``, kernels from their definitions (normalisers by trapezoid on a
+fine grid), and the integral is a midpoint rule on a fine Cartesian grid of the l-plane, with
+cells cut by the unit circle weighted by their inside fraction (8 x 8 sub-samples).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+F64 = torch.float64
+
+
+def ward_brdf(wi, wo, n, alpha_x, alpha_y, rotation):
+    """Ward's specular BRDF for k_s = 1, from the format's formula."""
+    ci, co = (n * wi).sum(-1), (n * wo).sum(-1)
+    h = wi + wo
+    h = h / h.norm(dim=-1, keepdim=True)
+    x = torch.tensor([1.0, 0.0, 0.0], dtype=F64)
+    s = x - (x * n).sum(-1, keepdim=True) * n
+    s = s / s.norm(dim=-1, keepdim=True)
+    t = torch.linalg.cross(n, s, dim=-1)
+    s, t = math.cos(rotation) * s + math.sin(rotation) * t, math.cos(rotation) * t - math.sin(rotation) * s
+    theta = torch.acos((h * n).sum(-1).clamp(-1.0, 1.0))
+    phi = torch.atan2((h * t).sum(-1), (h * s).sum(-1))
+    lobe = torch.exp(-(torch.tan(theta) ** 2) * (torch.cos(phi) ** 2 / alpha_x**2 + torch.sin(phi) ** 2 / alpha_y**2))
+    value = lobe / (4.0 * math.pi * alpha_x * alpha_y * torch.sqrt((ci * co).clamp(min=1e-300)))
+    return torch.where((ci > 0) & (co > 0), value, torch.zeros_like(value))
+
+
+def kernel_density(kind, w, centre, *, sigma=0.0, power=2.0, table=None, extent=0.0):
+    """Density per unit l-plane area at directions ``w (M, 3)`` for one frame's ``centre``."""
+    if kind == "gaussian-projected":
+        d2 = ((w[:, :2] - centre[:2]) ** 2).sum(-1)
+        return torch.exp(-d2 / (2.0 * sigma**2)) / (2.0 * math.pi * sigma**2)
+    if kind == "tabulated":
+        # The cubic B-spline with the table as control points (scipy's), row 0 at +y, of unit mass.
+        from scipy.ndimage import map_coordinates
+
+        hk, wk = table.shape
+        pad = 4
+        padded = np.pad(table.numpy(), pad)
+        fx = ((w[:, 0] - centre[0]) / extent + 1.0) * wk / 2.0 - 0.5 + pad
+        fy = (1.0 - (w[:, 1] - centre[1]) / extent) * hk / 2.0 - 0.5 + pad
+        value = map_coordinates(padded, [fy.numpy(), fx.numpy()], order=3, mode="constant", cval=0.0, prefilter=False)
+        return torch.from_numpy(value) / (table.sum() * (2 * extent / wk) * (2 * extent / hk))
+    angle = torch.acos((w * centre).sum(-1).clamp(-1.0, 1.0))
+    if kind == "gaussian-angular":
+
+        def profile(g):
+            return torch.exp(-(g**2) / (2.0 * sigma**2))
+    else:  # super-Gaussian, angular
+
+        def profile(g):
+            return torch.exp(-((g / sigma) ** power))
+
+    g = torch.linspace(0.0, math.pi, 400001, dtype=F64)
+    norm = 2.0 * math.pi * torch.trapezoid(profile(g) * torch.sin(g), g)
+    return profile(angle) / norm / w[:, 2].clamp(min=1e-300)
+
+
+def integrate(kind, centre, normal, *, k_d, k_s, alpha, rotation, box_centre, half, step, view=None, **kernel):
+    """``integral D(l) [k_d / pi + k_s Ward] <n, w> dl`` over the disk (irradiance and exposure 1),
+    on the square of half-size ``half`` about ``box_centre`` with spacing ``step``: (diffuse, specular)."""
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=F64) if view is None else view
+    count = int(round(2 * half / step))
+    offsets = (torch.arange(count, dtype=F64) + 0.5) * step - half
+    gx, gy = torch.meshgrid(box_centre[0] + offsets, box_centre[1] + offsets, indexing="ij")
+    l = torch.stack([gx, gy], -1).reshape(-1, 2)
+    r2 = (l * l).sum(-1)
+    sub = (torch.arange(8, dtype=F64) + 0.5) / 8 - 0.5
+    sx, sy = torch.meshgrid(sub, sub, indexing="ij")
+    edge = (r2.sqrt() - 1.0).abs() < step
+    inside_sub = ((l[:, None, None, 0] + step * sx) ** 2 + (l[:, None, None, 1] + step * sy) ** 2) < 1.0
+    fraction = torch.where(edge, inside_sub.to(F64).mean((-2, -1)), (r2 < 1.0).to(F64))
+    keep = fraction > 0
+    l, fraction = l[keep], fraction[keep]
+    r2 = (l * l).sum(-1).clamp(max=1.0 - 1e-12)  # an edge cell's centre may sit just outside
+    w = torch.cat([l, torch.sqrt(1.0 - r2)[:, None]], -1)
+    weight = kernel_density(kind, w, centre, **kernel) * fraction * step * step
+    cos = (w * normal).sum(-1).clamp(min=0.0)
+    diffuse = k_d / math.pi * (weight * cos).sum()
+    spec = ward_brdf(w, view.expand_as(w), normal.expand_as(w), alpha[0], alpha[1], rotation)
+    specular = k_s * (weight * spec * cos).sum()
+    return diffuse.item(), specular.item()

@@ -1,0 +1,209 @@
+import importlib
+import math
+
+import pytest
+import torch
+from brute_force import integrate
+
+import torchspec as ts
+from torchspec.brdf import SVBRDF, ward_cosine
+from torchspec.geometry import normal_from_angles
+from torchspec.lights import Kernel, Lights
+from torchspec.render import render
+
+F64 = torch.float64
+VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+
+
+def _table():
+    """A smooth, slightly asymmetric blob: a tabulated kernel as a calibration would give."""
+    y, x = torch.meshgrid(torch.linspace(-1, 1, 24, dtype=F64), torch.linspace(-1, 1, 24, dtype=F64), indexing="ij")
+    return torch.exp(-((x - 0.1) ** 2 / 0.18 + (y + 0.05) ** 2 / 0.12) * 2.0)
+
+
+KERNELS = {
+    "gaussian-projected-0.08": (
+        Kernel("gaussian", "projected", 0.08),
+        dict(kind="gaussian-projected", sigma=0.08),
+        0.08,
+    ),
+    "gaussian-projected-0.02": (
+        Kernel("gaussian", "projected", 0.02),
+        dict(kind="gaussian-projected", sigma=0.02),
+        0.02,
+    ),
+    "gaussian-angular-0.05": (Kernel("gaussian", "angular", 0.05), dict(kind="gaussian-angular", sigma=0.05), 0.05),
+    "supergaussian-0.035": (
+        Kernel("supergaussian", "angular", 0.035, 6.0),
+        dict(kind="supergaussian", sigma=0.035, power=6.0),
+        0.035,
+    ),
+    "tabulated-0.15": (
+        Kernel("tabulated", table=_table(), extent=0.15),
+        dict(kind="tabulated", table=_table(), extent=0.15),
+        0.15,
+    ),
+}
+
+
+def _case(seed, kernel_width):
+    """A random pixel and light: tilt <= 30 deg, alpha in [0.005, 0.5] (anisotropic, rotated),
+    light 0..75 deg from the zenith, every other case near the mirror direction."""
+    g = torch.Generator().manual_seed(seed)
+
+    def uniform(a, b):
+        return a + (b - a) * torch.rand((), generator=g, dtype=F64).item()
+
+    tilt, azimuth = math.radians(uniform(0, 30)), uniform(0, 2 * math.pi)
+    normal = torch.tensor(
+        [math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth), math.cos(tilt)], dtype=F64
+    )
+    alpha_x = math.exp(uniform(math.log(0.005), math.log(0.5)))
+    alpha = (alpha_x, alpha_x / [1.0, 1.0, 2.0, 4.0][seed % 4])
+    rotation = uniform(0, math.pi)
+    if seed % 2 == 0:  # the specular lobe lights up
+        theta, phi = min(math.radians(75), 2 * tilt + uniform(-2, 2) * kernel_width), azimuth
+    else:
+        theta, phi = math.radians(uniform(0, 75)), uniform(0, 2 * math.pi)
+    theta = abs(theta)
+    centre = torch.tensor(
+        [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)], dtype=F64
+    )
+    return normal, alpha, rotation, centre
+
+
+def _brute(kernel_args, kernel_width, normal, alpha, rotation, centre, k_d, k_s):
+    mirror = 2.0 * normal[2] * normal - VIEW
+    lobe_width = 2.5 * max(alpha)
+    common = dict(k_d=k_d, k_s=k_s, alpha=alpha, rotation=rotation, **kernel_args)
+    reach = 2.0 * kernel_width if kernel_args["kind"] in ("supergaussian", "tabulated") else 7.0 * kernel_width
+    diffuse, _ = integrate(
+        centre=centre,
+        normal=normal,
+        box_centre=centre[:2],
+        half=reach,
+        step=kernel_width / 30,
+        **{**common, "k_s": 0.0},
+    )
+    if lobe_width < kernel_width:
+        box, half, step = mirror[:2], min(8.0 * lobe_width, 1.1), lobe_width / 30
+    else:
+        box, half, step = centre[:2], reach, kernel_width / 30
+    _, specular = integrate(centre=centre, normal=normal, box_centre=box, half=half, step=step, **common)
+    return diffuse + specular, specular
+
+
+@pytest.mark.parametrize("path,tolerance", [("reference", 1e-4), ("fast", 1e-3)])
+@pytest.mark.parametrize("name", list(KERNELS))
+def test_render_matches_brute_force(name, path, tolerance):
+    kernel, kernel_args, width = KERNELS[name]
+    if path == "fast" and kernel.kind != "gaussian":
+        pytest.skip("the fast path is for Gaussian kernels")
+    worst = 0.0
+    for seed in range(8):
+        normal, alpha, rotation, centre = _case(seed, width)
+        maps = SVBRDF(
+            normal[None],
+            torch.tensor([[0.3]], dtype=F64),
+            torch.tensor([[1.0]], dtype=F64),
+            torch.tensor([alpha], dtype=F64),
+            torch.tensor([rotation], dtype=F64),
+        )
+        lights = Lights(centre[None], kernel, torch.ones(1, 1, dtype=F64), torch.ones(1, dtype=F64))
+        value = render(maps, lights, VIEW, path=path)[0, 0, 0].item()
+        expected, _ = _brute(kernel_args, width, normal, alpha, rotation, centre, 0.3, 1.0)
+        error = abs(value - expected) / max(abs(expected), 1e-12)
+        worst = max(worst, error)
+        assert error <= tolerance, (
+            f"{name} {path} seed {seed}: relative error {error:.3g} ({value:.6g} vs {expected:.6g})"
+        )
+
+
+def test_point_light_is_exact():
+    normal = normal_from_angles(torch.tensor([[0.2, -0.1], [0.0, 0.3]], dtype=F64))
+    centre = torch.tensor([[0.3, 0.1, 0.0], [-0.2, 0.5, 0.0]], dtype=F64)
+    centre[:, 2] = (1 - (centre[:, :2] ** 2).sum(-1)).sqrt()
+    maps = SVBRDF(
+        normal,
+        torch.tensor([[0.2, 0.3, 0.4], [0.5, 0.1, 0.0]], dtype=F64),
+        torch.tensor([[0.7], [0.2]], dtype=F64),
+        torch.tensor([[0.1, 0.05], [0.3, 0.3]], dtype=F64),
+    )
+    irradiance = torch.tensor([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]], dtype=F64)
+    lights = Lights(centre, Kernel("point"), irradiance, torch.tensor([2.0, 1.0], dtype=F64))
+    value = render(maps, lights, VIEW)
+    cos = (normal[:, None, :] * centre[None]).sum(-1).clamp(min=0)
+    spec = ward_cosine(centre[None], VIEW, normal[:, None], maps.roughness[:, None])
+    expected = maps.diffuse[:, None] / math.pi * cos[..., None] + maps.specular[:, None] * spec[..., None]
+    expected = expected * (torch.tensor([2.0, 1.0], dtype=F64)[:, None] * irradiance)[None]
+    torch.testing.assert_close(value, expected, rtol=1e-12, atol=0)
+
+
+def test_shapes_chunks_and_devices():
+    g = torch.Generator().manual_seed(0)
+    normal = normal_from_angles(0.2 * torch.randn(4, 5, 2, generator=g))
+    maps = SVBRDF(
+        normal,
+        torch.rand(4, 5, 3, generator=g),
+        torch.rand(4, 5, 1, generator=g),
+        0.02 + 0.2 * torch.rand(4, 5, 2, generator=g),
+    )
+    centre = normal_from_angles(0.4 * torch.randn(7, 2, generator=g))
+    lights = Lights(centre, Kernel("gaussian", "projected", 0.05), torch.ones(7, 3), torch.ones(7))
+    value = render(maps, lights, VIEW.float())
+    assert value.shape == (4, 5, 7, 3) and value.dtype == torch.float32
+    flat = render(maps.flatten(), lights, VIEW.float())
+    torch.testing.assert_close(value.reshape(20, 7, 3), flat)
+    module = importlib.import_module("torchspec.render")
+
+    budget = module.BUDGET
+    module.BUDGET = 64  # one pixel per chunk
+    try:
+        torch.testing.assert_close(render(maps, lights, VIEW.float()), value, rtol=1e-5, atol=1e-6)
+    finally:
+        module.BUDGET = budget
+
+
+def test_bad_inputs():
+    maps = SVBRDF(torch.tensor([[0.0, 0.0, 1.0]]), torch.ones(1, 3), torch.ones(1, 1), torch.ones(1, 2) * 0.1)
+    lights = Lights(torch.tensor([[0.0, 0.0, 1.0]]), Kernel("unknown"), torch.ones(1, 1), torch.ones(1))
+    with pytest.raises(ValueError, match="'unknown': rendering needs its shape"):
+        render(maps, lights, VIEW.float())
+    lights = Lights(
+        torch.tensor([[0.0, 0.0, 1.0]]), Kernel("gaussian", "projected", 0.05), torch.ones(1, 2), torch.ones(1)
+    )
+    with pytest.raises(ValueError, match=r"irradiance must have 1 or 3 channels"):
+        render(maps, lights, VIEW.float())
+    lights = Lights(
+        torch.tensor([[0.0, 0.0, 1.0]]), Kernel("supergaussian", "angular", 0.03, 6.0), torch.ones(1, 1), torch.ones(1)
+    )
+    with pytest.raises(ValueError, match="path 'fast' needs a Gaussian kernel"):
+        render(maps, lights, VIEW.float(), path="fast")
+    with pytest.raises(ValueError, match=r"view must have shape \(3,\)"):
+        render(maps, lights, VIEW[:2].float())
+
+
+@pytest.mark.parametrize(
+    "kernel", [Kernel("point"), Kernel("gaussian", "projected", 0.05), Kernel("supergaussian", "angular", 0.04, 6.0)]
+)
+def test_gradcheck(kernel):
+    """Every parameter, float64, with a grazing light and alpha = 0.005 among the cases."""
+    angles = torch.tensor([[0.1, -0.2], [0.35, 0.1]], dtype=F64, requires_grad=True)
+    k_d = torch.tensor([[0.3, 0.2], [0.5, 0.4]], dtype=F64, requires_grad=True)
+    k_s = torch.tensor([[0.6, 0.4], [0.3, 0.2]], dtype=F64, requires_grad=True)
+    alpha = torch.tensor([[0.005, 0.005], [0.12, 0.06]], dtype=F64, requires_grad=True)
+    rotation = torch.tensor([0.3, 1.1], dtype=F64, requires_grad=True)
+    theta = torch.tensor([0.2, 0.7, math.radians(86.0)], dtype=F64)  # the last grazes
+    centre = torch.stack([torch.sin(theta), 0.1 * torch.ones_like(theta), torch.cos(theta)], -1)
+    centre = centre / centre.norm(dim=-1, keepdim=True)
+    lights = Lights(centre, kernel, torch.ones(3, 1, dtype=F64), torch.ones(3, dtype=F64))
+
+    def forward(angles, k_d, k_s, alpha, rotation):
+        maps = SVBRDF(normal_from_angles(angles), k_d, k_s, alpha, rotation)
+        return render(maps, lights, VIEW)
+
+    assert torch.autograd.gradcheck(forward, (angles, k_d, k_s, alpha, rotation), atol=1e-6, rtol=1e-4)
+
+
+def test_top_level_exports():
+    assert ts.render is render

@@ -1,0 +1,187 @@
+"""OpenEXR images as ``(H, W, C)`` float32 arrays, with errors that name the file.
+
+OpenEXR's Python binding (``import OpenEXR``, version 3) has traps this module hides:
+
+- it does not raise for a truncated file: the file opens with zero parts (and prints a warning
+  on stdout), so the part count is checked here;
+- its writer ignores numpy strides, so a transposed or sliced array is written scrambled:
+  every channel is passed through :func:`numpy.ascontiguousarray`;
+- it cannot write float64: images are written as 32-bit float channels.
+
+Corrupted bytes inside a compressed block may still decode without an error (EXR has no
+checksum): readers further up check what they can (finite values, sizes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+from .._atomic import atomic_path
+
+__all__ = ["ExrError", "read_exr", "write_exr"]
+
+_GROUPS = (("R", "G", "B"), ("X", "Y", "Z"))
+
+
+class ExrError(ValueError):
+    """An EXR file that cannot be read or written as asked; the message names the file."""
+
+
+def _channel_order(names: Sequence[str]) -> list[str]:
+    """The order :func:`read_exr` gives a file's channels by default.
+
+    ``R, G, B`` in that order when present, then ``X, Y, Z`` likewise, then the others sorted.
+
+    Example:
+        >>> _channel_order(["B", "A", "G", "R"])
+        ['R', 'G', 'B', 'A']
+    """
+    grouped = [name for group in _GROUPS for name in group if name in names]
+    return grouped + sorted(set(names) - set(grouped))
+
+
+def _open(path: Path) -> OpenEXR.File:
+    """Open ``path`` with every channel separate, raising :class:`ExrError` for any failure."""
+    if not path.is_file():
+        raise ExrError(f"EXR file {path} must exist; got no such file. Check the path.")
+    # The binding reports a failed pixel read (e.g. a truncated file) by printing on stdout and
+    # returning zero parts; keep that line for the error instead of polluting the caller's stdout.
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed):
+            file = OpenEXR.File(str(path), separate_channels=True)
+    except Exception as error:
+        raise ExrError(f"{path} must be a readable OpenEXR file; got {type(error).__name__}: {error}.") from error
+    notes = printed.getvalue().strip()
+    if not file.parts:
+        detail = f" ({notes})" if notes else ""
+        raise ExrError(
+            f"{path} must hold an image; got none: the file is truncated or corrupt{detail}. Write it again."
+        )
+    if notes:  # not ours to swallow when the read went well
+        sys.stdout.write(printed.getvalue())
+    if len(file.parts) > 1:
+        raise ExrError(f"{path} must be a single-part EXR; got {len(file.parts)} parts. Save one part per file.")
+    return file
+
+
+def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndarray:
+    """Read channels of an EXR file.
+
+    Args:
+        path: the ``.exr`` file.
+        channels: the channel names to read, in this order; a single string is one name. By
+            default every channel of the file: ``R, G, B`` in that order when present, then
+            ``X, Y, Z`` likewise, then the others sorted.
+
+    Returns:
+        ``(H, W, C)`` C-contiguous float32 array, row 0 at the top of the image (half, float and
+        uint channels are converted).
+
+    Raises:
+        ExrError: the file is missing, unreadable, truncated, multi-part, lacks a requested
+            channel (the message lists those it has), or holds channels that are not 2D images of
+            one size.
+
+    Example:
+        >>> rgb = read_exr("capture/frames/0000.exr", ["R", "G", "B"])  # doctest: +SKIP
+        >>> rgb.shape
+        (48, 48, 3)
+    """
+    return _read(Path(path), channels)[1]
+
+
+def _read(path: Path, channels: Sequence[str] | None) -> tuple[list[str], np.ndarray]:
+    """:func:`read_exr` that also returns the names of the channels read, in order."""
+    file = _open(path)
+    try:
+        found = {name: channel.pixels for name, channel in file.channels().items()}
+    except Exception as error:
+        raise ExrError(f"{path} must be a readable OpenEXR file; got {type(error).__name__}: {error}.") from error
+    if not found:
+        raise ExrError(f"{path} must have at least one channel; got none. Write it again.")
+    if isinstance(channels, str):
+        channels = [channels]
+    names = _channel_order(list(found)) if channels is None else list(channels)
+    if not names:
+        raise ExrError(f"channels to read from {path} must name at least one channel; got {channels!r}.")
+    missing = [name for name in names if name not in found]
+    if missing:
+        raise ExrError(
+            f"{path} must have channel(s) {missing}; it has {_channel_order(list(found))}. "
+            "Ask for channels the file has, or rewrite it with these channel names."
+        )
+    shapes = {name: getattr(found[name], "shape", None) for name in names}
+    for name, shape in shapes.items():
+        if shape is None or len(shape) != 2:
+            raise ExrError(f"{path}: channel {name!r} must be a 2D image; got pixel data of shape {shape}.")
+    if len(set(shapes.values())) > 1:
+        raise ExrError(
+            f"{path}: channels must all have one size (no subsampling); got {shapes}. Resample the channels."
+        )
+    image = np.stack([np.asarray(found[name], dtype=np.float32) for name in names], axis=-1)
+    return names, np.ascontiguousarray(image)
+
+
+def _to_numpy(image) -> np.ndarray:
+    if hasattr(image, "detach"):  # a torch tensor, without importing torch here
+        image = image.detach().cpu().numpy()
+    return np.asarray(image)
+
+
+def write_exr(path: str | Path, image, channels: Sequence[str]) -> None:
+    """Write an image as an EXR of 32-bit float channels with ZIP compression, atomically.
+
+    The file is written under a temporary name (``.<name>.*.part.exr``) in the same folder and
+    renamed into place, so an interruption never leaves a half-written file under ``path``.
+    Missing parent folders are created.
+
+    Args:
+        path: the ``.exr`` file to write (replaced if it exists).
+        image: ``(H, W, C)`` numpy array or torch tensor (any strides, dtype, device), or
+            ``(H, W)`` with one channel name.
+        channels: the ``C`` channel names, in the order of the last axis; a single string is one
+            name.
+
+    Raises:
+        ExrError: the image is not ``(H, W, C)`` with ``C = len(channels)`` and ``H, W > 0``, a
+            channel name is repeated or empty, or OpenEXR fails to write.
+
+    Example:
+        >>> write_exr("normal.exr", torch.zeros(48, 64, 3), ["X", "Y", "Z"])  # doctest: +SKIP
+    """
+    path = Path(path)
+    if isinstance(channels, str):
+        channels = [channels]
+    channels = list(channels)
+    array = _to_numpy(image)
+    if array.ndim == 2:
+        array = array[:, :, None]
+    if array.ndim != 3 or array.shape[0] == 0 or array.shape[1] == 0:
+        raise ExrError(f"image for {path} must have shape (H, W, C) or (H, W) with H, W > 0; got {array.shape}.")
+    if len(channels) != array.shape[2]:
+        raise ExrError(
+            f"channels for {path} must name one channel per image channel ({array.shape[2]}); "
+            f"got {len(channels)}: {channels}. Pass {array.shape[2]} names, e.g. ['R', 'G', 'B'] or ['Y']."
+        )
+    if len(set(channels)) != len(channels) or not all(isinstance(name, str) and name for name in channels):
+        raise ExrError(f"channels for {path} must be distinct non-empty strings; got {channels}.")
+    if not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_) or np.iscomplexobj(array):
+        raise ExrError(f"image for {path} must be real numbers; got dtype {array.dtype}.")
+    # The binding reads the buffer as if it were C-contiguous: strides are not honoured.
+    pixels = {
+        name: OpenEXR.Channel(np.ascontiguousarray(array[:, :, c], dtype=np.float32)) for c, name in enumerate(channels)
+    }
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        try:
+            OpenEXR.File(header, pixels).write(str(tmp))
+        except Exception as error:
+            raise ExrError(f"{path} could not be written; got {type(error).__name__}: {error}.") from error

@@ -1,0 +1,327 @@
+"""Folders of SVBRDF maps (``capture-format.md``, "SVBRDF maps"): the output of a fit and the
+``truth/`` of a synthetic capture.
+
+    svbrdf.json     {"format": "torchspec.svbrdf", "version": 1, "model": "ward", ...}
+    normal.exr      X, Y, Z          diffuse.exr, specular.exr   the capture's channels
+    roughness.exr   X, Y (+ A)       any other *.exr             extra maps (model, regions, ...)
+
+Maps are ``(H, W, ...)`` tensors, row 0 at the top of the image. :func:`write_svbrdf` writes
+``svbrdf.json`` last, so a folder with a manifest always has its maps.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._atomic import write_json
+from ..brdf import SVBRDF
+from .exr import ExrError, _read, write_exr
+
+__all__ = ["Maps", "SVBRDFError", "read_svbrdf", "write_svbrdf"]
+
+FORMAT = "torchspec.svbrdf"
+VERSIONS = (1,)
+META = "svbrdf.json"
+_MAPS = ("normal", "diffuse", "specular", "roughness")
+_KNOWN_EXTRA = ("model",)
+"""Optional maps of the format: an unreadable one is an error, where an unknown one is skipped."""
+_UNIT_TOLERANCE = 1e-3
+
+
+class SVBRDFError(ValueError):
+    """A folder of maps that does not follow ``capture-format.md``; the message names the file
+    and the key or map at fault."""
+
+
+@dataclass(frozen=True, eq=False)
+class Maps:
+    """A folder of SVBRDF maps as read by :func:`read_svbrdf`.
+
+    Attributes:
+        svbrdf: the parameters, leading dims ``(H, W)``.
+        meta: the content of ``svbrdf.json`` (``format``, ``version``, ``model`` and free keys).
+        extra: the folder's other maps by file stem (``"model"``, ``"regions"``, ...): float32
+            tensors ``(H, W)`` for a single channel, ``(H, W, C)`` otherwise.
+    """
+
+    svbrdf: SVBRDF
+    meta: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+
+def read_svbrdf(path: str | Path) -> Maps:
+    """Read and validate a folder of SVBRDF maps.
+
+    ``diffuse.exr`` defines the channels (``R, G, B`` in that order when present, otherwise the
+    file's names sorted); ``specular.exr`` is read with the same channels. Normals within
+    ``1e-3`` of unit length are renormalised. Unknown ``svbrdf.json`` keys are kept in ``meta``;
+    other EXR files go to ``extra`` (an unreadable unknown one is skipped with a warning).
+
+    Args:
+        path: the folder, or its ``svbrdf.json``.
+
+    Returns:
+        The maps: float32 tensors, leading dims ``(H, W)``; ``svbrdf.rotation`` from channel
+        ``A`` of ``roughness.exr`` when present, else ``None``.
+
+    Raises:
+        SVBRDFError: ``svbrdf.json`` is missing or invalid, a map is missing, unreadable, lacks
+            a channel or has another size than ``normal.exr``, or a value is out of range: NaN
+            or Inf anywhere, a normal far from unit length, negative roughness or ``k_s`` (the
+            message names the file and the count of bad pixels).
+
+    Example:
+        >>> maps = read_svbrdf("../shared/data/painting-dev/truth")  # doctest: +SKIP
+        >>> maps.svbrdf.shape, sorted(maps.extra)
+        (torch.Size([48, 48]), ['regions'])
+    """
+    path = Path(path)
+    folder = path.parent if path.suffix.lower() == ".json" or path.is_file() else path
+    meta = _read_meta(folder / META)
+    normal = _read_map(folder / "normal.exr", ["X", "Y", "Z"])[1]
+    size = normal.shape[:2]
+    channels, diffuse = _read_map(folder / "diffuse.exr", None, size)
+    specular = _read_map(folder / "specular.exr", channels, size)[1]
+    names, roughness = _read_map(folder / "roughness.exr", None, size)
+    for name in ("X", "Y"):
+        if name not in names:
+            raise SVBRDFError(
+                f"{folder / 'roughness.exr'} must have channels X, Y (alpha_x, alpha_y) and optionally A; got {names}."
+            )
+    rotation = roughness[:, :, names.index("A")] if "A" in names else None
+    roughness = roughness[:, :, [names.index("X"), names.index("Y")]]
+
+    for name, value in (("normal", normal), ("diffuse", diffuse), ("specular", specular), ("roughness", roughness)):
+        _check_finite(folder / f"{name}.exr", value)
+    if rotation is not None:
+        _check_finite(folder / "roughness.exr", rotation)
+    normal = _unit(folder / "normal.exr", normal)
+    _check_non_negative(folder / "roughness.exr", "roughness (alpha)", roughness)
+    _check_non_negative(folder / "specular.exr", "k_s", specular)
+
+    extra = {}
+    for file in sorted(folder.glob("*.exr")):
+        if file.stem in _MAPS or file.name.startswith("."):  # .*.part.exr: a write in progress
+            continue
+        try:
+            _, image = _read(file, None)
+        except ExrError as error:
+            if file.stem in _KNOWN_EXTRA:
+                raise SVBRDFError(f"{file} must be a readable EXR; got: {error}") from error
+            warnings.warn(f"skipping the unreadable extra map {file}: {error}", stacklevel=2)
+            continue
+        extra[file.stem] = torch.from_numpy(np.ascontiguousarray(image[:, :, 0]) if image.shape[2] == 1 else image)
+
+    svbrdf = SVBRDF(
+        normal=torch.from_numpy(np.ascontiguousarray(normal)),
+        diffuse=torch.from_numpy(diffuse),
+        specular=torch.from_numpy(specular),
+        roughness=torch.from_numpy(np.ascontiguousarray(roughness)),
+        rotation=None if rotation is None else torch.from_numpy(np.ascontiguousarray(rotation)),
+        channels=tuple(channels),
+    )
+    return Maps(svbrdf=svbrdf, meta=meta, extra=extra)
+
+
+def write_svbrdf(
+    path: str | Path,
+    maps_or_svbrdf: SVBRDF | Maps,
+    *,
+    meta: dict | None = None,
+    extra: dict | None = None,
+) -> None:
+    """Write a folder of SVBRDF maps; ``svbrdf.json`` last.
+
+    ``roughness.exr`` gets channel ``A`` only when ``rotation`` is not ``None``; a grey
+    ``specular (H, W, 1)`` is written replicated to every channel; roughness (and rotation) is
+    written as 0 where ``k_s = 0`` on every channel, as the format requires. An existing
+    ``svbrdf.json`` is removed first, so an interrupted write leaves no manifest; each file is
+    written atomically.
+
+    Args:
+        path: the folder (created if needed).
+        maps_or_svbrdf: an :class:`~torchspec.SVBRDF` with leading dims ``(H, W)``, or a
+            :class:`Maps` whose ``meta`` and ``extra`` are written too.
+        meta: keys for ``svbrdf.json``, over those of a :class:`Maps`. ``format`` and
+            ``version`` are set; ``model`` defaults to ``"ward"``.
+        extra: more maps by name, over those of a :class:`Maps`: ``(H, W)`` (written as
+            channel ``Y``) or ``(H, W, C)``; e.g. ``{"model": index_map}``.
+
+    Raises:
+        SVBRDFError: the SVBRDF is not ``(H, W)``, a value is NaN, Inf or out of range (normals
+            not unit within ``1e-3``, negative roughness or ``k_s``), an extra map has another
+            size or a reserved name, or ``meta`` is not JSON or contradicts the format.
+
+    Example:
+        >>> write_svbrdf("fit", svbrdf, meta={"model": "ward"}, extra={"quality": q})  # doctest: +SKIP
+    """
+    folder = Path(path)
+    if isinstance(maps_or_svbrdf, Maps):
+        svbrdf = maps_or_svbrdf.svbrdf
+        meta = {**maps_or_svbrdf.meta, **(meta or {})}
+        extra = {**maps_or_svbrdf.extra, **(extra or {})}
+    elif isinstance(maps_or_svbrdf, SVBRDF):
+        svbrdf, meta, extra = maps_or_svbrdf, dict(meta or {}), dict(extra or {})
+    else:
+        raise SVBRDFError(f"maps for {folder} must be an SVBRDF or Maps; got {type(maps_or_svbrdf).__name__}.")
+    if len(svbrdf.shape) != 2:
+        raise SVBRDFError(
+            f"SVBRDF for {folder} must have leading dims (H, W); got {tuple(svbrdf.shape)}. "
+            "Use svbrdf.reshape(H, W) for a flat batch of pixels."
+        )
+    size = tuple(svbrdf.shape)
+    normal, diffuse, specular, roughness = (
+        _numpy(value) for value in (svbrdf.normal, svbrdf.diffuse, svbrdf.specular, svbrdf.roughness)
+    )
+    rotation = None if svbrdf.rotation is None else _numpy(svbrdf.rotation)
+    specular = np.broadcast_to(specular, diffuse.shape)
+    # The format's "no lobe": roughness is 0 (never NaN) where k_s = 0 on every channel.
+    lobe = (specular != 0).any(axis=-1)
+    roughness = np.where(lobe[:, :, None], roughness, np.float32(0))
+    if rotation is not None:
+        rotation = np.where(lobe, rotation, np.float32(0))
+    for name, value in (("normal", normal), ("diffuse", diffuse), ("specular", specular), ("roughness", roughness)):
+        _check_finite(folder / f"{name}.exr", value, f"SVBRDF.{name} for ")
+    if rotation is not None:
+        _check_finite(folder / "roughness.exr", rotation, "SVBRDF.rotation for ")
+    _unit(folder / "normal.exr", normal, "SVBRDF.normal for ")
+    _check_non_negative(folder / "roughness.exr", "SVBRDF.roughness", roughness)
+    _check_non_negative(folder / "specular.exr", "SVBRDF.specular", specular)
+    document = _meta_to_write(folder / META, meta)
+    extras = {name: _extra_to_write(folder, name, value, size) for name, value in extra.items()}
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / META).unlink(missing_ok=True)
+    write_exr(folder / "normal.exr", normal, ["X", "Y", "Z"])
+    write_exr(folder / "diffuse.exr", diffuse, svbrdf.channels)
+    write_exr(folder / "specular.exr", specular, svbrdf.channels)
+    if rotation is None:
+        write_exr(folder / "roughness.exr", roughness, ["X", "Y"])
+    else:
+        write_exr(folder / "roughness.exr", np.concatenate([roughness, rotation[:, :, None]], axis=-1), ["X", "Y", "A"])
+    for name, image in extras.items():
+        write_exr(folder / f"{name}.exr", image, _extra_channels(image.shape[2]))
+    write_json(folder / META, document)
+
+
+def _read_meta(file: Path) -> dict:
+    if not file.is_file():
+        raise SVBRDFError(f"{file} must exist; got no such file. Pass a folder of SVBRDF maps (holding {META}).")
+    try:
+        meta = json.loads(file.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as error:
+        raise SVBRDFError(
+            f"{file} must be valid JSON; got {error.msg} at line {error.lineno} column {error.colno}. Fix the syntax."
+        ) from error
+    except (OSError, UnicodeDecodeError) as error:
+        raise SVBRDFError(f"{file} must be a readable UTF-8 file; got {error}.") from error
+    if not isinstance(meta, dict):
+        raise SVBRDFError(f"{file} must hold a JSON object; got {type(meta).__name__}.")
+    if meta.get("format") != FORMAT:
+        raise SVBRDFError(f"{file}: format must be {FORMAT!r}; got {meta.get('format')!r}. Is this a map folder?")
+    version = meta.get("version")
+    if type(version) is not int or version not in VERSIONS:
+        raise SVBRDFError(
+            f"{file}: version must be a supported version ({', '.join(map(str, VERSIONS))}); got {version!r}. "
+            "Convert the maps, or use a torchspec that reads this version."
+        )
+    if not isinstance(meta.get("model"), str) or not meta["model"]:
+        raise SVBRDFError(f"{file}: model must be a model name such as 'ward'; got {meta.get('model')!r}.")
+    return meta
+
+
+def _read_map(file: Path, channels, size=None) -> tuple[list[str], np.ndarray]:
+    """Channel names and ``(H, W, C)`` of a map, checked to be ``size``."""
+    if not file.is_file():
+        raise SVBRDFError(f"{file} must exist; got no such file. A map folder holds {', '.join(_MAPS)} (.exr).")
+    try:
+        names, image = _read(file, channels)
+    except ExrError as error:
+        raise SVBRDFError(f"{file} must be a readable map; got: {error}") from error
+    if size is not None and image.shape[:2] != size:
+        raise SVBRDFError(
+            f"{file} must have the size of normal.exr, {size[0]}x{size[1]} (height x width); "
+            f"got {image.shape[0]}x{image.shape[1]}."
+        )
+    return names, image
+
+
+def _check_finite(file: Path, value: np.ndarray, prefix: str = "") -> None:
+    bad = ~np.isfinite(value)
+    if bad.any():
+        pixels = int((bad.reshape(*value.shape[:2], -1)).any(axis=-1).sum())
+        raise SVBRDFError(f"{prefix}{file} must be finite; got {pixels} pixel(s) with NaN or Inf.")
+
+
+def _unit(file: Path, normal: np.ndarray, prefix: str = "") -> np.ndarray:
+    norm = np.linalg.norm(normal.astype(np.float64), axis=-1, keepdims=True)
+    far = np.abs(norm[:, :, 0] - 1) > _UNIT_TOLERANCE
+    if far.any():
+        row, col = np.argwhere(far)[0]
+        raise SVBRDFError(
+            f"{prefix}{file}: normals must be unit vectors (norm within {_UNIT_TOLERANCE:g} of 1); got "
+            f"{int(far.sum())} pixel(s) that are not, the first at row {row}, column {col} with norm "
+            f"{norm[row, col, 0]:.6g}. Normalise the normals."
+        )
+    return (normal / norm).astype(np.float32)
+
+
+def _check_non_negative(file: Path, what: str, value: np.ndarray) -> None:
+    negative = (value < 0).reshape(*value.shape[:2], -1).any(axis=-1)
+    if negative.any():
+        raise SVBRDFError(
+            f"{file}: {what} must be >= 0; got {int(negative.sum())} pixel(s) with a negative value "
+            f"(min {float(value.min()):.3g})."
+        )
+
+
+def _meta_to_write(file: Path, meta: dict) -> dict:
+    header = {"format": FORMAT, "version": VERSIONS[-1], "model": meta.get("model", "ward")}
+    for key in ("format", "version"):
+        if key in meta and meta[key] != header[key]:
+            raise SVBRDFError(f"meta for {file}: {key} must be {header[key]!r} (or left out); got {meta[key]!r}.")
+    if not isinstance(header["model"], str) or not header["model"]:
+        raise SVBRDFError(f"meta for {file}: model must be a model name such as 'ward'; got {header['model']!r}.")
+    document = {**header, **{key: value for key, value in meta.items() if key not in header}}
+    try:
+        json.dumps(document)
+    except (TypeError, ValueError) as error:
+        raise SVBRDFError(f"meta for {file} must be JSON-serialisable; got {error}.") from error
+    return document
+
+
+def _extra_to_write(folder: Path, name: Any, value: Any, size: tuple[int, int]) -> np.ndarray:
+    reserved = _MAPS + ("svbrdf",)
+    if not isinstance(name, str) or not name or name.startswith(".") or any(c in name for c in "/\\:"):
+        raise SVBRDFError(f"extra map names for {folder} must be plain file stems like 'model'; got {name!r}.")
+    if name in reserved:
+        raise SVBRDFError(f"extra map names for {folder} must not be one of {list(reserved)}; got {name!r}.")
+    image = _numpy(value)
+    shape = tuple(image.shape)
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim != 3 or image.shape[:2] != size:
+        raise SVBRDFError(
+            f"extra map {name!r} for {folder} must have shape (H, W) or (H, W, C) with (H, W) = {size}; got {shape}."
+        )
+    return image
+
+
+def _extra_channels(count: int) -> list[str]:
+    """Names that :func:`~torchspec.io.read_exr` gives back in the same order."""
+    names = {1: ["Y"], 2: ["X", "Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}
+    width = max(2, len(str(count - 1)))
+    return names.get(count, [f"C{c:0{width}d}" for c in range(count)])
+
+
+def _numpy(value: Any) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    return np.asarray(value, dtype=np.float32)
