@@ -88,3 +88,50 @@ def integrate(kind, centre, normal, *, k_d, k_s, alpha, rotation, box_centre, ha
     spec = ward_brdf(w, view.expand_as(w), normal.expand_as(w), alpha[0], alpha[1], rotation)
     specular = k_s * (weight * spec * cos).sum()
     return diffuse.item(), specular.item()
+
+
+def random_case(seed, kernel_width):
+    """A random pixel and light: tilt <= 30 deg, alpha in [0.005, 0.5] (anisotropic, rotated),
+    light 0..75 deg from the zenith, every other case near the mirror direction."""
+    g = torch.Generator().manual_seed(seed)
+
+    def uniform(a, b):
+        return a + (b - a) * torch.rand((), generator=g, dtype=F64).item()
+
+    tilt, azimuth = math.radians(uniform(0, 30)), uniform(0, 2 * math.pi)
+    normal = torch.tensor(
+        [math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth), math.cos(tilt)], dtype=F64
+    )
+    alpha_x = math.exp(uniform(math.log(0.005), math.log(0.5)))
+    alpha = (alpha_x, alpha_x / [1.0, 1.0, 2.0, 4.0][seed % 4])
+    rotation = uniform(0, math.pi)
+    if seed % 2 == 0:  # the specular lobe lights up
+        theta, phi = min(math.radians(75), 2 * tilt + uniform(-2, 2) * kernel_width), azimuth
+    else:
+        theta, phi = math.radians(uniform(0, 75)), uniform(0, 2 * math.pi)
+    theta = abs(theta)
+    centre = torch.tensor(
+        [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)], dtype=F64
+    )
+    return normal, alpha, rotation, centre
+
+
+def reference_value(kernel_args, kernel_width, normal, alpha, rotation, centre, k_d, k_s):
+    mirror = 2.0 * normal[2] * normal - torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    lobe_width = 2.5 * max(alpha)
+    common = dict(k_d=k_d, k_s=k_s, alpha=alpha, rotation=rotation, **kernel_args)
+    reach = 2.0 * kernel_width if kernel_args["kind"] in ("supergaussian", "tabulated") else 7.0 * kernel_width
+    diffuse, _ = integrate(
+        centre=centre,
+        normal=normal,
+        box_centre=centre[:2],
+        half=reach,
+        step=kernel_width / 30,
+        **{**common, "k_s": 0.0},
+    )
+    if lobe_width < kernel_width:
+        box, half, step = mirror[:2], min(8.0 * lobe_width, 1.1), lobe_width / 30
+    else:
+        box, half, step = centre[:2], reach, kernel_width / 30
+    _, specular = integrate(centre=centre, normal=normal, box_centre=box, half=half, step=step, **common)
+    return diffuse + specular, specular

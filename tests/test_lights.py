@@ -2,9 +2,9 @@ import math
 
 import pytest
 import torch
-from brute_force import kernel_density
+from brute_force import integrate, kernel_density
 
-from torchspec.lights import Kernel, Lights, angular_reach, clamped_cosine, diffuse_directions, nodes
+from torchspec.lights import Kernel, Lights, clamped_diffuse, diffuse_directions, nodes
 
 F64 = torch.float64
 
@@ -71,27 +71,19 @@ def test_point_light_nodes():
     assert (weight == 1).all()
 
 
-def test_clamped_cosine_matches_brute_force_at_the_horizon():
+@pytest.mark.parametrize("tilt_deg,theta_deg", [(30, 70), (20, 75), (10, 80)])
+def test_clamped_diffuse_matches_brute_force(tilt_deg, theta_deg):
+    """A kernel across the horizon of a normal tilted away from it: in front and behind."""
     kernel = Kernel("gaussian", "projected", 0.08)
-    theta, tilt = math.radians(70), math.radians(30)
+    theta, tilt = math.radians(theta_deg), math.radians(tilt_deg)
     centre = torch.tensor([[math.sin(theta), 0.0, math.cos(theta)]], dtype=F64)
-    normal = torch.tensor([[-math.sin(tilt), 0.0, math.cos(tilt)]], dtype=F64)  # tilted away from the light
-    step = 0.0008
-    offsets = (torch.arange(int(1.2 / step), dtype=F64) + 0.5) * step - 0.6
-    gx, gy = torch.meshgrid(centre[0, 0] + offsets, offsets, indexing="ij")
-    l = torch.stack([gx, gy], -1).reshape(-1, 2)
-    l = l[(l * l).sum(-1) < 1.0]
-    w = torch.cat([l, torch.sqrt(1.0 - (l * l).sum(-1))[:, None]], -1)
-    expected = (kernel_density("gaussian-projected", w, centre[0], sigma=0.08) * (w @ normal[0]).clamp(min=0)).sum()
-    value = clamped_cosine(kernel, centre, normal).item()
-    assert abs(value / (expected.item() * step * step) - 1) < 2e-3
-    linear = (diffuse_directions(_lights(kernel, [theta], 0.0)) @ normal[0]).item()
-    assert value > linear  # the clamp removes negative contributions
-
-
-def test_angular_reach():
-    reach = angular_reach(_lights(Kernel("gaussian", "angular", 0.05), [0.0, 0.5]))
-    assert 0.2 < reach[0].item() < 0.4  # ~6 sigma
+    normal = torch.tensor([[-math.sin(tilt), 0.0, math.cos(tilt)]], dtype=F64)
+    expected, _ = integrate("gaussian-projected", centre[0], normal[0], k_d=math.pi, k_s=0.0, alpha=(0.1, 0.1),
+                            rotation=0.0, box_centre=centre[0, :2], half=0.56, step=0.0008, sigma=0.08)
+    linear = diffuse_directions(_lights(kernel, [theta], 0.0)) @ normal[0]
+    value = clamped_diffuse(kernel, centre, normal, linear).item()
+    assert value > linear.item()  # the clamp removes negative contributions
+    assert abs(value / expected - 1) < 1e-4, f"{value:.8g} vs {expected:.8g}"
 
 
 @pytest.mark.parametrize(

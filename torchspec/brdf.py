@@ -24,7 +24,7 @@ from torch import Tensor
 
 from .geometry import dot, tangent_frame
 
-__all__ = ["SVBRDF", "lambert", "ward", "ward_cosine", "reflectance"]
+__all__ = ["SVBRDF", "lambert", "ward", "ward_cosine", "beckmann_cosine", "reflectance"]
 
 
 def _default_channels(count: int) -> tuple[str, ...]:
@@ -160,3 +160,37 @@ def reflectance(wi: Tensor, wo: Tensor, svbrdf: SVBRDF) -> Tensor:
     front = ((dot(n, wi) > 0) & (dot(n, wo) > 0))[..., None]
     diffuse = torch.where(front, lambert(svbrdf.diffuse), torch.zeros_like(svbrdf.diffuse))
     return diffuse + ward(wi, wo, n, svbrdf.specular, svbrdf.roughness, svbrdf.rotation)
+
+
+def _smith_g1(v: Tensor, m: Tensor, n: Tensor, s: Tensor, t: Tensor, alpha: Tensor) -> Tensor:
+    """Smith's masking for the Beckmann distribution with Mitsuba 3's rational approximation."""
+    cos = dot(v, n)
+    vs, vt = dot(v, s), dot(v, t)
+    sin2 = (vs * vs + vt * vt).clamp(min=torch.finfo(cos.dtype).tiny)
+    projected = torch.sqrt((vs * alpha[..., 0]) ** 2 + (vt * alpha[..., 1]) ** 2) / torch.sqrt(sin2)
+    tan = torch.sqrt(sin2) / cos.abs().clamp(min=torch.finfo(cos.dtype).tiny)
+    a = 1.0 / (projected * tan).clamp(min=torch.finfo(cos.dtype).tiny)
+    g = torch.where(a < 1.6, (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a), torch.ones_like(a))
+    return torch.where((dot(v, m) * cos > 0) & (sin2 > 0), g, torch.where(sin2 > 0, torch.zeros_like(g), 1.0))
+
+
+def beckmann_cosine(
+    wi: Tensor, wo: Tensor, n: Tensor, alpha: Tensor, rotation: Tensor | None = None
+) -> Tensor:
+    """A Beckmann microfacet lobe with Smith masking and no Fresnel (``F = 1``), times
+    ``<n, w_i>``: ``D G1(w_i) G1(w_o) / (4 <n, w_o>)``, for comparison with physically based
+    renderers (the development captures are rendered with it; ``alpha`` means what Ward's does
+    in the exponent). Not the format's model: fits use :func:`ward_cosine`.
+    """
+    ci, co = dot(n, wi), dot(n, wo)
+    front = (ci > 0) & (co > 0) & (alpha[..., 0] > 0) & (alpha[..., 1] > 0)
+    alpha = torch.where(front[..., None], alpha, torch.ones_like(alpha))
+    s, t = tangent_frame(n, rotation)
+    h = wi + wo
+    h = h / h.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(h.dtype).tiny)
+    hn = torch.where(front, dot(h, n), torch.ones_like(ci))
+    hs, ht = dot(h, s) / alpha[..., 0], dot(h, t) / alpha[..., 1]
+    d = torch.exp(-(hs * hs + ht * ht) / (hn * hn)) / (math.pi * alpha[..., 0] * alpha[..., 1] * hn**4)
+    g = _smith_g1(wi, h, n, s, t, alpha) * _smith_g1(wo, h, n, s, t, alpha)
+    value = d * g / (4.0 * torch.where(front, co, torch.ones_like(co)))
+    return torch.where(front, value, torch.zeros_like(value))

@@ -43,12 +43,12 @@ __all__ = [
     "polar_nodes",
     "nodes",
     "diffuse_directions",
-    "angular_reach",
-    "clamped_cosine",
+    "clamped_diffuse",
     "KERNEL_REACH",
 ]
 
 _PAD = 2  # a cubic B-spline reaches two pixels beyond its last control value
+ACROSS = 2.7  # lines per kernel width across a kernel in the clamped diffuse integral
 
 KERNEL_REACH = 6.0
 """Kernels are integrated out to this many widths (std, or radius for the super-Gaussian): what
@@ -133,7 +133,7 @@ class Kernel:
         return KERNEL_REACH * self.sigma
 
     def covariance(self, centre: Tensor) -> Tensor:
-        """Covariance ``(K, 2, 2)`` in the l-plane of the kernels centred at ``centre (K, 3)``
+        """Covariance ``(*, 2, 2)`` in the l-plane of the kernels centred at ``centre (*, 3)``
         (exact for a projected Gaussian; to first order for angular kernels, whose l-plane image
         is squeezed along the radius by ``cos(theta)``)."""
         eye = torch.eye(2, dtype=centre.dtype, device=centre.device)
@@ -151,7 +151,7 @@ class Kernel:
             cxx = cxx + (2.0 / wk) ** 2 / 3.0
             cyy = cyy + (2.0 / hk) ** 2 / 3.0
             cov = torch.stack([torch.stack([cxx, cxy]), torch.stack([cxy, cyy])]) * self.extent**2
-            return cov.expand(centre.shape[0], 2, 2)
+            return cov.expand(*centre.shape[:-1], 2, 2)
         if self.kind == "gaussian":
             variance = self.sigma**2
         elif self.kind == "supergaussian":  # per-axis variance of exp(-(g / r)^p): r^2 Gamma(4/p) / (2 Gamma(2/p))
@@ -159,9 +159,9 @@ class Kernel:
         else:
             raise ValueError(f"a {self.kind} kernel has no covariance.")
         if self.domain == "projected":
-            return variance * eye.expand(centre.shape[0], 2, 2)
-        c = centre[:, :2]
-        return variance * (eye - c[:, :, None] * c[:, None, :])  # the tangent plane, projected
+            return variance * eye.expand(*centre.shape[:-1], 2, 2)
+        c = centre[..., :2]
+        return variance * (eye - c[..., :, None] * c[..., None, :])  # the tangent plane, projected
 
     def offset(self, like: Tensor) -> Tensor:
         """``(2,)`` the kernel's mean relative to its centre in the l-plane: 0 but for a tabulated
@@ -177,10 +177,10 @@ class Kernel:
         return torch.stack([(p.sum(0) * x).sum(), (p.sum(1) * y).sum()]) * self.extent
 
     def grid(self, centre: Tensor) -> tuple[Tensor, Tensor, float]:
-        """Mean ``(K, 2)``, shape ``(K, 2, 2)`` and reach (whitened units) of a quadrature grid that
-        covers the kernels centred at ``centre (K, 3)``: ``l = mean + shape @ x``, ``|x| <= reach``."""
+        """Mean ``(*, 2)``, shape ``(*, 2, 2)`` and reach (whitened units) of a quadrature grid that
+        covers the kernels centred at ``centre (*, 3)``: ``l = mean + shape @ x``, ``|x| <= reach``."""
         chol = torch.linalg.cholesky(self.covariance(centre))
-        mean = centre[:, :2] + self.offset(centre)
+        mean = centre[..., :2] + self.offset(centre)
         if self.kind == "tabulated":
             # Out to the farthest pixel that carries any mass (plus the spline's skirt), from the mean.
             table = self.table.to(dtype=centre.dtype, device=centre.device)
@@ -193,7 +193,8 @@ class Kernel:
             corners = points[:, None, :] + skirt * self.extent * torch.tensor(
                 [[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=centre.dtype, device=centre.device
             )
-            whitened = torch.linalg.solve_triangular(chol[:1], corners.reshape(-1, 2, 1), upper=False)
+            first = chol.reshape(-1, 2, 2)[:1]  # a tabulated kernel has one shape for every frame
+            whitened = torch.linalg.solve_triangular(first, corners.reshape(-1, 2, 1), upper=False)
             return mean, chol, float(whitened.norm(dim=-2).max())
         if self.kind == "gaussian":
             return mean, chol, KERNEL_REACH
@@ -218,6 +219,22 @@ class Kernel:
         if self.kind == "gaussian":
             return torch.exp(-0.5 * (g / self.sigma) ** 2)
         return torch.exp(-((g / self.sigma) ** self.power))
+
+    def density_xy(self, lx: Tensor, ly: Tensor, centre: Tensor) -> Tensor:
+        """:meth:`density` at points given by their coordinates ``lx, ly (*)``, ``centre (*, 3)``
+        broadcasting: the same values, without building ``(*, 2)`` points for Gaussian kernels."""
+        if self.kind != "gaussian":
+            return self.density(torch.stack(torch.broadcast_tensors(lx, ly), -1), centre)
+        r2 = lx * lx + ly * ly
+        inside = r2 < 1.0
+        normaliser = self._radial_normaliser(lx)
+        if self.domain == "projected":
+            d2 = (lx - centre[..., 0]) ** 2 + (ly - centre[..., 1]) ** 2
+            return torch.where(inside, torch.exp(-0.5 / self.sigma**2 * d2) / normaliser, torch.zeros_like(d2))
+        wz = torch.sqrt(torch.where(inside, 1.0 - r2, torch.ones_like(r2)))
+        chord = torch.sqrt((lx - centre[..., 0]) ** 2 + (ly - centre[..., 1]) ** 2 + (wz - centre[..., 2]) ** 2)
+        g = 2.0 * torch.asin((0.5 * chord).clamp(max=1.0))
+        return torch.where(inside, torch.exp(-0.5 / self.sigma**2 * g * g) / normaliser / wz, torch.zeros_like(g))
 
     def density(self, l: Tensor, centre: Tensor) -> Tensor:
         """Kernel density per unit l-plane area at ``l (*, 2)`` for frames centred at
@@ -321,7 +338,9 @@ def polar_nodes(
     The polar grid lives in whitened coordinates: ``l = centre + shape @ (r cos psi, r sin psi)``
     for ``r <= reach``, so an elongated integrand (an anisotropic lobe) gets an elliptic grid.
     Trapezoid in the angle, Gauss-Legendre in ``r`` on ``[0, min(reach, exit)]``, ``exit`` where
-    the ray leaves the unit disk: the horizon is integrated exactly, not by a cut weight.
+    the ray leaves the unit disk: the horizon is integrated exactly, not by a cut weight. The
+    radius is mapped so that its slope vanishes at the exit (the square-root slope of ``w_z``
+    there would otherwise slow Gauss-Legendre down to algebraic convergence).
 
     Args:
         centre: ``(*, 2)`` inside the unit disk.
@@ -339,9 +358,14 @@ def polar_nodes(
     exit_ = (-b + torch.sqrt((b * b - a * (c2 - 1.0)).clamp(min=0.0))) / a
     reach = torch.as_tensor(reach, dtype=centre.dtype, device=centre.device)
     top = torch.minimum(exit_, reach[..., None] if reach.dim() else reach).clamp(min=0.0)  # (*, A)
-    r = 0.5 * top[..., None] * (x + 1.0)  # (*, A, R)
+    # On rays that end at the horizon, r = top s (2 - s) for s in [0, 1]: dr / ds vanishes there,
+    # where w_z = sqrt(1 - |l|^2) has an infinite slope that would slow Gauss-Legendre down.
+    s = 0.5 * (x + 1.0)
+    at_exit = (exit_ < (reach[..., None] if reach.dim() else reach))[..., None]
+    r = top[..., None] * torch.where(at_exit, s * (2.0 - s), s)  # (*, A, R)
+    dr = top[..., None] * torch.where(at_exit, 2.0 * (1.0 - s), torch.ones_like(s)) * 0.5 * w
     jacobian = torch.linalg.det(shape)[..., None, None].abs()
-    weight = 0.5 * top[..., None] * w * r * (2.0 * math.pi / angular) * jacobian
+    weight = dr * r * (2.0 * math.pi / angular) * jacobian
     points = centre[..., None, None, :] + r[..., None] * step[..., :, None, :]
     return points.flatten(-3, -2), weight.flatten(-2)
 
@@ -376,37 +400,31 @@ def diffuse_directions(lights: Lights, *, order: int = 32) -> Tensor:
     return (weight[..., None] * directions).sum(-2)
 
 
-def angular_reach(lights: Lights, *, order: int = 16) -> Tensor:
-    """``(K,)`` the largest angle (radians) between a frame's centre and a direction its kernel
-    reaches: a normal more than ``pi / 2 - reach`` away from the centre sees part of the kernel
-    behind its horizon, where the diffuse cosine is clamped."""
-    directions, weight = nodes(lights, order=order)
-    cos = (directions * lights.directions[:, None, :]).sum(-1).clamp(-1.0, 1.0)
-    # Nodes that carry no mass to speak of (a Gaussian's far tail) do not count.
-    counts = weight > 1e-12 * weight.amax(-1, keepdim=True)
-    cos = torch.where(counts, cos, torch.ones_like(cos))
-    return torch.acos(cos.amin(-1))
+def clamped_diffuse(kernel: Kernel, centre: Tensor, normal: Tensor, linear: Tensor, *, order: int = 12) -> Tensor:
+    """``integral D(l) max(<n, w(l)>, 0) dl`` for pairs of frame centres and normals ``(M, 3)``
+    whose kernel reaches behind the normal's horizon: ``(M,)``. ``linear (M,)`` is the unclamped
+    integral ``<n, d_k>``.
 
+    Where ``linear >= 0`` (most of the kernel in front) the part behind the horizon is
+    integrated and added back: ``linear + integral D max(-<n, w>, 0)``; elsewhere the part in
+    front is integrated directly. Either way the integral taken is the smaller one, so no large
+    terms cancel and few nodes suffice.
 
-def clamped_cosine(kernel: Kernel, centre: Tensor, normal: Tensor, *, order: int = 16) -> Tensor:
-    """``integral D(l) max(<n, w(l)>, 0) dl`` for pairs of frame centres and normals ``(M, 3)``:
-    ``(M,)``, to the accuracy of Gauss-Legendre on smooth integrands.
-
-    The cosine has a kink on the normal's horizon ``<n, w> = 0`` and the domain ends at the unit
-    circle. Integrating along lines parallel to the cosine's gradient at the kernel's centre, both
-    curves cross each line at most twice, at roots of a quadratic; Gauss-Legendre on every piece
-    between them leaves no kink inside a segment, and the lines meet those curves transversally
-    near the kernel, so the outer integral across the lines stays smooth too.
+    Lines run parallel to the cosine's gradient at the kernel's mean; the normal's horizon crosses
+    each at most twice (roots of a quadratic) and the unit circle ends it: Gauss-Legendre on each
+    piece, mapped flat at both ends, has no kink or square-root slope inside.
     """
     if kernel.kind == "point":
         return (normal * centre).sum(-1).clamp(min=0.0)
+    add_back = (linear >= 0)[:, None, None]  # integrate the negative pieces, else the positive ones
     mean, shape, reach = kernel.grid(centre)  # the kernel's mean and extent in the l-plane
-    # Nodes in proportion to the reach (in widths): ~2.7 per width resolves a Gaussian to 1e-6; a
-    # tabulated kernel is a piecewise cubic with a knot per pixel: two nodes per pixel crossed.
-    count = max(order, math.ceil(2.7 * reach))
+    # Lines in proportion to the reach (in widths): ~2 per width is plenty for a smooth correction;
+    # a tabulated kernel is a piecewise cubic with a knot per pixel: two lines per pixel.
+    across = max(order, math.ceil(ACROSS * reach))
     if kernel.kind == "tabulated":
-        count = max(count, 2 * max(kernel.table.shape))
-    x, w = _legendre(count, centre)
+        across = max(across, 2 * max(kernel.table.shape))
+    xv, wv = _legendre(across, centre)
+    xu, wu = _legendre(order, centre)
     c = mean
     nxy, nz = normal[:, :2], normal[:, 2:]
     # Gradient of <n, w(l)> at l = c: n_xy - n_z c / w_z(c).
@@ -420,7 +438,7 @@ def clamped_cosine(kernel: Kernel, centre: Tensor, normal: Tensor, *, order: int
     # Half-widths of the kernel's reach along e1 and across it (its l-plane image may be elongated).
     half_u = reach * torch.linalg.vector_norm(shape.transpose(-1, -2) @ e1[..., None], dim=(-2, -1))
     half_v = reach * torch.linalg.vector_norm(shape.transpose(-1, -2) @ e2[..., None], dim=(-2, -1))
-    v = half_v[:, None] * x  # (M, V) offsets across the lines
+    v = half_v[:, None] * xv  # (M, V) offsets across the lines
     base = c[:, None, :] + v[..., None] * e2[:, None, :]  # (M, V, 2): l = base + u e1
     d = e1[:, None, :]
     # The unit circle along each line: |base + u d|^2 = 1.
@@ -428,8 +446,7 @@ def clamped_cosine(kernel: Kernel, centre: Tensor, normal: Tensor, *, order: int
     b2 = (base * base).sum(-1)
     root = torch.sqrt((bd * bd - b2 + 1.0).clamp(min=0.0))
     lo = torch.maximum(-bd - root, -half_u[:, None])
-    hi = torch.minimum(-bd + root, half_u[:, None])
-    hi = torch.maximum(hi, lo)  # a line that misses the disk has no length
+    hi = torch.maximum(torch.minimum(-bd + root, half_u[:, None]), lo)  # a line off the disk: length 0
     # The normal's horizon: p + u q + n_z sqrt(1 - b2 - 2 u bd - u^2) = 0, squared: a quadratic in u.
     p = (nxy[:, None, :] * base).sum(-1)
     q = (nxy[:, None, :] * d).sum(-1)
@@ -444,9 +461,17 @@ def clamped_cosine(kernel: Kernel, centre: Tensor, normal: Tensor, *, order: int
     roots = torch.where(valid, roots, hi[..., None])
     edges = torch.cat([lo[..., None], roots.sort(-1).values, hi[..., None]], -1)  # (M, V, 4)
     a, b = edges[..., :-1], edges[..., 1:]
-    u = a[..., None] + 0.5 * (b - a)[..., None] * (x + 1.0)  # (M, V, 3, U)
+    # Keep the pieces on the side to integrate: test each piece at its middle.
+    middle = base[..., None, :] + (0.5 * (a + b))[..., None] * d[..., None, :]
+    behind = (from_plane(middle) * normal[:, None, None, :]).sum(-1) < 0
+    b = torch.where(behind == add_back, b, a)
+    # u = a + (b - a) (3 s^2 - 2 s^3): flat at both ends, where a piece may meet the unit circle.
+    t = 0.5 * (xu + 1.0)
+    u = a[..., None] + (b - a)[..., None] * (3.0 * t * t - 2.0 * t**3)  # (M, V, 3, U)
     l = base[:, :, None, None, :] + u[..., None] * d[:, :, None, None, :]
-    cos = (from_plane(l) * normal[:, None, None, None, :]).sum(-1).clamp(min=0.0)
+    cos = (from_plane(l) * normal[:, None, None, None, :]).sum(-1)
+    cos = torch.where(add_back[..., None], (-cos).clamp(min=0.0), cos.clamp(min=0.0))
     density = kernel.density(l, centre[:, None, None, None, :])
-    weight = (half_v[:, None] * w)[..., None, None] * 0.5 * (b - a)[..., None] * w
-    return (weight * density * cos).sum((-3, -2, -1))
+    weight = (half_v[:, None] * wv)[..., None, None] * (b - a)[..., None] * 3.0 * t * (1.0 - t) * wu
+    part = (weight * density * cos).sum((-3, -2, -1))
+    return torch.where(linear >= 0, linear + part, part)

@@ -34,6 +34,9 @@ FORMAT = "torchspec.capture"
 VERSIONS = (1,)
 MANIFEST = "capture.json"
 _REQUIRED = ("width", "height", "channels", "camera", "light", "frames")
+# Optional top-level keys read without a warning (kept in Capture.extra): "generator" records
+# how a synthetic capture was made, by the development data's renderer and by torchspec simulate.
+_OPTIONAL = ("generator",)
 _KNOWN = ("format", "version") + _REQUIRED
 _FRAME_KEYS = ("file", "direction", "irradiance", "exposure")
 _LIGHT_KEYS = {"point": (), "gaussian": ("domain", "sigma"), "tabulated": ("file", "extent"), "unknown": ("symmetric",)}
@@ -474,8 +477,9 @@ def _parse(data: Any, source: Path, notes: list[str], *, extra_known: bool = Fal
             "the manifest", f"have the keys {list(_REQUIRED)}", _Text(f"{missing} missing"), "See capture-format.md."
         )
     unknown = [key for key in data if key not in _KNOWN]
-    if unknown and not extra_known:
-        notes.append(f"{source}: unknown top-level key(s) {unknown} are kept in Capture.extra and not used.")
+    if [key for key in unknown if key not in _OPTIONAL] and not extra_known:
+        strange = [key for key in unknown if key not in _OPTIONAL]
+        notes.append(f"{source}: unknown top-level key(s) {strange} are kept in Capture.extra and not used.")
     width = _positive_int(where, "width", data["width"])
     height = _positive_int(where, "height", data["height"])
     channels = data["channels"]

@@ -1,0 +1,77 @@
+import math
+
+import pytest
+import torch
+
+from torchspec.cli import main
+from torchspec.io import CaptureError, read_capture
+from torchspec.relight import psnr, render_capture
+from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
+from torchspec.synth import MirrorConfig, PaintingConfig
+
+
+@pytest.fixture(scope="module")
+def painting(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cap") / "painting"
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=8, strokes=3)),
+        layout=LayoutConfig(kind="grid", nx=4, ny=4, extent=0.5, radius=0.6),
+    )
+    write_simulation(folder, simulate(config))
+    return folder
+
+
+def test_render_reproduces_a_simulated_capture(painting, tmp_path):
+    report = render_capture(painting / "truth", painting, tmp_path / "out")
+    assert report["frames"] == 12 and report["psnr_db"] > 100 and report["relative_rms"] < 1e-5
+    written = read_capture(tmp_path / "out")
+    assert [f.file for f in written.frames] == [f.file for f in read_capture(painting).frames]
+
+
+def test_psnr():
+    a = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    assert psnr(a, a) == math.inf
+    assert abs(psnr(a + 0.1, a) - 20.0) < 1e-9
+
+
+def test_unknown_light_needs_a_light_file(tmp_path):
+    config = SimulationConfig(
+        scene=SceneConfig(kind="mirror", mirror=MirrorConfig(width=4, height=4)),
+        light=LightConfig(kernel="supergaussian", domain="angular", sigma=0.035, power=6.0),
+        layout=LayoutConfig(kind="line", n=6, theta_min_deg=0.0, theta_max_deg=10.0),
+    )
+    write_simulation(tmp_path / "m", simulate(config))
+    with pytest.raises(CaptureError, match="'unknown'.*--light"):
+        render_capture(tmp_path / "m" / "truth", tmp_path / "m", None)
+    report = render_capture(
+        tmp_path / "m" / "truth", tmp_path / "m", None, light=tmp_path / "m" / "truth" / "light.json"
+    )
+    assert report["psnr_db"] > 90
+
+
+def test_size_mismatch_is_named(painting, tmp_path):
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=6, height=6, strokes=2)),
+        layout=LayoutConfig(kind="grid", nx=4, ny=4, extent=0.5, radius=0.6),
+    )
+    write_simulation(tmp_path / "small", simulate(config))
+    with pytest.raises(CaptureError, match="maps are 6x6 but .* is 10x8"):
+        render_capture(tmp_path / "small" / "truth", painting, None)
+
+
+def test_cli_simulate_and_render(tmp_path, capsys):
+    config = tmp_path / "sim.yaml"
+    config.write_text(
+        "scene: {kind: painting, painting: {width: 8, height: 8, strokes: 2}}\n"
+        "layout: {kind: grid, nx: 3, ny: 3, extent: 0.4, radius: 0.6}\n"
+    )
+    assert main(["simulate", str(config), "-o", str(tmp_path / "cap")]) == 0
+    assert (
+        main(
+            ["render", str(tmp_path / "cap" / "truth"), "--capture", str(tmp_path / "cap"), "-o", str(tmp_path / "out")]
+        )
+        == 0
+    )
+    assert "PSNR" in capsys.readouterr().out
+    assert main(["render", str(tmp_path / "nope"), "--capture", str(tmp_path / "cap"), "-o", str(tmp_path / "x")]) == 2
+    assert "torchspec render: error:" in capsys.readouterr().err

@@ -1,0 +1,285 @@
+"""Jacobians of :func:`torchspec.render.render` for fitting, two ways.
+
+The parameters of a pixel, in this order (``P = 2 + C + C_s + 3``):
+
+    a, b          the normal's tilt angles (:func:`torchspec.geometry.normal_from_angles`)
+    k_d           C values
+    k_s           C_s values (C, or 1 for grey)
+    alpha_x, alpha_y, rotation
+
+Pixels are independent, so each column of the Jacobian is one derivative for all pixels at once.
+
+- ``forward``: forward-mode automatic differentiation, one JVP per parameter (``P`` passes
+  through ``render``). Exactly the derivative of the value rendered, node placement included.
+- ``analytic``: closed forms. ``k_d`` and ``k_s`` enter linearly; the Ward lobe's derivatives
+  in the normal (its tangent frame included), roughness and rotation are evaluated at the same
+  nodes as the value, held fixed, so they are the quadrature of the true derivative, which
+  differs from the derivative of the quadrature by the quadrature's own error (1e-3 of the
+  derivative at most on the fast path, see ``tests/test_jacobian.py``). The diffuse clamp,
+  where it acts, is differentiated by automatic differentiation on just those pairs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .brdf import SVBRDF
+from .geometry import angles_from_normal, normal_from_angles
+from .lights import Lights, clamped_diffuse, diffuse_directions
+from .render import (
+    BUDGET,
+    DIFFUSE_ORDER,
+    FAST_ORDER,
+    INSIDE,
+    REFERENCE_ORDER,
+    _diffuse,
+    _lobe,
+    _pick,
+    _pixels,
+    _product_rule,
+    _reference_rule,
+    choose_path,
+    render,
+)
+
+__all__ = ["jacobian", "parameters", "MODES"]
+
+MODES = ("analytic", "forward")
+
+
+def parameters(svbrdf: SVBRDF) -> Tensor:
+    """The parameter vectors ``(*, P)`` of ``svbrdf`` in the order of this module."""
+    rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[..., 0])
+    return torch.cat(
+        [angles_from_normal(svbrdf.normal), svbrdf.diffuse, svbrdf.specular, svbrdf.roughness, rotation[..., None]],
+        -1,
+    )
+
+
+def _svbrdf(params: Tensor, channels: tuple[str, ...], grey: bool) -> SVBRDF:
+    count = len(channels)
+    cs = 1 if grey else count
+    at = [2, 2 + count, 2 + count + cs, 4 + count + cs]
+    return SVBRDF(
+        normal_from_angles(params[..., :2]),
+        params[..., at[0] : at[1]],
+        params[..., at[1] : at[2]],
+        params[..., at[2] : at[3]],
+        params[..., at[3]],
+        channels,
+    )
+
+
+def jacobian(
+    svbrdf: SVBRDF, lights: Lights, view: Tensor, *, mode: str = "analytic", path: str = "auto"
+) -> tuple[Tensor, Tensor]:
+    """Values and Jacobian of :func:`torchspec.render.render` with respect to each pixel's
+    parameters (:func:`parameters`).
+
+    Args:
+        svbrdf: leading dims ``*``, ``C`` channels; ``rotation`` may be ``None`` (0).
+        lights, view, path: as for :func:`torchspec.render.render`.
+        mode: ``analytic`` or ``forward``.
+
+    Returns:
+        ``(values (*, K, C), jacobian (*, K, C, P))``.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}; got {mode!r}.")
+    lead = svbrdf.shape
+    flat = svbrdf.flatten()
+    grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
+    params = parameters(flat)
+    # Chunks of pixels bound the memory: the derivative at each node is a 3-vector per parameter group.
+    chunk = max(1, BUDGET // (8 * lights.directions.shape[0] * FAST_ORDER**2))
+    values, jacs = [], []
+    for part in params.split(chunk):
+        if mode == "forward":
+
+            def forward(p):
+                return render(_svbrdf(p, flat.channels, grey), lights, view, path=path)
+
+            eye = torch.eye(part.shape[-1], dtype=part.dtype, device=part.device)
+            columns = []
+            for j in range(part.shape[-1]):
+                value, column = torch.func.jvp(forward, (part,), (eye[j].expand_as(part),))
+                columns.append(column)
+            jac = torch.stack(columns, -1)
+        else:
+            value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path)
+        values.append(value)
+        jacs.append(jac)
+    value, jac = torch.cat(values), torch.cat(jacs)
+    return value.reshape(*lead, *value.shape[1:]), jac.reshape(*lead, *jac.shape[1:])
+
+
+def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
+    """``ds/dn, dt/dn (N, 3, 3)`` of the rotated tangent frame of ``geometry.tangent_frame``."""
+    eye = torch.eye(3, dtype=n.dtype, device=n.device)
+    ex = eye[0].expand_as(n)
+    u = ex - n[:, :1] * n
+    norm = u.norm(dim=-1, keepdim=True)
+    s0 = u / norm
+    du = -(n[:, :, None] * ex[:, None, :] + n[:, :1, None] * eye)  # du_i / dn_j
+    ds0 = (eye - s0[:, :, None] * s0[:, None, :]) @ du / norm[..., None]
+
+    def cross_matrix(a):  # [a]x b = a x b
+        z = torch.zeros_like(a[:, 0])
+        return torch.stack(
+            [
+                torch.stack([z, -a[:, 2], a[:, 1]], -1),
+                torch.stack([a[:, 2], z, -a[:, 0]], -1),
+                torch.stack([-a[:, 1], a[:, 0], z], -1),
+            ],
+            -2,
+        )
+
+    dt0 = -cross_matrix(s0) + cross_matrix(n) @ ds0
+    c, s = torch.cos(rotation)[:, None, None], torch.sin(rotation)[:, None, None]
+    return c * ds0 + s * dt0, c * dt0 - s * ds0
+
+
+def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor, frame_dt: Tensor, alpha: Tensor):
+    """The lobe ``L`` at nodes ``(N, F, Q)`` and its derivatives: ``dL/dn (N, F, Q, 3)``,
+    ``dL/d(alpha_x, alpha_y, rotation) (N, F, Q, 3)``."""
+    r2 = lx * lx + ly * ly
+    inside = r2 < 1.0
+    wz = torch.sqrt(torch.where(inside, 1.0 - r2, torch.ones_like(r2)))
+    (nx, ny, nz), (sx, sy, sz), (tx, ty, tz) = pixels.n, pixels.s, pixels.t
+    vx, vy, vz = pixels.view
+    ci = nx * lx + ny * ly + nz * wz
+    co = pixels.cos_view
+    front = inside & (ci > 0) & (co > 0)
+    hx, hy, hz = lx + vx, ly + vy, wz + vz
+    hn = torch.where(front, nx * hx + ny * hy + nz * hz, torch.ones_like(hx))
+    s_h = sx * hx + sy * hy + sz * hz
+    t_h = tx * hx + ty * hy + tz * hz
+    hs, ht = s_h * pixels.inv_ax, t_h * pixels.inv_ay
+    ci_s = torch.where(front, ci, torch.ones_like(ci))
+    co_s = torch.where(co > 0, co, torch.ones_like(co))
+    energy = (hs * hs + ht * ht) / (hn * hn)
+    lobe = torch.where(front, torch.exp(-energy) * torch.sqrt(ci_s / co_s) * pixels.scale, torch.zeros_like(ci))
+    h = torch.stack(torch.broadcast_tensors(hx, hy, hz), -1)
+    w = torch.stack(torch.broadcast_tensors(lx, ly, wz), -1)
+    # dE/dn with E = -(hs^2 + ht^2) / hn^2; hs = s(n).h / a_x, ht = t(n).h / a_y, hn = n.h.
+    ds_h = torch.einsum("nij,nfqi->nfqj", frame_ds, h)  # (ds/dn)^T h
+    dt_h = torch.einsum("nij,nfqi->nfqj", frame_dt, h)
+    inv_ax, inv_ay = pixels.inv_ax[..., None], pixels.inv_ay[..., None]
+    d_energy = -2.0 * (hs[..., None] * ds_h * inv_ax + ht[..., None] * dt_h * inv_ay) / (hn * hn)[..., None]
+    d_energy = d_energy + 2.0 * energy[..., None] * h / hn[..., None]
+    v = torch.tensor(pixels.view, dtype=lx.dtype, device=lx.device)
+    d_log = d_energy + 0.5 * (w / ci_s[..., None] - v / co_s[..., None])
+    d_normal = lobe[..., None] * d_log
+    ax, ay = 1.0 / pixels.inv_ax, 1.0 / pixels.inv_ay
+    d_ax = lobe * (2.0 * hs * hs / (hn * hn) - 1.0) / ax
+    d_ay = lobe * (2.0 * ht * ht / (hn * hn) - 1.0) / ay
+    # s and t turn with the rotation: d(s.h)/dA = t.h, d(t.h)/dA = -s.h.
+    d_rot = lobe * (-2.0 * (hs * t_h * pixels.inv_ax - ht * s_h * pixels.inv_ay) / (hn * hn))
+    return lobe, d_normal, torch.stack([d_ax, d_ay, d_rot], -1)
+
+
+def _analytic(svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str) -> tuple[Tensor, Tensor]:
+    chosen = choose_path(lights, path)
+    like = svbrdf.diffuse
+    lights = lights.to(dtype=like.dtype, device=like.device)
+    view = view.to(dtype=like.dtype, device=like.device)
+    kernel, centre = lights.kernel, lights.directions
+    count = svbrdf.diffuse.shape[-1]
+    grey = svbrdf.specular.shape[-1] == 1 and count != 1
+    rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[:, 0])
+    n = svbrdf.normal
+    # dn / d(a, b) (N, 3, 2) of n ~ (tan a, tan b, 1).
+    angles = angles_from_normal(n)
+    with torch.enable_grad():
+        a = angles.detach().requires_grad_(True)
+        dn = torch.stack(
+            [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
+        )
+
+    # Diffuse: <n, d_k> and its gradient d_k; the clamp, where it acts, by autograd on those pairs.
+    if kernel.kind == "point":
+        cos = n @ centre.T
+        diffuse = cos.clamp(min=0.0)
+        d_diffuse = torch.where((cos > 0)[..., None], centre[None], torch.zeros_like(centre[None]))
+        d_diffuse = d_diffuse.expand(n.shape[0], -1, -1)
+    else:
+        direction = diffuse_directions(lights)
+        diffuse = _diffuse(n, lights, direction)
+        d_diffuse = direction[None].expand(n.shape[0], -1, -1).clone()
+        clamped = (diffuse - n @ direction.T).abs() > 0
+        pairs = clamped.nonzero()
+        if pairs.shape[0]:
+            p, k = pairs[:, 0], pairs[:, 1]
+            with torch.enable_grad():
+                sub = n[p].detach().requires_grad_(True)
+                linear = (sub * direction[k]).sum(-1)
+                value = clamped_diffuse(kernel, centre[k], sub, linear, order=DIFFUSE_ORDER)
+                grad = torch.autograd.grad(value.sum(), sub)[0]
+            d_diffuse = d_diffuse.index_put((p, k), grad)
+
+    # Specular: the value's nodes, held fixed.
+    pixels = _pixels(svbrdf, view)
+    frame_ds, frame_dt = _frame_derivatives(n, rotation)
+    if chosen == "point":
+        lx, ly = centre[None, :, None, 0], centre[None, :, None, 1]
+        lobe, d_n, d_shape = _lobe_gradients(lx, ly, pixels, frame_ds, frame_dt, svbrdf.roughness)
+        spec, d_spec_n, d_spec_shape = lobe[..., 0], d_n[..., 0, :], d_shape[..., 0, :]
+    else:
+        lobe_centre, lobe_cov = _lobe(svbrdf, view)
+        orders = {"fast": FAST_ORDER, "reference": REFERENCE_ORDER}
+        if kernel.kind == "tabulated":
+            orders["reference"] = max(orders["reference"], max(kernel.table.shape))
+        if chosen == "reference":
+            rule = _reference_rule(kernel, centre[None], lobe_centre[:, None], lobe_cov[:, None], orders["reference"])
+        else:
+            lx, ly, area, mx, my, width = _product_rule(kernel, centre, lobe_centre, lobe_cov, orders["fast"])
+            rule = (lx, ly, area)
+        spec, d_spec_n, d_spec_shape = _integrate_gradients(
+            kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *rule
+        )
+        if chosen == "auto":
+            cut = (torch.sqrt(mx * mx + my * my) + INSIDE * width >= 1.0).nonzero()
+            if cut.shape[0]:
+                p, k = cut[:, 0], cut[:, 1]
+                rule = _reference_rule(kernel, centre[k], lobe_centre[p], lobe_cov[p], orders["reference"])
+                sub = _pick(pixels, p)
+                value, d_value_n, d_value_shape = _integrate_gradients(
+                    kernel,
+                    centre[k][:, None],
+                    sub,
+                    frame_ds[p],
+                    frame_dt[p],
+                    svbrdf.roughness[p],
+                    *(r[:, None] for r in rule),
+                )
+                spec = spec.index_put((p, k), value[:, 0])
+                d_spec_n = d_spec_n.index_put((p, k), d_value_n[:, 0])
+                d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
+
+    scale = lights.scale[None]  # (1, K, C or 1)
+    k_d, k_s = svbrdf.diffuse[:, None, :], svbrdf.specular[:, None, :]
+    value = (k_d / math.pi * diffuse[..., None] + k_s * spec[..., None]) * scale
+    # Columns: angles (2), k_d (C), k_s (C or 1), alpha_x, alpha_y, rotation.
+    d_geom_n = k_d[..., None] / math.pi * d_diffuse[:, :, None, :] + k_s[..., None] * d_spec_n[:, :, None, :]
+    d_angles = (d_geom_n @ dn[:, None]) * scale[..., None]  # (N, K, C, 2)
+    eye = torch.eye(count, dtype=like.dtype, device=like.device)
+    d_kd = (diffuse[..., None, None] / math.pi * eye) * scale[..., None]  # (N, K, C, C)
+    if grey:
+        d_ks = (spec[..., None, None] * torch.ones(count, 1, dtype=like.dtype, device=like.device)) * scale[..., None]
+    else:
+        d_ks = (spec[..., None, None] * eye) * scale[..., None]
+    d_shape = k_s[..., None] * d_spec_shape[:, :, None, :] * scale[..., None]  # (N, K, C, 3)
+    return value, torch.cat([d_angles, d_kd, d_ks, d_shape], -1)
+
+
+def _integrate_gradients(kernel, centre, pixels, frame_ds, frame_dt, alpha, lx, ly, area):
+    density = area * kernel.density_xy(lx, ly, centre[..., None, :])
+    lobe, d_n, d_shape = _lobe_gradients(lx, ly, pixels, frame_ds, frame_dt, alpha)
+    return (
+        (density * lobe).sum(-1),
+        (density[..., None] * d_n).sum(-2),
+        (density[..., None] * d_shape).sum(-2),
+    )

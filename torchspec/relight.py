@@ -1,0 +1,111 @@
+"""Relighting: predict every frame of a capture from SVBRDF maps (``torchspec render``).
+
+Reads the maps (a fit, or a capture's ``truth/``) and the capture's light list, renders each frame
+with :func:`torchspec.render.render` tile by tile (memory is bounded by a tile of rows), and
+writes the predicted frames under the manifest's file names with a copy of the manifest, so the
+output is itself a capture. Against the capture's own frames it reports the PSNR (peak: the
+capture's maximum) and the relative RMS error.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
+from .lights import Kernel, Lights
+from .render import render
+
+__all__ = ["lights_of", "render_capture", "psnr"]
+
+TILE_PIXELS = 4096
+
+
+def lights_of(capture: Capture, *, light: Path | dict | None = None, dtype=torch.float64) -> Lights:
+    """The :class:`~torchspec.lights.Lights` of a capture's frames; ``light`` (a JSON file or a
+    mapping with the keys of the format, or of a development capture's ``truth/light.json``)
+    replaces the manifest's kernel, which an ``unknown`` kernel requires."""
+    if light is None:
+        spec = capture.light
+        if spec.kernel == "unknown":
+            raise CaptureError(
+                f"{capture.manifest}: light.kernel is 'unknown', so the frames cannot be predicted. Give the "
+                "light's shape with --light FILE (e.g. a calibrated or known light JSON)."
+            )
+        table = capture.read_kernel() if spec.kernel == "tabulated" else None
+        kernel = Kernel.from_spec(spec, table=table)
+    else:
+        if not isinstance(light, dict):
+            try:
+                light = json.loads(Path(light).read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                raise CaptureError(f"cannot read the light description {light}: {exc}") from None
+        kernel = Kernel.from_spec(light)
+    return Lights(
+        capture.directions().to(dtype),
+        kernel,
+        capture.irradiance().to(dtype),
+        capture.exposure().to(dtype),
+    )
+
+
+def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:
+    """PSNR in dB with the observed maximum as the peak."""
+    mse = (predicted.double() - observed.double()).pow(2).mean().item()
+    peak = observed.double().abs().max().item()
+    return math.inf if mse == 0 else 10.0 * math.log10(peak * peak / mse)
+
+
+def render_capture(
+    svbrdf_dir: Path | str,
+    capture_dir: Path | str,
+    output_dir: Path | str | None,
+    *,
+    light: Path | dict | None = None,
+    path: str = "auto",
+    dtype: torch.dtype = torch.float32,
+    lobe: str = "ward",
+) -> dict:
+    """Predict a capture's frames from the maps in ``svbrdf_dir``; write them to ``output_dir``
+    (unless ``None``) and compare with the capture's frames.
+
+    Returns:
+        ``{"frames", "psnr_db", "relative_rms", "per_frame_psnr_db", "predicted"}``; the
+        predicted frames are ``(K, C, H, W)``.
+    """
+    maps = read_svbrdf(svbrdf_dir)
+    capture = read_capture(capture_dir)
+    svbrdf = maps.svbrdf
+    if tuple(svbrdf.shape) != (capture.height, capture.width):
+        raise CaptureError(
+            f"{Path(svbrdf_dir)}: the maps are {svbrdf.shape[1]}x{svbrdf.shape[0]} but {capture.manifest} "
+            f"is {capture.width}x{capture.height}."
+        )
+    if tuple(svbrdf.channels) != tuple(capture.channels):
+        raise CaptureError(
+            f"{Path(svbrdf_dir)}: the maps have channels {svbrdf.channels}, {capture.manifest} has {capture.channels}."
+        )
+    lights = lights_of(capture, light=light, dtype=dtype)
+    flat = svbrdf.flatten().to(dtype)
+    view = torch.tensor(capture.view, dtype=dtype)
+    parts = [
+        render(flat[i : i + TILE_PIXELS], lights, view, path=path, lobe=lobe)
+        for i in range(0, flat.shape[0], TILE_PIXELS)
+    ]
+    values = torch.cat(parts).reshape(capture.height, capture.width, len(capture.frames), len(capture.channels))
+    predicted = values.permute(2, 3, 0, 1).contiguous()  # (K, C, H, W)
+    if output_dir is not None:
+        write_capture(Path(output_dir), capture, predicted.float())
+    observed = capture.read_frames(dtype=torch.float64)
+    per_frame = [psnr(predicted[k], observed[k]) for k in range(predicted.shape[0])]
+    residual = (predicted.double() - observed).pow(2).sum().sqrt() / observed.pow(2).sum().sqrt()
+    return {
+        "frames": predicted.shape[0],
+        "psnr_db": psnr(predicted, observed),
+        "relative_rms": residual.item(),
+        "per_frame_psnr_db": per_frame,
+        "predicted": predicted,
+    }
