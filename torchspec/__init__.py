@@ -1,7 +1,7 @@
 """torchspec: reflectance of nearly flat objects from a few HDR photographs under an extended
 light, by finite-rate-of-innovation location of the specular peak and batched fitting."""
 
-from . import brdf, crb, fri, geometry, lights
+from . import brdf, crb, fri, geometry, jacobian, lights, relight, simulate, synth
 from ._version import __version__
 from .brdf import SVBRDF
 from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
@@ -14,7 +14,11 @@ __all__ = [
     "crb",
     "fri",
     "geometry",
+    "jacobian",
     "lights",
+    "relight",
+    "simulate",
+    "synth",
     "read_capture",
     "read_svbrdf",
     "render",

@@ -231,7 +231,7 @@ def _analytic(svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str) -> tuple[
         lobe_centre, lobe_cov = _lobe(svbrdf, view)
         orders = {"fast": FAST_ORDER, "reference": REFERENCE_ORDER}
         if kernel.kind == "tabulated":
-            orders["reference"] = max(orders["reference"], max(kernel.table.shape))
+            orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
         if chosen == "reference":
             rule = _reference_rule(kernel, centre[None], lobe_centre[:, None], lobe_cov[:, None], orders["reference"])
         else:
