@@ -92,7 +92,7 @@ def integrate(kind, centre, normal, *, k_d, k_s, alpha, rotation, box_centre, ha
 
 
 def random_case(seed, kernel_width):
-    """A random pixel and light: tilt <= 30 deg, alpha in [0.005, 0.5] (anisotropic, rotated),
+    """A random pixel and light: tilt <= 30 deg, alpha in [0.005, 0.5] (up to 10:1, rotated),
     light 0..75 deg from the zenith, every other case near the mirror direction."""
     g = torch.Generator().manual_seed(seed)
 
@@ -103,8 +103,9 @@ def random_case(seed, kernel_width):
     normal = torch.tensor(
         [math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth), math.cos(tilt)], dtype=F64
     )
-    alpha_x = math.exp(uniform(math.log(0.005), math.log(0.5)))
-    alpha = (alpha_x, alpha_x / [1.0, 1.0, 2.0, 4.0][seed % 4])
+    ratio = [1.0, 3.0, 1.0, 10.0][(seed // 2) % 4]  # anisotropy, for lit and unlit cases alike
+    alpha_x = math.exp(uniform(math.log(0.005 * ratio), math.log(0.5)))
+    alpha = (alpha_x, alpha_x / ratio)
     rotation = uniform(0, math.pi)
     if seed % 2 == 0:  # the specular lobe lights up
         theta, phi = min(math.radians(75), 2 * tilt + uniform(-2, 2) * kernel_width), azimuth
@@ -135,9 +136,22 @@ def reference_value(kernel_args, kernel_width, normal, alpha, rotation, centre, 
         step=kernel_step,
         **{**common, "k_s": 0.0},
     )
+    narrow = min(alpha) / 2.0  # a fraction of the lobe's narrowest l-plane std, ~1.4 min(alpha)
     if lobe_width < kernel_width:
-        box, half, step = mirror[:2], min(8.0 * lobe_width, 1.1), lobe_width / 30
+        box, half, step = mirror[:2], min(8.0 * lobe_width, 1.1), min(lobe_width / 30, narrow)
     else:
-        box, half, step = centre[:2], reach, kernel_step
+        box, half, step = centre[:2], reach, min(kernel_step, narrow)
     _, specular = integrate(centre=centre, normal=normal, box_centre=box, half=half, step=step, **common)
     return diffuse + specular, specular
+
+
+def pixel_tensors(normal, k_d, alpha, rotation):
+    """One pixel's ``normal, k_d, k_s (= 1), alpha, rotation`` as the ``(1, ...)`` tensors an SVBRDF
+    takes, in float64."""
+    return (
+        normal[None],
+        torch.tensor([[k_d]], dtype=F64),
+        torch.tensor([[1.0]], dtype=F64),
+        torch.tensor([alpha], dtype=F64),
+        torch.tensor([rotation], dtype=F64),
+    )

@@ -92,3 +92,11 @@ def test_shapes_follow_leading_dims():
     value, jac = jacobian(maps.reshape(5, 1), lights, VIEW)
     assert value.shape == (5, 1, 5, 3) and jac.shape == (5, 1, 5, 3, 11)
     assert math.isfinite(jac.abs().sum().item())
+
+
+@pytest.mark.parametrize("mode", ["analytic", "forward"])
+def test_no_pixels(mode):
+    maps, lights = _problem(False, Kernel("gaussian", "projected", 0.05))
+    value, jac = jacobian(maps[:0], lights, VIEW, mode=mode)
+    assert value.shape == (0, 5, 3) and jac.shape == (0, 5, 3, 11)
+    assert render(maps[:0], lights, VIEW).shape == (0, 5, 3)

@@ -33,14 +33,11 @@ from .render import (
     BUDGET,
     DIFFUSE_ORDER,
     FAST_ORDER,
-    INSIDE,
     REFERENCE_ORDER,
     _diffuse,
-    _lobe,
     _pick,
     _pixels,
-    _product_rule,
-    _reference_rule,
+    _rules,
     choose_path,
     render,
 )
@@ -93,10 +90,12 @@ def jacobian(
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
     params = parameters(flat)
-    # Chunks of pixels bound the memory: the derivative at each node is a 3-vector per parameter group.
-    chunk = max(1, BUDGET // (8 * lights.directions.shape[0] * FAST_ORDER**2))
-    values, jacs = [], []
-    for part in params.split(chunk):
+    # Chunks of pixels bound the memory, as render's do (a few hundred MB of node tensors at most);
+    # smaller ones cost time in per-call overhead (8x smaller took 2x longer, analytic and forward).
+    chunk = max(1, BUDGET // (lights.directions.shape[0] * FAST_ORDER**2))
+    values = jacs = None  # filled in place: the Jacobian is the largest tensor of a fit, held once
+    for start in range(0, max(params.shape[0], 1), chunk):  # one (empty) chunk for no pixels
+        part = params[start : start + chunk]
         if mode == "forward":
 
             def forward(p):
@@ -110,10 +109,12 @@ def jacobian(
             jac = torch.stack(columns, -1)
         else:
             value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path)
-        values.append(value)
-        jacs.append(jac)
-    value, jac = torch.cat(values), torch.cat(jacs)
-    return value.reshape(*lead, *value.shape[1:]), jac.reshape(*lead, *jac.shape[1:])
+        if values is None:
+            values = value.new_empty((params.shape[0], *value.shape[1:]))
+            jacs = jac.new_empty((params.shape[0], *jac.shape[1:]))
+        values[start : start + chunk] = value
+        jacs[start : start + chunk] = jac
+    return values.reshape(*lead, *values.shape[1:]), jacs.reshape(*lead, *jacs.shape[1:])
 
 
 def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
@@ -228,36 +229,27 @@ def _analytic(svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str) -> tuple[
         lobe, d_n, d_shape = _lobe_gradients(lx, ly, pixels, frame_ds, frame_dt, svbrdf.roughness)
         spec, d_spec_n, d_spec_shape = lobe[..., 0], d_n[..., 0, :], d_shape[..., 0, :]
     else:
-        lobe_centre, lobe_cov = _lobe(svbrdf, view)
         orders = {"fast": FAST_ORDER, "reference": REFERENCE_ORDER}
         if kernel.kind == "tabulated":
             orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
-        if chosen == "reference":
-            rule = _reference_rule(kernel, centre[None], lobe_centre[:, None], lobe_cov[:, None], orders["reference"])
-        else:
-            lx, ly, area, mx, my, width = _product_rule(kernel, centre, lobe_centre, lobe_cov, orders["fast"])
-            rule = (lx, ly, area)
+        rule, fallback = _rules(kernel, centre, pixels, chosen, orders)
         spec, d_spec_n, d_spec_shape = _integrate_gradients(
-            kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *rule
+            kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *(r.detach() for r in rule)
         )
-        if chosen == "auto":
-            cut = (torch.sqrt(mx * mx + my * my) + INSIDE * width >= 1.0).nonzero()
-            if cut.shape[0]:
-                p, k = cut[:, 0], cut[:, 1]
-                rule = _reference_rule(kernel, centre[k], lobe_centre[p], lobe_cov[p], orders["reference"])
-                sub = _pick(pixels, p)
-                value, d_value_n, d_value_shape = _integrate_gradients(
-                    kernel,
-                    centre[k][:, None],
-                    sub,
-                    frame_ds[p],
-                    frame_dt[p],
-                    svbrdf.roughness[p],
-                    *(r[:, None] for r in rule),
-                )
-                spec = spec.index_put((p, k), value[:, 0])
-                d_spec_n = d_spec_n.index_put((p, k), d_value_n[:, 0])
-                d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
+        if fallback is not None:
+            p, k, rule = fallback
+            value, d_value_n, d_value_shape = _integrate_gradients(
+                kernel,
+                centre[k][:, None],
+                _pick(pixels, p),
+                frame_ds[p],
+                frame_dt[p],
+                svbrdf.roughness[p],
+                *(r.detach() for r in rule),
+            )
+            spec = spec.index_put((p, k), value[:, 0])
+            d_spec_n = d_spec_n.index_put((p, k), d_value_n[:, 0])
+            d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
 
     scale = lights.scale[None]  # (1, K, C or 1)
     k_d, k_s = svbrdf.diffuse[:, None, :], svbrdf.specular[:, None, :]

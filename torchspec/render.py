@@ -11,17 +11,25 @@ extended light, differentiable in every SVBRDF parameter.
   is integrated, piecewise between the horizon's crossings (:func:`torchspec.lights.clamped_diffuse`).
 - specular, ``k_s integral D_k(l) S(l) dl`` with ``S`` the Ward lobe times the cosine
   (:func:`torchspec.brdf.ward_cosine`). The lobe is sharp where ``alpha`` is small and the kernel
-  is sharp for a point-like light; the integral is taken about whichever is narrower.
+  is sharp for a point-like light; the integral is taken about their product.
+
+Two coordinates carry the quadratures: the l-plane, where a projected Gaussian kernel is exactly
+Gaussian, and the slopes ``(<h, s>, <h, t>) / <h, n>`` of the half vector, where the Ward lobe is
+exactly Gaussian (variances ``alpha^2 / 2``) however anisotropic it is - in the l-plane a 10:1
+lobe bends into a banana that no Gaussian follows. Each factor is mapped into the other's
+coordinates by linearising about the product's mean (:func:`_pairs`).
 
 Paths of the specular term, chosen by the rule of :func:`choose_path`:
 
 - ``point``: a point light, one exact evaluation per frame.
-- ``fast``: Gauss-Hermite on the product of two Gaussians in the l-plane, the kernel's (exact for
-  a Gaussian kernel) and the Ward lobe's linearised about the mirror direction; the ratio of the
-  true integrand to that product is smooth, so ``FAST_ORDER^2`` nodes per pixel and frame suffice.
-- ``reference``: polar Gauss-Legendre about the centre of the narrower of kernel and lobe, out to
-  ``KERNEL_REACH`` widths and clipped at the horizon: accurate for any kernel, ``order`` sets the
-  accuracy (``order`` radii x ``2 order`` angles per pixel and frame).
+- ``fast``: Gauss-Hermite, ``FAST_ORDER^2`` nodes per pixel and frame, on the product of the two
+  factors' Gaussians, in the l-plane for a projected Gaussian kernel and in slopes for an angular
+  one (where the exact factor is the lobe); the ratio of the true integrand to that product is
+  smooth. Its error against the reference is measured by ``experiments/render_accuracy.py``.
+- ``reference``: polar Gauss-Legendre, accurate for any kernel, ``order`` setting the accuracy:
+  on the kernel's own grid in the l-plane where the kernel is narrower than the lobe every way,
+  else about the product in slopes (``2 order`` radii x ``order`` angles); the first is clipped
+  exactly at the horizon, the second at the horizon and the normal's horizon.
 
 Nodes are placed from the parameters (the lobe's mirror point and width) and autograd follows
 them, so the gradient is exactly that of the value computed - the consistent Jacobian that
@@ -39,10 +47,11 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF, beckmann_cosine, lambert
-from .geometry import dot, from_plane, reflect, tangent_frame
+from .geometry import from_plane, tangent_frame
 from .lights import (
     Kernel,
     Lights,
+    _legendre,
     clamped_diffuse,
     diffuse_directions,
     polar_nodes,
@@ -57,28 +66,8 @@ DIFFUSE_ORDER = 12  # Gauss-Legendre nodes per piece of the clamped diffuse inte
 HORIZON_MARGIN = 5.5  # kernel stds between its mean and the normal's horizon for the clamp to matter
 INSIDE = 4.0  # the fast path needs the kernel this many widths inside the horizon
 LOBE_REACH = 7.0  # the lobe is integrated out to this many (linearised) widths
+PULL = 0.98  # the largest l-plane radius about which the factors are linearised
 BUDGET = 1 << 20  # pixel x frame x node elements per chunk
-
-
-def _lobe(svbrdf: SVBRDF, view: Tensor) -> tuple[Tensor, Tensor]:
-    """Mirror point ``(N, 2)`` and covariance ``(N, 2, 2)`` of each pixel's Ward lobe in the
-    l-plane, linearised: ``h = n + d_s s + d_t t`` with ``d ~ N(0, diag(a_x^2, a_y^2) / 2)``, and
-    ``w = 2 <v, h> h - v``."""
-    n = svbrdf.normal
-    v = view.expand_as(n)
-    s, t = tangent_frame(n, svbrdf.rotation)
-    alpha = torch.where(svbrdf.roughness > 0, svbrdf.roughness, torch.ones_like(svbrdf.roughness))
-    vn = dot(v, n)[..., None]
-    ds = 2.0 * (dot(v, s)[..., None] * n + vn * s)  # dw / d(d_s)
-    dt = 2.0 * (dot(v, t)[..., None] * n + vn * t)
-    jac = torch.stack([ds[..., :2], dt[..., :2]], -1)  # (N, 2, 2): columns are d_s, d_t
-    cov = jac @ torch.diag_embed(0.5 * alpha**2) @ jac.transpose(-1, -2)
-    return reflect(v, n)[..., :2], cov
-
-
-def _width(cov: Tensor) -> Tensor:
-    """Largest std ``(*)`` of covariances ``(*, 2, 2)``."""
-    return torch.linalg.eigvalsh(cov)[..., -1].clamp(min=0.0).sqrt()
 
 
 def _hermite(order: int, like: Tensor) -> tuple[Tensor, Tensor]:
@@ -95,8 +84,9 @@ def choose_path(lights: Lights, path: str = "auto") -> str:
 
     ``auto``: ``point`` for a point light; ``fast`` for a Gaussian kernel (either domain), whose
     pixel-frame pairs fall back to ``reference`` where the product of kernel and lobe reaches
-    the horizon (within ``INSIDE`` widths: a Gaussian rule cannot follow the cut); ``reference``
-    for super-Gaussian and tabulated kernels, whose shape a Gaussian rule cannot follow.
+    the horizon (within ``INSIDE`` of its widths: a Gaussian rule cannot follow the cut);
+    ``reference`` for super-Gaussian and tabulated kernels, whose shape a Gaussian rule cannot
+    follow.
     A forced path must fit the kernel: ``point`` only for point lights, ``fast`` (then used for
     every pair) only for Gaussian kernels.
     """
@@ -179,56 +169,265 @@ def _lobe_at(lx: Tensor, ly: Tensor, p: _Pixels) -> Tensor:
     return torch.where(front, value, torch.zeros_like(value))
 
 
-def _product_rule(kernel: Kernel, centre: Tensor, lobe_centre: Tensor, lobe_cov: Tensor, order: int):
-    """Gauss-Hermite nodes ``(N, F, Q)`` (x and y) and weights of the product of each frame's
-    kernel Gaussian and each pixel's lobe Gaussian, with the proposal density divided out; 2 x 2
-    algebra in closed form."""
-    kernel_cov = kernel.covariance(centre)  # (F, 2, 2)
-    kernel_mean = centre[:, :2] + kernel.offset(centre)
+def _lobe_moments(p: _Pixels):
+    """Mirror point and covariance (components ``xx, xy, yy``) of each pixel's Ward lobe in the
+    l-plane, linearised: ``h = n + d_s s + d_t t`` with ``d ~ N(0, diag(a_x^2, a_y^2) / 2)`` and
+    ``w = 2 <v, h> h - v``. Shaped like the pixels' fields."""
+    (nx, ny, _), (sx, sy, sz), (tx, ty, tz) = p.n, p.s, p.t
+    vx, vy, vz = p.view
+    vn = p.cos_view
+    vs, vt = vx * sx + vy * sy + vz * sz, vx * tx + vy * ty + vz * tz
+    dsx, dsy = 2.0 * (vs * nx + vn * sx), 2.0 * (vs * ny + vn * sy)  # dw / d(d_s)
+    dtx, dty = 2.0 * (vt * nx + vn * tx), 2.0 * (vt * ny + vn * ty)
+    ax2, ay2 = 0.5 / (p.inv_ax * p.inv_ax), 0.5 / (p.inv_ay * p.inv_ay)
+    cov = (dsx * dsx * ax2 + dtx * dtx * ay2, dsx * dsy * ax2 + dtx * dty * ay2, dsy * dsy * ax2 + dty * dty * ay2)
+    return (2.0 * vn * nx - vx, 2.0 * vn * ny - vy), cov
 
-    def inverse(c):
-        det = c[..., 0, 0] * c[..., 1, 1] - c[..., 0, 1] * c[..., 1, 0]
-        return torch.stack([c[..., 1, 1], -c[..., 0, 1], -c[..., 1, 0], c[..., 0, 0]], -1) / det[..., None]
 
-    ik = inverse(kernel_cov)[None]  # (1, F, 4): a, b, c, d of [[a, b], [c, d]]
-    il = inverse(lobe_cov)[:, None]  # (N, 1, 4)
-    a, b, d = ik[..., 0] + il[..., 0], ik[..., 1] + il[..., 1], ik[..., 3] + il[..., 3]  # precision
-    det = a * d - b * b
-    cxx, cxy, cyy = d / det, -b / det, a / det  # covariance of the product
-    rx = ik[..., 0] * kernel_mean[None, :, 0] + ik[..., 1] * kernel_mean[None, :, 1]
-    rx = rx + il[..., 0] * lobe_centre[:, None, 0] + il[..., 1] * lobe_centre[:, None, 1]
-    ry = ik[..., 2] * kernel_mean[None, :, 0] + ik[..., 3] * kernel_mean[None, :, 1]
-    ry = ry + il[..., 2] * lobe_centre[:, None, 0] + il[..., 3] * lobe_centre[:, None, 1]
-    mx, my = cxx * rx + cxy * ry, cxy * rx + cyy * ry
-    l11 = torch.sqrt(cxx)
-    l21 = cxy / l11
-    l22 = torch.sqrt((cyy - l21 * l21).clamp(min=0.0))
+def _std(cov, largest: bool) -> Tensor:
+    """The largest or smallest std of 2 x 2 covariances given as components ``xx, xy, yy``."""
+    xx, xy, yy = cov
+    spread = torch.sqrt(0.25 * (xx - yy) ** 2 + xy * xy)
+    return torch.sqrt((0.5 * (xx + yy) + (spread if largest else -spread)).clamp(min=0.0))
+
+
+def _product(a, a_cov, b, b_cov):
+    """Mean and covariance of the normalised product of two Gaussians, ``A (A + B)^-1 B`` and
+    ``B S^-1 a + A S^-1 b``: no precision is formed, so a degenerate factor is harmless."""
+    sxx, sxy, syy = (i + j for i, j in zip(a_cov, b_cov, strict=True))
+    det = sxx * syy - sxy * sxy
+    ixx, ixy, iyy = syy / det, -sxy / det, sxx / det
+    axx, axy, ayy = a_cov
+    bxx, bxy, byy = b_cov
+    # K = A S^-1, then the covariance K B and the mean a + K (b - a).
+    k00, k01 = axx * ixx + axy * ixy, axx * ixy + axy * iyy
+    k10, k11 = axy * ixx + ayy * ixy, axy * ixy + ayy * iyy
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    mean = (a[0] + k00 * dx + k01 * dy, a[1] + k10 * dx + k11 * dy)
+    cxy = 0.5 * (k00 * bxy + k01 * byy + k10 * bxx + k11 * bxy)
+    return mean, (k00 * bxx + k01 * bxy, cxy, k10 * bxy + k11 * byy)
+
+
+def _cholesky(cov):
+    xx, xy, yy = cov
+    l11 = torch.sqrt(xx)
+    l21 = xy / l11
+    return l11, l21, torch.sqrt((yy - l21 * l21).clamp(min=0.0))
+
+
+class _Pairs(NamedTuple):
+    """Per pixel-frame moments ``(N, F, 1)`` of the integrand's two factors and their product."""
+
+    facing: Tensor  # the half vector at the product's mean faces the normal (else the lobe is nil)
+    narrow: Tensor  # the kernel is narrower than the lobe every way (or the lobe is nil there)
+    mean: tuple[Tensor, Tensor]  # the product of kernel and linearised lobe, in the l-plane
+    cov: tuple[Tensor, Tensor, Tensor]
+    slope_mean: tuple[Tensor, Tensor]  # the product of linearised kernel and exact lobe, in slopes
+    slope_cov: tuple[Tensor, Tensor, Tensor]
+
+
+def _slope_at(p: _Pixels, lx: Tensor, ly: Tensor):
+    """Half-vector slopes ``(u, v) = (<h, s>, <h, t>) / <h, n>`` of l-plane points, their Jacobian
+    ``d(u, v) / dl`` (components ``ux, uy, vx, vy``) and whether the half vector faces the normal
+    (elsewhere the lobe is nil, and the slopes are of no use)."""
+    (nx, ny, nz), (sx, sy, sz), (tx, ty, tz) = p.n, p.s, p.t
+    vx, vy, vz = p.view
+    lz = torch.sqrt((1.0 - lx * lx - ly * ly).clamp(min=1e-12))
+    hx, hy, hz = lx + vx, ly + vy, lz + vz
+    hn = nx * hx + ny * hy + nz * hz
+    facing = hn > 0.05 * torch.sqrt(hx * hx + hy * hy + hz * hz)
+    hn = torch.where(facing, hn, torch.ones_like(hn))
+    u, v = (sx * hx + sy * hy + sz * hz) / hn, (tx * hx + ty * hy + tz * hz) / hn
+    # rows (s - u n) . dh/dl / <h, n>, with dh/dl = (1, 0, -lx/lz), (0, 1, -ly/lz).
+    gx, gy = lx / lz, ly / lz
+    ux, uy = (sx - u * nx - (sz - u * nz) * gx) / hn, (sy - u * ny - (sz - u * nz) * gy) / hn
+    vx_, vy_ = (tx - v * nx - (tz - v * nz) * gx) / hn, (ty - v * ny - (tz - v * nz) * gy) / hn
+    return (u, v), (ux, uy, vx_, vy_), facing
+
+
+def _congruence(j, cov):
+    """``J C J^T`` for a 2 x 2 ``J`` (components ``a, b, c, d`` by rows) and a covariance ``C``."""
+    a, b, c, d = j
+    xx, xy, yy = cov
+    return (
+        a * a * xx + 2.0 * a * b * xy + b * b * yy,
+        a * c * xx + (a * d + b * c) * xy + b * d * yy,
+        c * c * xx + 2.0 * c * d * xy + d * d * yy,
+    )
+
+
+def _pairs(kernel: Kernel, centre: Tensor, p: _Pixels) -> _Pairs:
+    """The moments of every pair of a pixel of ``p`` and a frame of ``centre (B, F, 3)``.
+
+    The Ward lobe is exactly Gaussian in the slopes ``(u, v)`` of the half vector (see
+    :func:`_slope_at`), with variances ``alpha^2 / 2``; the kernel is (for a projected Gaussian
+    exactly) Gaussian in the l-plane. A first product in the l-plane takes the lobe linearised
+    about its mirror point; then both factors are linearised again about that product's mean (one
+    Laplace step), where the integrand's mass is: the lobe mapped into the l-plane and the kernel
+    into slopes. A strongly anisotropic lobe bends in the l-plane, and this second step follows
+    the bend where the integrand is."""
+    kernel_cov = kernel.covariance(centre)
+    kcov = (kernel_cov[..., 0, 0, None], kernel_cov[..., 0, 1, None], kernel_cov[..., 1, 1, None])
+    mean = centre[..., :2] + kernel.offset(centre)
+    m = (mean[..., 0, None], mean[..., 1, None])
+    lobe_centre, lobe_cov = _lobe_moments(p)
+    first, first_cov = _product(m, kcov, lobe_centre, lobe_cov)
+
+    zero = torch.zeros_like(p.inv_ax)
+    lobe_slope_cov = (0.5 / (p.inv_ax * p.inv_ax), zero, 0.5 / (p.inv_ay * p.inv_ay))
+    # Linearise about the first product's mean, pulled inside the horizon if it lies beyond (the
+    # product of two Gaussians knows nothing of the horizon; the slopes are singular there).
+    radius = torch.sqrt(first[0] * first[0] + first[1] * first[1])
+    pull = torch.where(radius > PULL, PULL / radius.clamp(min=PULL), torch.ones_like(radius))
+    first = (first[0] * pull, first[1] * pull)
+    (u, v), (a, b, c, d), facing = _slope_at(p, *first)
+    det = a * d - b * c
+    det = torch.where(facing & (det.abs() > 0), det, torch.ones_like(det))
+    inverse = (d / det, -b / det, -c / det, a / det)
+    # The lobe about the first product's mean l0, in the l-plane: mean l0 - J^-1 z0, cov J^-1 Lambda J^-T.
+    lobe = (first[0] - (inverse[0] * u + inverse[1] * v), first[1] - (inverse[2] * u + inverse[3] * v))
+    plane_mean, plane_cov = _product(m, kcov, lobe, _congruence(inverse, lobe_slope_cov))
+    # The kernel in slopes: mean z0 + J (m - l0), covariance J Sigma J^T.
+    dx, dy = m[0] - first[0], m[1] - first[1]
+    kernel_slope = (u + a * dx + b * dy, v + c * dx + d * dy)
+    slope_mean, slope_cov = _product(kernel_slope, _congruence((a, b, c, d), kcov), (zero, zero), lobe_slope_cov)
+
+    def keep(new, old):  # where the half vector there does not face the normal, the first product
+        return tuple(torch.where(facing, i, j) for i, j in zip(new, old, strict=True))
+
+    with torch.no_grad():
+        narrow = ~facing | (_std(kcov, largest=True) <= _std(lobe_cov, largest=False))
+    return _Pairs(facing, narrow, keep(plane_mean, first), keep(plane_cov, first_cov), slope_mean, slope_cov)
+
+
+def _from_slope(p: _Pixels, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The l-plane points ``lx, ly`` of half-vector slopes ``(u, v)`` and the area ratio
+    ``dl / (du dv) = 4 <v, h> <h, n>^3 w_z`` (0 where ``w`` is below the horizon)."""
+    (nx, ny, nz), (sx, sy, sz), (tx, ty, tz) = p.n, p.s, p.t
+    vx, vy, vz = p.view
+    hx, hy, hz = nx + u * sx + v * tx, ny + u * sy + v * ty, nz + u * sz + v * tz
+    hn = torch.rsqrt(hx * hx + hy * hy + hz * hz)  # <h, n> of the unit half vector
+    hx, hy, hz = hx * hn, hy * hn, hz * hn
+    vh = vx * hx + vy * hy + vz * hz
+    wx, wy, wz = 2.0 * vh * hx - vx, 2.0 * vh * hy - vy, 2.0 * vh * hz - vz
+    ratio = 4.0 * vh * hn * hn * hn * wz
+    return wx, wy, torch.where((wz > 0) & (vh > 0), ratio, torch.zeros_like(ratio))
+
+
+def _fast_rule(kernel: Kernel, centre: Tensor, p: _Pixels, order: int):
+    """Gauss-Hermite nodes ``(N, F, Q)`` (x, y, area) on the product of the two factors and the
+    pairs ``(N, F)`` whose product reaches the horizon (within ``INSIDE`` widths).
+
+    The rule lives where one factor is exactly Gaussian: the l-plane for a projected Gaussian
+    kernel, else the half-vector slopes, where the Ward lobe is (measured both ways by
+    ``experiments/render_accuracy.py``: each choice is the more accurate for its kernel)."""
+    q = _pairs(kernel, centre, p)
     points, weights = _hermite(order, centre)
     xi, eta = points[:, 0], points[:, 1]
-    lx = mx[..., None] + l11[..., None] * xi
-    ly = my[..., None] + l21[..., None] * xi + l22[..., None] * eta
-    # weight over the standard-normal density, times the Jacobian det(L) of the map.
-    area = (weights / (torch.exp(-0.5 * (points * points).sum(-1)) / (2.0 * math.pi))) * (l11 * l22)[..., None]
-    width = torch.sqrt(0.5 * (cxx + cyy) + torch.sqrt((0.25 * (cxx - cyy) ** 2 + cxy * cxy).clamp(min=0.0)))
-    return lx, ly, area, mx, my, width
+    # weight over the standard-normal density (times the Jacobian det(L) of each map below).
+    weights = weights / (torch.exp(-0.5 * (points * points).sum(-1)) / (2.0 * math.pi))
+
+    def nodes(mean, cov):
+        (mx, my), (l11, l21, l22) = mean, _cholesky(cov)
+        return mx + l11 * xi, my + l21 * xi + l22 * eta, weights * (l11 * l22)
+
+    lx, ly, area = nodes(q.mean, q.cov)
+    if kernel.domain != "projected":  # in slopes, but where the lobe is nil (not facing)
+        u, v, slope_area = nodes(q.slope_mean, q.slope_cov)
+        sx, sy, ratio = _from_slope(p, u, v)
+        lx, ly = torch.where(q.facing, sx, lx), torch.where(q.facing, sy, ly)
+        area = torch.where(q.facing, slope_area * ratio, area)
+    with torch.no_grad():
+        reaches = torch.sqrt(q.mean[0] ** 2 + q.mean[1] ** 2) + INSIDE * _std(q.cov, largest=True) >= 1.0
+    return lx, ly, area, reaches[..., 0]
 
 
-def _reference_rule(kernel: Kernel, centre: Tensor, lobe_centre: Tensor, lobe_cov: Tensor, order: int):
-    """Polar Gauss-Legendre nodes about the narrower of lobe and kernel, on a grid shaped like
-    it and clipped at the horizon. ``centre (*, 3)``, ``lobe_centre (*, 2)`` and ``lobe_cov
-    (*, 2, 2)`` broadcast together: x, y and area weights ``(*, Q)``."""
-    kernel_cov = kernel.covariance(centre)
-    lobe_first = _width(lobe_cov) < _width(kernel_cov)
-    kernel_mean, kernel_shape, kernel_reach = kernel.grid(centre)
-    lobe_first, lobe_centre, kernel_mean = torch.broadcast_tensors(lobe_first[..., None], lobe_centre, kernel_mean)
-    lobe_first = lobe_first[..., 0]
-    middle = torch.where(lobe_first[..., None], lobe_centre, kernel_mean)
-    shape = torch.where(lobe_first[..., None, None], torch.linalg.cholesky(lobe_cov), kernel_shape)
-    reach = torch.where(
-        lobe_first, torch.full_like(middle[..., 0], LOBE_REACH), torch.full_like(middle[..., 0], kernel_reach)
+def _first_root(a2: Tensor, a1: Tensor, a0: Tensor) -> Tensor:
+    """The first positive root of ``a2 r^2 + a1 r + a0`` where ``a0 > 0`` (``2 a0 / (sqrt(disc) - a1)``,
+    stable for every sign of ``a2``), ``inf`` where there is none."""
+    disc = a1 * a1 - 4.0 * a2 * a0
+    den = torch.sqrt(torch.where(disc > 0, disc, torch.ones_like(disc))) - a1
+    crosses = (disc > 0) & (den > 0) & (a0 > 0)
+    root = 2.0 * a0 / torch.where(crosses, den, torch.ones_like(den))
+    return torch.where(crosses, root, torch.full_like(root, math.inf))
+
+
+def _slope_polar(p: _Pixels, mean, chol, reach: float, order: int):
+    """Polar Gauss-Legendre in half-vector slopes about ``mean``, whitened by ``chol``, out to
+    ``reach`` and clipped exactly where ``w`` meets the horizon or the normal's horizon (each a
+    quadratic in the radius): slopes ``u, v`` and area weights ``(N, F, Q)``."""
+    x, w = _legendre(2 * order, p.inv_ax)
+    angular = order
+    psi = torch.arange(angular, dtype=x.dtype, device=x.device) * (2.0 * math.pi / angular)
+    cos, sin = torch.cos(psi), torch.sin(psi)
+    (nx, ny, nz), (sx, sy, sz), (tx, ty, tz) = p.n, p.s, p.t
+    vx, vy, vz = p.view
+    (cu, cv), (l11, l21, l22) = mean, chol
+    su, sv = l11 * cos, l21 * cos + l22 * sin  # (N, F, A): slopes move by r (su, sv)
+    # h(r) = A + r B, unnormalised, and w = 2 <v, h> h / |h|^2 - v. The ray leaves at the first
+    # positive root of w_z |h|^2 = 2 <v, h> h_z - v_z |h|^2 (the horizon) or of <n, w> |h|^2 (the
+    # normal's horizon; <n, A> = 1 and <n, B> = 0), each a quadratic in r.
+    ax, ay, az = nx + cu * sx + cv * tx, ny + cu * sy + cv * ty, nz + cu * sz + cv * tz
+    bx, by, bz = su * sx + sv * tx, su * sy + sv * ty, su * sz + sv * tz
+    va, vb = vx * ax + vy * ay + vz * az, vx * bx + vy * by + vz * bz
+    aa, ab, bb = ax * ax + ay * ay + az * az, ax * bx + ay * by + az * bz, bx * bx + by * by + bz * bz
+    vn = p.cos_view
+    horizon = _first_root(2.0 * vb * bz - vz * bb, 2.0 * (va * bz + vb * az) - 2.0 * vz * ab, 2.0 * va * az - vz * aa)
+    normal = _first_root(-vn * bb, 2.0 * vb - 2.0 * vn * ab, 2.0 * va - vn * aa)
+    top = torch.minimum(horizon, normal)
+    exits = (top < reach)[..., None]  # (N, F, A, 1)
+    top = top.clamp(max=reach)[..., None]
+    # On rays that end at a horizon, r = top s (2 - s): dr / ds vanishes there, where the lobe's
+    # sqrt(<n, w>) has an infinite slope that would slow Gauss-Legendre down.
+    s = 0.5 * (x + 1.0)
+    r = top * torch.where(exits, s * (2.0 - s), s)  # (N, F, A, R)
+    dr = top * torch.where(exits, 2.0 * (1.0 - s), torch.ones_like(s)) * (0.5 * w)
+    weight = dr * r * (2.0 * math.pi / angular) * (l11 * l22)[..., None]
+    u = cu[..., None] + r * su[..., None]
+    v = cv[..., None] + r * sv[..., None]
+    return u.flatten(-2), v.flatten(-2), weight.flatten(-2)
+
+
+def _reference_rule(kernel: Kernel, centre: Tensor, p: _Pixels, order: int):
+    """Polar Gauss-Legendre nodes ``(N, F, Q)`` (x, y, area).
+
+    Where the kernel is narrower than the lobe every way: in the l-plane on the kernel's own grid
+    (:func:`torchspec.lights.polar_nodes`, clipped at the horizon), centred on the product's mean
+    for a kernel without a finite support (the product sits in the kernel's tail when the lobe is
+    far off) and on the kernel's for a tabulated one. Otherwise about the product of linearised
+    kernel and exact lobe in half-vector slopes, where the lobe, however anisotropic, is Gaussian."""
+    q = _pairs(kernel, centre, p)
+    mean, shape, reach = kernel.grid(centre)
+    if kernel.kind != "tabulated":
+        product = torch.cat(q.mean, -1)
+        inside = (product * product).sum(-1, keepdim=True) < (mean * mean).sum(-1, keepdim=True).clamp(min=0.99**2)
+        mean = torch.where(inside, product, mean)
+    l, area = polar_nodes(mean, shape, reach, radial=order, angular=2 * order)
+    u, v, weight = _slope_polar(p, q.slope_mean, _cholesky(q.slope_cov), max(LOBE_REACH, reach), order)
+    lx, ly, ratio = _from_slope(p, u, v)
+    narrow = q.narrow
+    return (
+        torch.where(narrow, l[..., 0], lx),
+        torch.where(narrow, l[..., 1], ly),
+        torch.where(narrow, area, weight * ratio),
     )
-    l, area = polar_nodes(middle, shape, reach, radial=order, angular=2 * order)
-    return l[..., 0], l[..., 1], area
+
+
+def _rules(kernel: Kernel, centre: Tensor, p: _Pixels, path: str, orders: dict):
+    """The nodes of every pixel-frame pair on ``path`` (``fast``, ``reference`` or ``auto``): x, y,
+    area ``(N, F, Q)``, and for ``auto`` the pairs ``(pixel, frame)`` whose product reaches the
+    horizon with their reference nodes ``(M, 1, Q')`` (else ``None``)."""
+    if path == "reference":
+        return _reference_rule(kernel, centre[None], p, orders["reference"]), None
+    lx, ly, area, reaches = _fast_rule(kernel, centre[None], p, orders["fast"])
+    if path == "fast":
+        return (lx, ly, area), None
+    cut = reaches.nonzero()
+    if not cut.shape[0]:
+        return (lx, ly, area), None
+    pixel, frame = cut[:, 0], cut[:, 1]
+    sub = _reference_rule(kernel, centre[frame][:, None], _pick(p, pixel), orders["reference"])
+    return (lx, ly, area), (pixel, frame, sub)
 
 
 def _integrate(kernel, centre, pixels, lx, ly, area) -> Tensor:
@@ -244,9 +443,7 @@ def _integrate_beckmann(svbrdf: SVBRDF, view: Tensor):
         shape = (-1,) + (1,) * (lx.dim() - 1)
         w = from_plane(torch.stack(torch.broadcast_tensors(lx, ly), -1))
         rotation = None if part.rotation is None else part.rotation.reshape(shape)
-        lobe = beckmann_cosine(
-            w, view, part.normal.reshape(*shape, 3), part.roughness.reshape(*shape, 2), rotation
-        )
+        lobe = beckmann_cosine(w, view, part.normal.reshape(*shape, 3), part.roughness.reshape(*shape, 2), rotation)
         return (area * kernel.density_xy(lx, ly, centre[..., None, :]) * lobe).sum(-1)
 
     return integrate
@@ -275,26 +472,22 @@ def _specular(svbrdf, lights, view, path, orders, compiled=False, lobe="ward") -
     integrate = _integrator(compiled) if lobe == "ward" else _integrate_beckmann(svbrdf, view)
     if path == "point":
         if lobe == "beckmann":
-            return beckmann_cosine(centre[None], view, svbrdf.normal[:, None], svbrdf.roughness[:, None],
-                                   None if svbrdf.rotation is None else svbrdf.rotation[:, None])
+            return beckmann_cosine(
+                centre[None],
+                view,
+                svbrdf.normal[:, None],
+                svbrdf.roughness[:, None],
+                None if svbrdf.rotation is None else svbrdf.rotation[:, None],
+            )
         return _lobe_at(centre[None, :, None, 0], centre[None, :, None, 1], pixels)[..., 0]
-    lobe_centre, lobe_cov = _lobe(svbrdf, view)  # (N, 2), (N, 2, 2)
-    if path == "reference":
-        rule = _reference_rule(kernel, centre[None], lobe_centre[:, None], lobe_cov[:, None], orders["reference"])
-        return integrate(kernel, centre[None], pixels, *rule)
-    lx, ly, area, mx, my, width = _product_rule(kernel, centre, lobe_centre, lobe_cov, orders["fast"])
+    (lx, ly, area), fallback = _rules(kernel, centre, pixels, path, orders)
     value = integrate(kernel, centre[None], pixels, lx, ly, area)
-    if path == "fast":
-        return value
-    # auto: the pairs whose kernel-lobe product reaches the horizon, by the reference rule.
-    cut = (torch.sqrt(mx * mx + my * my) + INSIDE * width >= 1.0).nonzero()
-    if cut.shape[0]:
-        p, k = cut[:, 0], cut[:, 1]
-        rule = _reference_rule(kernel, centre[k], lobe_centre[p], lobe_cov[p], orders["reference"])
+    if fallback is not None:  # auto: the pairs whose product reaches the horizon, by the reference rule
+        p, k, (lx, ly, area) = fallback
         if lobe == "ward":
-            exact = _integrate(kernel, centre[k][:, None], _pick(pixels, p), *(r[:, None] for r in rule))[:, 0]
+            exact = _integrate(kernel, centre[k][:, None], _pick(pixels, p), lx, ly, area)[:, 0]
         else:
-            exact = integrate(kernel, centre[k][:, None], None, *(r[:, None] for r in rule), index=p)[:, 0]
+            exact = integrate(kernel, centre[k][:, None], None, lx, ly, area, index=p)[:, 0]
         value = value.index_put((p, k), exact)
     return value
 
@@ -409,7 +602,7 @@ def render(
     }[chosen]
     chunk = max(1, BUDGET // (lights.directions.shape[0] * nodes_per_pair))
     out = []
-    for start in range(0, flat.shape[0], chunk):
+    for start in range(0, max(flat.shape[0], 1), chunk):  # one (empty) chunk for no pixels
         part = flat[start : start + chunk]
         specular = _specular(part, lights, view, chosen, orders, compile, lobe)
         diffuse = _diffuse(part.normal, lights, direction)
