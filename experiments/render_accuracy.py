@@ -35,6 +35,7 @@ from torchspec.render import render
 
 sys.path.insert(0, str(ROOT / "tests"))
 from brute_force import pixel_tensors, random_case, reference_value  # noqa: E402
+from kernel_cases import KERNELS  # noqa: E402
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -47,36 +48,6 @@ class Settings:
     batch_pixels: int
     batch_frames: int
     spot_checks: int
-
-
-def _table():
-    y, x = torch.meshgrid(torch.linspace(-1, 1, 24, dtype=F64), torch.linspace(-1, 1, 24, dtype=F64), indexing="ij")
-    return torch.exp(-((x - 0.1) ** 2 / 0.18 + (y + 0.05) ** 2 / 0.12) * 2.0)
-
-
-KERNELS = {
-    "gaussian projected 0.08": (
-        Kernel("gaussian", "projected", 0.08),
-        dict(kind="gaussian-projected", sigma=0.08),
-        0.08,
-    ),
-    "gaussian projected 0.02": (
-        Kernel("gaussian", "projected", 0.02),
-        dict(kind="gaussian-projected", sigma=0.02),
-        0.02,
-    ),
-    "gaussian angular 0.05": (Kernel("gaussian", "angular", 0.05), dict(kind="gaussian-angular", sigma=0.05), 0.05),
-    "super-Gaussian 0.035^6": (
-        Kernel("supergaussian", "angular", 0.035, 6.0),
-        dict(kind="supergaussian", sigma=0.035, power=6.0),
-        0.035,
-    ),
-    "tabulated 24x24": (
-        Kernel("tabulated", table=_table(), extent=0.15),
-        dict(kind="tabulated", table=_table(), extent=0.15),
-        0.15,
-    ),
-}
 
 
 def _batch(count: int, frames: int, seed: int):

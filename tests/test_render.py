@@ -4,6 +4,7 @@ import math
 import pytest
 import torch
 from brute_force import pixel_tensors, random_case, reference_value
+from kernel_cases import KERNELS
 
 import torchspec as ts
 from torchspec.brdf import SVBRDF, ward_cosine
@@ -13,37 +14,6 @@ from torchspec.render import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
-
-
-def _table():
-    """A smooth, slightly asymmetric blob: a tabulated kernel as a calibration would give."""
-    y, x = torch.meshgrid(torch.linspace(-1, 1, 24, dtype=F64), torch.linspace(-1, 1, 24, dtype=F64), indexing="ij")
-    return torch.exp(-((x - 0.1) ** 2 / 0.18 + (y + 0.05) ** 2 / 0.12) * 2.0)
-
-
-KERNELS = {
-    "gaussian-projected-0.08": (
-        Kernel("gaussian", "projected", 0.08),
-        dict(kind="gaussian-projected", sigma=0.08),
-        0.08,
-    ),
-    "gaussian-projected-0.02": (
-        Kernel("gaussian", "projected", 0.02),
-        dict(kind="gaussian-projected", sigma=0.02),
-        0.02,
-    ),
-    "gaussian-angular-0.05": (Kernel("gaussian", "angular", 0.05), dict(kind="gaussian-angular", sigma=0.05), 0.05),
-    "supergaussian-0.035": (
-        Kernel("supergaussian", "angular", 0.035, 6.0),
-        dict(kind="supergaussian", sigma=0.035, power=6.0),
-        0.035,
-    ),
-    "tabulated-0.15": (
-        Kernel("tabulated", table=_table(), extent=0.15),
-        dict(kind="tabulated", table=_table(), extent=0.15),
-        0.15,
-    ),
-}
 
 
 @pytest.mark.parametrize("path,tolerance", [("reference", 1e-4), ("fast", 1e-3)])

@@ -47,3 +47,18 @@ def write_json(path: str | Path, data) -> None:
     """Write ``data`` as indented JSON, atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+
+
+def read_json(path: Path, error: type[Exception], missing: str):
+    """The JSON document at ``path``; ``error`` naming the file when it is missing (with the hint
+    ``missing``), unreadable, not UTF-8 or not valid JSON (with the line and column)."""
+    if not path.is_file():
+        raise error(f"{path} must exist; got no such file. {missing}")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as cause:
+        raise error(
+            f"{path} must be valid JSON; got {cause.msg} at line {cause.lineno} column {cause.colno}. Fix the syntax."
+        ) from cause
+    except (OSError, UnicodeDecodeError) as cause:
+        raise error(f"{path} must be a readable UTF-8 file; got {cause}.") from cause

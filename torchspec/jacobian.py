@@ -34,6 +34,7 @@ from .render import (
     DIFFUSE_ORDER,
     FAST_ORDER,
     REFERENCE_ORDER,
+    _at_nodes,
     _diffuse,
     _pick,
     _pixels,
@@ -146,16 +147,10 @@ def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
 def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor, frame_dt: Tensor, alpha: Tensor):
     """The lobe ``L`` at nodes ``(N, F, Q)`` and its derivatives: ``dL/dn (N, F, Q, 3)``,
     ``dL/d(alpha_x, alpha_y, rotation) (N, F, Q, 3)``."""
-    r2 = lx * lx + ly * ly
-    inside = r2 < 1.0
-    wz = torch.sqrt(torch.where(inside, 1.0 - r2, torch.ones_like(r2)))
-    (nx, ny, nz), (sx, sy, sz), (tx, ty, tz) = pixels.n, pixels.s, pixels.t
-    vx, vy, vz = pixels.view
-    ci = nx * lx + ny * ly + nz * wz
+    wz, ci, front, (hx, hy, hz), hn = _at_nodes(lx, ly, pixels)
+    (sx, sy, sz), (tx, ty, tz) = pixels.s, pixels.t
     co = pixels.cos_view
-    front = inside & (ci > 0) & (co > 0)
-    hx, hy, hz = lx + vx, ly + vy, wz + vz
-    hn = torch.where(front, nx * hx + ny * hy + nz * hz, torch.ones_like(hx))
+    hn = torch.where(front, hn, torch.ones_like(hx))
     s_h = sx * hx + sy * hy + sz * hz
     t_h = tx * hx + ty * hy + tz * hz
     hs, ht = s_h * pixels.inv_ax, t_h * pixels.inv_ay

@@ -149,18 +149,26 @@ def _pixels(svbrdf: SVBRDF, view: Tensor) -> _Pixels:
     )
 
 
-def _lobe_at(lx: Tensor, ly: Tensor, p: _Pixels) -> Tensor:
-    """The Ward lobe times the cosine, ``ward_cosine``, at l-plane points ``(N, F, Q)``, written
-    componentwise (no 3-vectors, no reductions): the hot loop of every path."""
+def _at_nodes(lx: Tensor, ly: Tensor, p: _Pixels):
+    """The geometry at l-plane nodes ``(N, F, Q)``, componentwise: ``w_z``, ``<n, w>``, where the
+    lobe is seen (``w`` above the horizon and in front of the normal, the view too), and the
+    unnormalised half vector ``w + v`` with its ``<h, n>``."""
     r2 = lx * lx + ly * ly
     inside = r2 < 1.0
     wz = torch.sqrt(torch.where(inside, 1.0 - r2, torch.ones_like(r2)))
-    (nx, ny, nz), (sx, sy, sz), (tx, ty, tz) = p.n, p.s, p.t
+    nx, ny, nz = p.n
     vx, vy, vz = p.view
     cos_light = nx * lx + ny * ly + nz * wz
     front = inside & (cos_light > 0) & (p.cos_view > 0)
     hx, hy, hz = lx + vx, ly + vy, wz + vz
-    hn = nx * hx + ny * hy + nz * hz
+    return wz, cos_light, front, (hx, hy, hz), nx * hx + ny * hy + nz * hz
+
+
+def _lobe_at(lx: Tensor, ly: Tensor, p: _Pixels) -> Tensor:
+    """The Ward lobe times the cosine, ``ward_cosine``, at l-plane points ``(N, F, Q)``, written
+    componentwise (no 3-vectors, no reductions): the hot loop of every path."""
+    _, cos_light, front, (hx, hy, hz), hn = _at_nodes(lx, ly, p)
+    (sx, sy, sz), (tx, ty, tz) = p.s, p.t
     hs = (sx * hx + sy * hy + sz * hz) * p.inv_ax
     ht = (tx * hx + ty * hy + tz * hz) * p.inv_ay
     safe_hn = torch.where(front, hn, torch.ones_like(hn))

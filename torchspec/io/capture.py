@@ -10,7 +10,6 @@ missing frames.
 
 from __future__ import annotations
 
-import json
 import operator
 import warnings
 from collections.abc import Sequence
@@ -20,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._atomic import write_json
+from .._atomic import read_json, write_json
 from ..brdf import SVBRDF
 from ._manifest import (
     FORMAT,
@@ -222,17 +221,7 @@ def read_capture(path: str | Path) -> Capture:
     """
     path = Path(path)
     manifest = path if path.suffix.lower() == ".json" or path.is_file() else path / MANIFEST
-    if not manifest.is_file():
-        raise CaptureError(f"{manifest} must exist; got no such file. Pass a capture directory that holds {MANIFEST}.")
-    try:
-        data = json.loads(manifest.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
-        raise CaptureError(
-            f"{manifest} must be valid JSON; got {error.msg} at line {error.lineno} column {error.colno}. "
-            "Fix the syntax."
-        ) from error
-    except (OSError, UnicodeDecodeError) as error:
-        raise CaptureError(f"{manifest} must be a readable UTF-8 file; got {error}.") from error
+    data = read_json(manifest, CaptureError, f"Pass a capture directory that holds {MANIFEST}.")
     notes: list[str] = []
     capture = Capture(root=manifest.parent, **_parse(data, manifest, notes))
     for note in notes:

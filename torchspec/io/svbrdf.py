@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._atomic import write_json
+from .._atomic import read_json, write_json
 from ..brdf import SVBRDF
 from .exr import ExrError, _read, write_exr
 
@@ -212,16 +212,7 @@ def write_svbrdf(
 
 
 def _read_meta(file: Path) -> dict:
-    if not file.is_file():
-        raise SVBRDFError(f"{file} must exist; got no such file. Pass a folder of SVBRDF maps (holding {META}).")
-    try:
-        meta = json.loads(file.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
-        raise SVBRDFError(
-            f"{file} must be valid JSON; got {error.msg} at line {error.lineno} column {error.colno}. Fix the syntax."
-        ) from error
-    except (OSError, UnicodeDecodeError) as error:
-        raise SVBRDFError(f"{file} must be a readable UTF-8 file; got {error}.") from error
+    meta = read_json(file, SVBRDFError, f"Pass a folder of SVBRDF maps (holding {META}).")
     if not isinstance(meta, dict):
         raise SVBRDFError(f"{file} must hold a JSON object; got {type(meta).__name__}.")
     if meta.get("format") != FORMAT:
