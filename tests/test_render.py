@@ -136,7 +136,13 @@ def test_bad_inputs():
 
 
 @pytest.mark.parametrize(
-    "kernel", [Kernel("point"), Kernel("gaussian", "projected", 0.05), Kernel("supergaussian", "angular", 0.04, 6.0)]
+    "kernel",
+    [
+        Kernel("point"),
+        Kernel("gaussian", "projected", 0.05),
+        Kernel("gaussian", "angular", 0.05),
+        Kernel("supergaussian", "angular", 0.04, 6.0),
+    ],
 )
 def test_gradcheck(kernel):
     """Every parameter, float64, with a grazing light and alpha = 0.005 among the cases."""
