@@ -20,3 +20,19 @@ def device(request):
 def circular_error(position, truth, period=1.0):
     """Signed distance on the circle of circumference ``period``."""
     return torch.remainder(position - truth + period / 2, period) - period / 2
+
+
+@pytest.fixture
+def unknown_light_capture(tmp_path):
+    """A small mirror capture (6 frames) written with its light kernel 'unknown', as a device's
+    capture is before calibration: the capture's directory."""
+    from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
+    from torchspec.synth import MirrorConfig
+
+    config = SimulationConfig(
+        scene=SceneConfig(kind="mirror", mirror=MirrorConfig(width=4, height=4)),
+        light=LightConfig(kernel="supergaussian", domain="angular", sigma=0.035, power=6.0),
+        layout=LayoutConfig(kind="line", n=6, theta_min_deg=0.0, theta_max_deg=10.0),
+    )
+    write_simulation(tmp_path / "m", simulate(config))
+    return tmp_path / "m"

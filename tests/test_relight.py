@@ -6,8 +6,8 @@ import torch
 from torchspec.cli import main
 from torchspec.io import CaptureError, read_capture
 from torchspec.relight import psnr, render_capture
-from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import MirrorConfig, PaintingConfig
+from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
+from torchspec.synth import PaintingConfig
 
 
 @pytest.fixture(scope="module")
@@ -34,18 +34,11 @@ def test_psnr():
     assert abs(psnr(a + 0.1, a) - 20.0) < 1e-9
 
 
-def test_unknown_light_needs_a_light_file(tmp_path):
-    config = SimulationConfig(
-        scene=SceneConfig(kind="mirror", mirror=MirrorConfig(width=4, height=4)),
-        light=LightConfig(kernel="supergaussian", domain="angular", sigma=0.035, power=6.0),
-        layout=LayoutConfig(kind="line", n=6, theta_min_deg=0.0, theta_max_deg=10.0),
-    )
-    write_simulation(tmp_path / "m", simulate(config))
+def test_unknown_light_needs_a_light_file(unknown_light_capture):
     with pytest.raises(CaptureError, match="'unknown'.*--light"):
-        render_capture(tmp_path / "m" / "truth", tmp_path / "m", None)
-    report = render_capture(
-        tmp_path / "m" / "truth", tmp_path / "m", None, light=tmp_path / "m" / "truth" / "light.json"
-    )
+        render_capture(unknown_light_capture / "truth", unknown_light_capture, None)
+    truth = unknown_light_capture / "truth"
+    report = render_capture(truth, unknown_light_capture, None, light=truth / "light.json")
     assert report["psnr_db"] > 90
 
 

@@ -10,14 +10,13 @@ from torchspec.lights import Kernel, Lights
 from torchspec.render import render
 from torchspec.simulate import (
     LayoutConfig,
-    LightConfig,
     SceneConfig,
     SimulationConfig,
     layout,
     simulate,
     write_simulation,
 )
-from torchspec.synth import MirrorConfig, PaintingConfig
+from torchspec.synth import PaintingConfig
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 
@@ -60,16 +59,10 @@ def test_simulation_round_trip(tmp_path):
     torch.testing.assert_close(again.permute(2, 3, 0, 1).float(), frames, rtol=1e-5, atol=1e-6)
 
 
-def test_unknown_light_is_written_as_unknown(tmp_path):
-    config = SimulationConfig(
-        scene=SceneConfig(kind="mirror", mirror=MirrorConfig(width=4, height=4)),
-        light=LightConfig(kernel="supergaussian", domain="angular", sigma=0.035, power=6.0),
-        layout=LayoutConfig(kind="line", n=6, theta_min_deg=0.0, theta_max_deg=10.0),
-    )
-    write_simulation(tmp_path / "m", simulate(config))
-    capture = read_capture(tmp_path / "m")
+def test_unknown_light_is_written_as_unknown(unknown_light_capture):
+    capture = read_capture(unknown_light_capture)
     assert capture.light.kernel == "unknown"
-    assert (tmp_path / "m" / "truth" / "light.json").exists()
+    assert (unknown_light_capture / "truth" / "light.json").exists()
 
 
 @pytest.mark.parametrize("name", ["sim_painting", "sim_mirror", "sim_paper_1d", "sim_paper_2d"])
