@@ -1,27 +1,36 @@
 """torchspec: reflectance of nearly flat objects from a few HDR photographs under an extended
 light, by finite-rate-of-innovation location of the specular peak and batched fitting."""
 
-from . import brdf, crb, fri, geometry, jacobian, lights, relight, simulate, synth
+from . import brdf, crb, fri, geometry, jacobian, lights, lm, models, photometric, relight, simulate, specular, synth
 from ._version import __version__
 from .brdf import SVBRDF
+from .fit import Fit, FitConfig, fit, write_fit
 from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
 from .render import render
 
 __all__ = [
+    "Fit",
+    "FitConfig",
     "SVBRDF",
     "__version__",
     "brdf",
     "crb",
     "fri",
     "geometry",
+    "fit",
     "jacobian",
     "lights",
+    "lm",
+    "models",
+    "photometric",
     "relight",
     "simulate",
+    "specular",
     "synth",
     "read_capture",
     "read_svbrdf",
     "render",
     "write_capture",
+    "write_fit",
     "write_svbrdf",
 ]

@@ -26,6 +26,15 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument("config", type=Path, help="a simulation config (YAML), e.g. configs/sim_painting.yaml")
     simulate.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
 
+    fit = commands.add_parser("fit", help="fit SVBRDF maps (normal, diffuse, specular, roughness) to a capture")
+    fit.add_argument("capture", type=Path, help="the capture folder (with capture.json)")
+    fit.add_argument("-o", "--output", type=Path, required=True, help="the folder of maps to write")
+    fit.add_argument("--config", type=Path, default=None,
+                     help="fit settings (YAML, keys of FitConfig), e.g. configs/fit.yaml")
+    fit.add_argument("--frames", default=None,
+                     help="frames to fit: 'all', a slice like '::2' (every second) or a list like '0,3,10-19'")
+    fit.add_argument("--quiet", action="store_true", help="no progress bar")
+
     render = commands.add_parser("render", help="predict a capture's frames from SVBRDF maps")
     render.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
     render.add_argument("--capture", type=Path, required=True, help="the capture whose lights to render")
@@ -65,6 +74,18 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         result = write_simulation(args.output, simulate(config, root=args.output))
         print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
               f"{''.join(result.channels)}, with truth/")
+    elif args.command == "fit":
+        from .config import load_config
+        from .fit import FitConfig, fit, write_fit
+
+        config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
+        result = fit(args.capture, config=config, frames=args.frames, progress=not args.quiet)
+        write_fit(args.output, result)
+        stats = result.stats
+        print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
+              f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
+              f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
+              f"median relative residual {stats['median_residual']:.2e}")
     elif args.command == "render":
         from .relight import render_capture
 

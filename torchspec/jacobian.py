@@ -72,7 +72,13 @@ def _svbrdf(params: Tensor, channels: tuple[str, ...], grey: bool) -> SVBRDF:
 
 
 def jacobian(
-    svbrdf: SVBRDF, lights: Lights, view: Tensor, *, mode: str = "analytic", path: str = "auto"
+    svbrdf: SVBRDF,
+    lights: Lights,
+    view: Tensor,
+    *,
+    mode: str = "analytic",
+    path: str = "auto",
+    diffuse_only: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Values and Jacobian of :func:`torchspec.render.render` with respect to each pixel's
     parameters (:func:`parameters`).
@@ -81,12 +87,17 @@ def jacobian(
         svbrdf: leading dims ``*``, ``C`` channels; ``rotation`` may be ``None`` (0).
         lights, view, path: as for :func:`torchspec.render.render`.
         mode: ``analytic`` or ``forward``.
+        diffuse_only: the model without its lobe (``k_s`` taken as 0, the lobe not integrated):
+            the values and the same columns, those of ``k_s`` and the lobe's shape being 0.
+            Analytic mode only.
 
     Returns:
         ``(values (*, K, C), jacobian (*, K, C, P))``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}; got {mode!r}.")
+    if diffuse_only and mode != "analytic":
+        raise ValueError("diffuse_only needs mode='analytic'.")
     lead = svbrdf.shape
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
@@ -109,7 +120,7 @@ def jacobian(
                 columns.append(column)
             jac = torch.stack(columns, -1)
         else:
-            value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path)
+            value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path, diffuse_only)
         if values is None:
             values = value.new_empty((params.shape[0], *value.shape[1:]))
             jacs = jac.new_empty((params.shape[0], *jac.shape[1:]))
@@ -177,7 +188,9 @@ def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor, frame_dt: 
     return lobe, d_normal, torch.stack([d_ax, d_ay, d_rot], -1)
 
 
-def _analytic(svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str) -> tuple[Tensor, Tensor]:
+def _analytic(
+    svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str, diffuse_only: bool = False
+) -> tuple[Tensor, Tensor]:
     chosen = choose_path(lights, path)
     like = svbrdf.diffuse
     lights = lights.to(dtype=like.dtype, device=like.device)
@@ -217,13 +230,20 @@ def _analytic(svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str) -> tuple[
             d_diffuse = d_diffuse.index_put((p, k), grad)
 
     # Specular: the value's nodes, held fixed.
-    pixels = _pixels(svbrdf, view)
-    frame_ds, frame_dt = _frame_derivatives(n, rotation)
-    if chosen == "point":
+    if diffuse_only:
+        spec = torch.zeros_like(diffuse)
+        d_spec_n, d_spec_shape = d_diffuse.new_zeros(d_diffuse.shape), d_diffuse.new_zeros(d_diffuse.shape)
+        no_lobe = torch.zeros_like(svbrdf.specular)
+        svbrdf = SVBRDF(n, svbrdf.diffuse, no_lobe, svbrdf.roughness, rotation, svbrdf.channels)
+    elif chosen == "point":
+        pixels = _pixels(svbrdf, view)
+        frame_ds, frame_dt = _frame_derivatives(n, rotation)
         lx, ly = centre[None, :, None, 0], centre[None, :, None, 1]
         lobe, d_n, d_shape = _lobe_gradients(lx, ly, pixels, frame_ds, frame_dt, svbrdf.roughness)
         spec, d_spec_n, d_spec_shape = lobe[..., 0], d_n[..., 0, :], d_shape[..., 0, :]
     else:
+        pixels = _pixels(svbrdf, view)
+        frame_ds, frame_dt = _frame_derivatives(n, rotation)
         orders = {"fast": FAST_ORDER, "reference": REFERENCE_ORDER}
         if kernel.kind == "tabulated":
             orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
@@ -258,7 +278,8 @@ def _analytic(svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str) -> tuple[
         d_ks = (spec[..., None, None] * torch.ones(count, 1, dtype=like.dtype, device=like.device)) * scale[..., None]
     else:
         d_ks = (spec[..., None, None] * eye) * scale[..., None]
-    d_shape = k_s[..., None] * d_spec_shape[:, :, None, :] * scale[..., None]  # (N, K, C, 3)
+    d_shape = k_s[..., None] * d_spec_shape[:, :, None, :] * scale[..., None]
+    d_shape = d_shape.expand(-1, -1, count, -1)  # (N, K, C, 3), also for a grey k_s under grey irradiance
     return value, torch.cat([d_angles, d_kd, d_ks, d_shape], -1)
 
 

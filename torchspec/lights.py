@@ -305,6 +305,9 @@ class Lights:
             raise ValueError(f"Lights.exposure must have shape ({k},); got {tuple(self.exposure.shape)}.")
         if bool((self.directions[:, 2] <= 0).any()):
             raise ValueError("Lights.directions must lie above the horizon (z > 0).")
+        # Quantities that depend on the lights only (effective diffuse directions), computed once
+        # per object: a fit renders the same lights at every solver step.
+        object.__setattr__(self, "_cache", {})
 
     @property
     def scale(self) -> Tensor:
@@ -312,13 +315,11 @@ class Lights:
         return self.exposure[:, None] * self.irradiance
 
     def to(self, *args, **kwargs) -> Lights:
-        """Tensors moved or cast like :meth:`torch.Tensor.to`."""
-        return Lights(
-            self.directions.to(*args, **kwargs),
-            self.kernel,
-            self.irradiance.to(*args, **kwargs),
-            self.exposure.to(*args, **kwargs),
-        )
+        """Tensors moved or cast like :meth:`torch.Tensor.to` (the same object when nothing changes)."""
+        moved = [t.to(*args, **kwargs) for t in (self.directions, self.irradiance, self.exposure)]
+        if all(m is t for m, t in zip(moved, (self.directions, self.irradiance, self.exposure), strict=True)):
+            return self
+        return Lights(moved[0], self.kernel, moved[1], moved[2])
 
 
 def _legendre(order: int, like: Tensor) -> tuple[Tensor, Tensor]:
@@ -395,9 +396,15 @@ def nodes(lights: Lights, *, order: int = 24) -> tuple[Tensor, Tensor]:
 
 def diffuse_directions(lights: Lights, *, order: int = 32) -> Tensor:
     """Effective diffuse directions ``d_k = integral K_k(w) w dmu`` ``(K, 3)``: the diffuse term
-    of a frame is ``k_d / pi <n, d_k>`` wherever the kernel lies in the normal's hemisphere."""
-    directions, weight = nodes(lights, order=order)
-    return (weight[..., None] * directions).sum(-2)
+    of a frame is ``k_d / pi <n, d_k>`` wherever the kernel lies in the normal's hemisphere.
+    Computed once per :class:`Lights` object and order (a fit renders the same lights at every
+    solver step); a caller that modifies ``directions`` in place gets a fresh value."""
+    cache = lights.__dict__.setdefault("_cache", {})
+    key = ("diffuse_directions", order, lights.directions._version)
+    if key not in cache:
+        directions, weight = nodes(lights, order=order)
+        cache[key] = (weight[..., None] * directions).sum(-2)
+    return cache[key]
 
 
 def clamped_diffuse(kernel: Kernel, centre: Tensor, normal: Tensor, linear: Tensor, *, order: int = 12) -> Tensor:

@@ -92,7 +92,12 @@ class Capture:
         return self.root / MANIFEST
 
     def read_frames(
-        self, indices: Sequence[int] | None = None, *, dtype: torch.dtype = torch.float32, device=None
+        self,
+        indices: Sequence[int] | None = None,
+        *,
+        dtype: torch.dtype = torch.float32,
+        device=None,
+        nonfinite: str = "raise",
     ) -> torch.Tensor:
         """Read frames as recorded (not divided by exposure or irradiance).
 
@@ -100,6 +105,9 @@ class Capture:
             indices: the frames to read, in this order (negative indices count from the end);
                 all ``K`` by default.
             dtype, device: of the result.
+            nonfinite: ``raise`` (a frame with NaN or Inf pixels is an error) or ``keep`` (they
+                are returned as they are, with a warning naming the frame, for a caller that masks
+                them, as :func:`torchspec.fit.fit` does).
 
         Returns:
             ``(K, C, H, W)`` image stack, frames as the batch (kornia's layout), channels in the
@@ -115,11 +123,13 @@ class Capture:
             >>> capture.read_frames([0, 5]).shape
             torch.Size([2, 3, 48, 48])
         """
+        if nonfinite not in ("raise", "keep"):
+            raise ValueError(f"nonfinite must be 'raise' or 'keep'; got {nonfinite!r}.")
         count = len(self.frames)
         picked = range(count) if indices is None else [self._index(i) for i in _as_list(indices)]
         out = torch.empty((len(picked), len(self.channels), self.height, self.width), dtype=dtype, device=device)
         for j, k in enumerate(picked):
-            out[j] = torch.from_numpy(self._read_frame(k)).permute(2, 0, 1)
+            out[j] = torch.from_numpy(self._read_frame(k, nonfinite == "keep")).permute(2, 0, 1)
         return out
 
     def _index(self, index) -> int:
@@ -132,7 +142,7 @@ class Capture:
             raise CaptureError(f"frame index must be in [0, {count}) ({self.manifest} has {count} frames); got {k}.")
         return k % count
 
-    def _read_frame(self, k: int) -> np.ndarray:
+    def _read_frame(self, k: int, keep_nonfinite: bool = False) -> np.ndarray:
         file = self.root / self.frames[k].file
         try:
             image = read_exr(file, self.channels)
@@ -146,7 +156,12 @@ class Capture:
                 f"got {image.shape[0]}x{image.shape[1]}. Crop or resample the frame, or fix width and height."
             )
         bad = int((~np.isfinite(image)).any(axis=2).sum())
-        if bad:
+        if bad and keep_nonfinite:
+            warnings.warn(
+                f"frames[{k}] {file}: {bad} pixel(s) with NaN or Inf (of {self.height * self.width}) are left out.",
+                stacklevel=3,
+            )
+        elif bad:
             raise CaptureError(
                 f"frames[{k}] {file} must be finite; got {bad} pixel(s) with NaN or Inf (of "
                 f"{self.height * self.width}). Re-export the frame, or replace those pixels with a finite value."

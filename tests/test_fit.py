@@ -1,0 +1,154 @@
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchspec.cli import main
+from torchspec.fit import FitConfig, fit, select_frames
+from torchspec.io import read_capture, read_svbrdf
+from torchspec.io.exr import read_exr, write_exr
+from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
+from torchspec.synth import PaintingConfig
+
+
+def _angle_deg(a, b):
+    a, b = a.double(), b.double()
+    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
+
+
+@pytest.fixture(scope="module")
+def painting(tmp_path_factory):
+    """A 16 x 16 simulated painting (no gilding) under 60 frames of a projected Gaussian light."""
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=16, height=16, seed=5, gilded=None)),
+        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
+        layout=LayoutConfig(kind="grid", nx=9, ny=9, extent=0.8, radius=0.8),
+    )
+    path = tmp_path_factory.mktemp("fit") / "painting"
+    write_simulation(path, simulate(config))
+    return path
+
+
+def _errors(result, truth, regions):
+    s, t = result.svbrdf.flatten(), truth.flatten()
+    lobe = regions.reshape(-1) == 1
+    matte = regions.reshape(-1) == 0
+    return {
+        "normal": _angle_deg(s.normal, t.normal),
+        "kd": ((s.diffuse.double() - t.diffuse.double()) / t.diffuse.double()).abs(),
+        "ks": ((s.specular.double().mean(-1) - t.specular.double().mean(-1)) / t.specular.double().mean(-1)).abs()[
+            lobe
+        ],
+        "alpha": ((s.roughness[:, 0].double() - t.roughness[:, 0].double()) / t.roughness[:, 0].double()).abs()[lobe],
+        "matte_ks": s.specular.double().mean(-1)[matte],
+    }
+
+
+def test_fit_recovers_a_simulated_painting(painting):
+    truth = read_svbrdf(painting / "truth")
+    result = fit(painting)
+    e = _errors(result, truth.svbrdf, truth.extra["regions"])
+    assert e["normal"].median() < 0.05, f"median normal error {e['normal'].median():.3g} deg"
+    assert e["normal"].max() < 1.0, f"max normal error {e['normal'].max():.3g} deg"
+    assert e["kd"].median() < 2e-3, f"median k_d error {e['kd'].median():.3g}"
+    assert e["ks"].median() < 0.02, f"median k_s error {e['ks'].median():.3g}"
+    assert e["alpha"].median() < 0.02, f"median alpha error {e['alpha'].median():.3g}"
+    assert torch.all(e["matte_ks"] == 0), "a matte pixel got a lobe"
+    assert result.stats["status"]["diverged"] == 0
+    assert result.quality.min() >= 0 and result.quality.max() <= 1
+    assert result.residual.median() < 1e-3
+    assert result.svbrdf.normal.dtype == torch.float32
+
+
+def test_tiles_are_independent(painting):
+    # A batch's size changes the rounding of its matrix products, so a pixel's solver path differs
+    # by rounding and stops elsewhere within its tolerance (ftol = 1e-8 on the cost: ~1e-4 on a
+    # parameter in a flat direction). float64 keeps that far below the float32 steps (~1e-3).
+    whole = fit(painting, frames="::2", config=FitConfig(dtype="float64"))
+    tiled = fit(painting, frames="::2", config=FitConfig(dtype="float64", tile=37))
+    assert tiled.stats["tile_pixels"] == 37
+    for name in ("normal", "diffuse", "specular", "roughness"):
+        a, b = getattr(whole.svbrdf, name), getattr(tiled.svbrdf, name)
+        err = (a - b).abs().max()
+        assert err < 1e-4, f"{name}: max difference {err:.3g}"
+
+
+@pytest.mark.parametrize("init", ["naive", "grid"])
+def test_other_starts_reach_the_same_fit(painting, init):
+    truth = read_svbrdf(painting / "truth")
+    result = fit(painting, frames="::2", config=FitConfig(init=init))
+    e = _errors(result, truth.svbrdf, truth.extra["regions"])
+    assert e["normal"].median() < 0.1, f"median normal error {e['normal'].median():.3g} deg"
+    assert e["alpha"].median() < 0.05, f"median alpha error {e['alpha'].median():.3g}"
+
+
+def test_a_bad_sample_is_masked_not_fitted(painting, tmp_path):
+    import shutil
+
+    copy = tmp_path / "bad"
+    shutil.copytree(painting, copy)
+    frame = copy / read_capture(copy).frames[3].file
+    image = np.array(read_exr(frame, ["R", "G", "B"]))
+    image[4, 5, :] = np.nan
+    write_exr(frame, image, ["R", "G", "B"])
+    with pytest.warns(UserWarning, match=r"frames\[3\].*1 pixel"):
+        result = fit(copy)
+    assert result.stats["masked_samples"]["nonfinite"] == 1
+    truth = read_svbrdf(copy / "truth").svbrdf
+    angle = _angle_deg(result.svbrdf.normal[4, 5], truth.normal[4, 5])
+    assert angle < 0.1, f"normal error at the masked pixel {angle:.3g} deg"
+
+
+def test_select_frames():
+    assert select_frames(None, 5) == [0, 1, 2, 3, 4]
+    assert select_frames("::2", 5) == [0, 2, 4]
+    assert select_frames("1::2", 5) == [1, 3]
+    assert select_frames("0,2-4", 6) == [0, 2, 3, 4]
+    for bad, match in [
+        ("x", "SPEC must be"),
+        ("7", "outside"),
+        ("1,1", "twice"),
+        ("3:3", "selects no frame"),
+        ("::0", "SPEC must be"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            select_frames(bad, 5)
+
+
+def test_config_is_checked():
+    with pytest.raises(ValueError, match="init must be one of"):
+        FitConfig(init="magic")
+    with pytest.raises(ValueError, match="model must have a lobe"):
+        FitConfig(model="diffuse")
+    with pytest.raises(ValueError, match="model must be one of"):
+        FitConfig(model="phong")
+
+
+def test_write_fit_and_cli(painting, tmp_path):
+    out = tmp_path / "maps"
+    config = tmp_path / "fit.yaml"
+    config.write_text("init: fri\nlm: {max_iterations: 30}\n")
+    assert main(["fit", str(painting), "-o", str(out), "--config", str(config), "--frames", "::2"]) == 0
+    maps = read_svbrdf(out)
+    meta = json.loads((out / "svbrdf.json").read_text())
+    assert meta["fit"]["frames"] == list(range(0, len(read_capture(painting).frames), 2))
+    assert meta["fit"]["settings"]["lm"]["max_iterations"] == 30
+    assert set(maps.extra) >= {"residual", "quality", "status", "iterations"}
+    direct = fit(painting, frames="::2", config=FitConfig(lm=FitConfig().lm.__class__(max_iterations=30)))
+    err = (maps.svbrdf.normal - direct.svbrdf.normal).abs().max()
+    assert err < 1e-6, f"max difference {err:.3g}"
+    assert main(["fit", str(painting), "-o", str(tmp_path / "x"), "--frames", "0,1"]) == 2  # too few frames
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("inti: fri\n")
+    assert main(["fit", str(painting), "-o", str(tmp_path / "y"), "--config", str(bad)]) == 2
+    assert not math.isnan(float(maps.extra["quality"].mean()))
+
+
+def test_configs_fit_yaml_spells_out_the_defaults():
+    from pathlib import Path
+
+    from torchspec.config import load_config
+
+    assert load_config(Path(__file__).parents[1] / "configs" / "fit.yaml", FitConfig) == FitConfig()

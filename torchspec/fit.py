@@ -1,0 +1,409 @@
+"""The pipeline: SVBRDF maps from a capture (``torchspec fit``).
+
+Stages, per tile of pixels (all frames of a tile at once, so memory is bounded by the tile):
+
+1. masks of non-finite, saturated (grown in the image) and shadowed samples
+   (:func:`torchspec.photometric.sample_masks`, on the whole stack);
+2. robust photometric stereo: normal and ``k_d`` from the non-specular samples;
+3. the specular stage: pixels whose residual peaks above the noise get a starting point from
+   the FRI location of the peak (:func:`torchspec.specular.locate_peak`; or a naive start, or a
+   dense grid search, for comparison);
+4. batched Levenberg-Marquardt (:func:`torchspec.lm.solve`) of every parameter jointly on every
+   valid sample: the lobed pixels with the configured Ward model, the others diffuse only.
+
+The result holds the maps, a per-pixel relative RMS residual and quality, the solver's status
+and iteration counts, and statistics per stage; :func:`write_fit` writes them as an SVBRDF folder.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from .brdf import SVBRDF
+from .io import Capture, read_capture, write_svbrdf
+from .lights import Lights, diffuse_directions
+from .lm import STATUS, LMConfig, bounded, solve
+from .models import get_model
+from .photometric import photometric_stereo, sample_masks
+from .relight import lights_of
+from .specular import grid_search, layout_of, locate_peak, naive_start, specular_residual
+
+__all__ = ["FitConfig", "Fit", "fit", "write_fit", "select_frames", "INITS"]
+
+INITS = ("fri", "naive", "grid")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of :func:`fit` (``configs/fit*.yaml``).
+
+    Attributes:
+        model: the lobe model of the pixels that show a peak (:data:`torchspec.models.MODELS`):
+            ``ward-iso`` (grey ``k_s``), ``ward-iso-colour`` or ``ward-aniso``.
+        init: the specular start: ``fri`` (FRI peak location), ``naive`` (photometric-stereo
+            normal, ``alpha = naive_alpha``) or ``grid`` (dense search).
+        detect: a pixel gets a lobe when its residual peaks above ``detect`` times its noise
+            level (the larger of the photometric-stereo noise and ``noise_floor`` times the
+            pixel's mean value).
+        noise_floor: see ``detect``.
+        naive_alpha: the roughness of the naive start.
+        saturation: the sensor's clipping level; ``None`` detects a clipped plateau.
+        grow: saturated regions are grown by this many pixels.
+        shadow: samples below this fraction of the pixel's median are shadows.
+        trim, cut: of the robust photometric stereo.
+        fri_method, fri_coefficients: of the peak location (``None``: the defaults).
+        path: the quadrature path of the model (:func:`torchspec.render.render`).
+        tile: pixels per tile; 0 sizes tiles to ``memory_gib``.
+        memory_gib: the working-memory budget of a tile.
+        dtype: ``float32`` or ``float64``.
+        device: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ...
+        lm: the solver's settings.
+    """
+
+    model: str = "ward-iso"
+    init: str = "fri"
+    detect: float = 5.0
+    noise_floor: float = 0.002
+    naive_alpha: float = 0.1
+    saturation: float | None = None
+    grow: int = 1
+    shadow: float = 0.02
+    trim: float = 0.25
+    cut: float = 3.0
+    fri_method: str | None = None
+    fri_coefficients: int | None = None
+    path: str = "auto"
+    tile: int = 0
+    memory_gib: float = 2.0
+    dtype: str = "float32"
+    device: str = "auto"
+    lm: LMConfig = field(default_factory=LMConfig)
+
+    def __post_init__(self):
+        get_model(self.model)
+        if not get_model(self.model).lobe:
+            raise ValueError(f"FitConfig.model must have a lobe; got {self.model!r} (use detect: .inf for matte only).")
+        if self.init not in INITS:
+            raise ValueError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"FitConfig.dtype must be 'float32' or 'float64'; got {self.dtype!r}.")
+        for name in ("detect", "noise_floor", "naive_alpha", "memory_gib"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"FitConfig.{name} must be > 0; got {getattr(self, name)!r}.")
+        if self.tile < 0:
+            raise ValueError(f"FitConfig.tile must be >= 0 (0: from memory_gib); got {self.tile}.")
+
+
+@dataclass(frozen=True)
+class Fit:
+    """The result of :func:`fit`.
+
+    Attributes:
+        svbrdf: the maps, leading dims ``(H, W)``.
+        residual: ``(H, W)`` RMS of the fit's residual over the valid samples, relative to the
+            pixel's mean value.
+        quality: ``(H, W)`` in ``[0, 1]``: photometric-stereo quality, times the peak location's
+            quality for lobed pixels, halved where the solver did not converge; 0 where it diverged
+            or no sample was valid.
+        status: ``(H, W)`` int8 solver status (:data:`torchspec.lm.STATUS`).
+        iterations: ``(H, W)`` solver steps taken.
+        lobe: ``(H, W)`` bool, the pixels fitted with a lobe.
+        stats: settings, timings and per-stage statistics (JSON-ready).
+    """
+
+    svbrdf: SVBRDF
+    residual: Tensor
+    quality: Tensor
+    status: Tensor
+    iterations: Tensor
+    lobe: Tensor
+    stats: dict
+
+
+def select_frames(spec: str | None, count: int) -> list[int]:
+    """Frame indices from a SPEC: ``None`` or ``all``; a Python slice ``start:stop:step``
+    (``::2`` every second frame, ``1::2`` the others); or a comma list of indices and ranges
+    ``0,3,10-19`` (inclusive).
+
+    Raises:
+        ValueError: a malformed SPEC, an index out of ``[0, count)``, a repeated frame or an
+            empty selection.
+    """
+    if spec is None or spec.strip() in ("", "all"):
+        return list(range(count))
+    text = spec.strip()
+    try:
+        if ":" in text:
+            parts = [int(p) if p.strip() else None for p in text.split(":")]
+            if len(parts) > 3 or (len(parts) == 3 and parts[2] == 0):
+                raise ValueError
+            picked = list(range(count))[slice(*parts)]
+        else:
+            picked = []
+            for item in text.split(","):
+                if "-" in item.strip()[1:]:
+                    low, high = item.split("-", 1)
+                    picked += list(range(int(low), int(high) + 1))
+                else:
+                    picked.append(int(item))
+    except ValueError:
+        raise ValueError(
+            f"frames SPEC must be 'all', a slice 'start:stop:step' or a list '0,3,10-19'; got {spec!r}."
+        ) from None
+    bad = [k for k in picked if not 0 <= k < count]
+    if bad:
+        raise ValueError(f"frames SPEC {spec!r} names frame(s) {bad[:5]} outside 0..{count - 1}.")
+    if len(set(picked)) != len(picked):
+        raise ValueError(f"frames SPEC {spec!r} names a frame twice.")
+    if not picked:
+        raise ValueError(f"frames SPEC {spec!r} selects no frame of {count}.")
+    return picked
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _tile_size(config: FitConfig, frames: int, channels: int, itemsize: int) -> int:
+    if config.tile:
+        return config.tile
+    model = get_model(config.model)
+    p = model.size(channels)
+    # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
+    # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays.
+    per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
+    return int(max(256, min(1 << 17, config.memory_gib * 2**30 / (2 * per_pixel))))
+
+
+def _lm_stage(model, start: SVBRDF, observed, weight, lights, view, channels, config):
+    bounds = model.bounds(len(channels))
+    fn = model.residuals(observed, weight, lights, view, channels, path=config.path)
+    params = model.pack(start)
+    result = solve(bounded(fn, bounds), bounds.to_free(params), config=config.lm)
+    return model.unpack(bounds.from_free(result.params)[0], channels), result
+
+
+def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, config: FitConfig, ctx: dict) -> dict:
+    """All stages for one tile: ``y (n, K, C)`` recorded values, ``valid (n, K)``."""
+    scale = lights.scale.to(y.dtype)  # (K, C or 1)
+    samples = y / scale
+    times = {}
+    t0 = time.perf_counter()
+    ps = photometric_stereo(samples, ctx["directions"], valid=valid, cut=config.cut, trim=config.trim)
+    times["photometric"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    clean = torch.where(valid[..., None], samples, torch.zeros_like(samples))
+    count = valid.sum(-1).clamp(min=1).to(y.dtype)
+    level = clean.mean(-1).sum(-1) / count  # mean value per pixel
+    residual = specular_residual(clean, ps.normal, ps.diffuse, ctx["directions"])
+    residual = torch.where(valid, residual, torch.zeros_like(residual))
+    noise = torch.maximum(ps.noise, config.noise_floor * level)
+    lobe = residual.amax(-1) > config.detect * noise
+    start_args = dict(prior_normal=ps.normal, kernel_variance=ctx["kernel_variance"])
+    if config.init == "fri":
+        start = locate_peak(
+            residual,
+            ctx["layout"],
+            view,
+            method=config.fri_method,
+            num_coefficients=config.fri_coefficients,
+            **start_args,
+        )
+    elif config.init == "grid":
+        start = grid_search(residual, ctx["layout"], view, **start_args)
+    else:
+        start = naive_start(residual, ctx["layout"], view, prior_normal=ps.normal, alpha=config.naive_alpha)
+    times["specular_start"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    model = get_model(config.model)
+    n, c = y.shape[0], y.shape[-1]
+    weight = valid.to(y.dtype) / torch.where(level > 0, level, torch.ones_like(level))[:, None]
+    observed = torch.where(valid[..., None], y, torch.zeros_like(y))
+    # Diffuse pixels: normal and k_d only.
+    plain = get_model("diffuse")
+    zero = y.new_zeros((n, 1))
+    ps_svbrdf = SVBRDF(ps.normal, ps.diffuse, zero, zero.expand(-1, 2), None, channels)
+    normal, diffuse = ps.normal.clone(), ps.diffuse.clone()
+    specular = y.new_zeros((n, 1 if model.grey else c))
+    roughness = y.new_zeros((n, 2))
+    rotation = y.new_zeros(n) if model.anisotropic else None
+    status = torch.zeros(n, dtype=torch.int8, device=y.device)
+    iterations = torch.zeros(n, dtype=torch.int32, device=y.device)
+    cost = y.new_zeros(n)
+    found_quality = torch.ones_like(level)
+    for kind, pick in (("diffuse", ~lobe), ("lobe", lobe)):
+        index = pick.nonzero()[:, 0]
+        if index.numel() == 0:
+            continue
+        if kind == "diffuse":
+            fitted, result = _lm_stage(
+                plain, ps_svbrdf[index], observed[index], weight[index], lights, view, channels, config
+            )
+        else:
+            ks = start.specular[index].clamp(min=1e-3 * level[index])[:, None]
+            alpha = start.alpha[index][:, None].expand(-1, 2)
+            init = SVBRDF(start.normal[index], ps.diffuse[index], ks, alpha, None, channels)
+            fitted, result = _lm_stage(model, init, observed[index], weight[index], lights, view, channels, config)
+            specular[index] = fitted.specular
+            roughness[index] = fitted.roughness
+            if rotation is not None:
+                rotation[index] = fitted.rotation
+            found_quality[index] = start.quality[index]
+        normal[index], diffuse[index] = fitted.normal, fitted.diffuse
+        status[index], iterations[index], cost[index] = result.status, result.iterations, result.cost
+    times["lm"] = time.perf_counter() - t0
+
+    rms = (2.0 * cost / (count * c)).sqrt()
+    quality = ps.quality * found_quality
+    quality = torch.where(status == STATUS.index("converged"), quality, 0.5 * quality)
+    quality = torch.where(
+        (status == STATUS.index("diverged")) | (valid.sum(-1) < 3), torch.zeros_like(quality), quality
+    )
+    return {
+        "svbrdf": SVBRDF(normal, diffuse, specular, roughness, rotation, channels),
+        "residual": torch.nan_to_num(rms, nan=math.inf),
+        "quality": quality,
+        "status": status,
+        "iterations": iterations,
+        "lobe": lobe,
+        "times": times,
+    }
+
+
+def fit(
+    capture: Capture | str | Path,
+    *,
+    config: FitConfig | None = None,
+    frames: str | list[int] | None = None,
+    progress: bool = False,
+) -> Fit:
+    """Fit SVBRDF maps to a capture.
+
+    Args:
+        capture: a :class:`~torchspec.io.Capture` or its folder.
+        config: :class:`FitConfig` (the defaults otherwise).
+        frames: the frames to fit: a SPEC of :func:`select_frames` or a list of indices.
+        progress: show a tqdm bar over the pixels.
+
+    Returns:
+        :class:`Fit`.
+
+    Raises:
+        CaptureError: an unreadable capture or frame, or a light whose shape is unknown. (NaN
+            or Inf pixels are not an error: they are masked, with a warning naming the frame, and
+            counted in ``stats["masked_samples"]``.)
+        ValueError: a bad SPEC or setting.
+
+    Example:
+        >>> result = fit("painting-dev", frames="::2")  # doctest: +SKIP
+        >>> write_fit("maps", result)  # doctest: +SKIP
+    """
+    config = config or FitConfig()
+    capture = capture if isinstance(capture, Capture) else read_capture(capture)
+    picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
+    if len(picked) < 4:
+        raise ValueError(
+            f"a fit needs at least 4 frames (3 for the normal and k_d, one more for a lobe); got {len(picked)}."
+        )
+    dtype = getattr(torch, config.dtype)
+    device = _device(config.device)
+    clock = time.perf_counter()
+    everything = lights_of(capture, dtype=dtype)
+    index = torch.tensor(picked)
+    lights = Lights(
+        everything.directions[index], everything.kernel, everything.irradiance[index], everything.exposure[index]
+    ).to(device=device)
+    view = torch.tensor(capture.view, dtype=dtype, device=device)
+    # NaN or Inf pixels (a failed HDR merge) are masked like saturated ones, with a warning per frame.
+    stack = capture.read_frames(picked, dtype=dtype, device=device, nonfinite="keep")  # (K, C, H, W)
+    read_seconds = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
+    invalid = masks.invalid.flatten(1)  # (K, H W)
+    ctx = {
+        "directions": lights.directions if lights.kernel.kind == "point" else diffuse_directions(lights),
+        "layout": layout_of(lights.directions[:, :2]),
+        "kernel_variance": 0.0
+        if lights.kernel.kind == "point"
+        else float(lights.kernel.covariance(lights.directions[:1])[0].diagonal().mean()),
+    }
+    mask_seconds = time.perf_counter() - clock
+
+    k, c, h, w = stack.shape
+    pixels = h * w
+    tile = _tile_size(config, k, c, stack.element_size())
+    flat = stack.flatten(2)  # (K, C, H W), a view
+    parts = []
+    times: dict[str, float] = {}
+    with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
+        for start in range(0, pixels, tile):
+            stop = min(start + tile, pixels)
+            y = flat[:, :, start:stop].permute(2, 0, 1)  # (n, K, C)
+            valid = ~invalid[:, start:stop].T
+            out = _tile(y, valid, lights, view, capture.channels, config, ctx)
+            for name, seconds in out.pop("times").items():
+                times[name] = times.get(name, 0.0) + seconds
+            parts.append(out)
+            bar.update(stop - start)
+
+    def join(name):
+        return torch.cat([p[name] for p in parts]).reshape(h, w, *parts[0][name].shape[1:])
+
+    pieces = [p["svbrdf"] for p in parts]
+    rotation = None if pieces[0].rotation is None else torch.cat([p.rotation for p in pieces]).reshape(h, w)
+    svbrdf = SVBRDF(
+        torch.cat([p.normal for p in pieces]).reshape(h, w, 3),
+        torch.cat([p.diffuse for p in pieces]).reshape(h, w, c),
+        torch.cat([p.specular for p in pieces]).reshape(h, w, -1),
+        torch.cat([p.roughness for p in pieces]).reshape(h, w, 2),
+        rotation,
+        capture.channels,
+    )
+    status, iterations, lobe = join("status"), join("iterations"), join("lobe")
+    total = time.perf_counter() - clock + read_seconds + mask_seconds
+    stats = {
+        "capture": str(capture.root),
+        "frames": picked,
+        "settings": asdict(config),
+        "device": str(device),
+        "pixels": pixels,
+        "tile_pixels": tile,
+        "seconds": {"read": read_seconds, "masks": mask_seconds, **times, "total": total},
+        "pixels_per_second": pixels / total if total > 0 else None,
+        "masked_samples": masks.counts(),
+        "lobe_pixels": int(lobe.sum()),
+        "status": {name: int((status == code).sum()) for code, name in enumerate(STATUS)},
+        "iterations": {
+            "mean": float(iterations.float().mean()),
+            "median": float(iterations.float().median()),
+            "max": int(iterations.max()),
+            "mean_lobe": float(iterations[lobe].float().mean()) if bool(lobe.any()) else None,
+        },
+        "median_residual": float(join("residual").median()),
+    }
+    return Fit(svbrdf, join("residual"), join("quality"), status, iterations, lobe, stats)
+
+
+def write_fit(path: str | Path, result: Fit) -> None:
+    """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
+    ``status.exr`` and ``svbrdf.json`` (model, settings, timings, statistics)."""
+    meta = {"model": "ward", "fit": result.stats, "status_codes": list(STATUS)}
+    extra = {
+        "residual": result.residual.float(),
+        "quality": result.quality.float(),
+        "status": result.status.float(),
+        "iterations": result.iterations.float(),
+    }
+    write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra)

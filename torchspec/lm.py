@@ -1,0 +1,530 @@
+"""Batched Levenberg-Marquardt for many small, independent nonlinear least-squares problems.
+
+``solve`` minimises ``0.5 ||r_n(x_n)||^2`` for ``N`` problems at once, each with ``P``
+parameters and ``R`` residuals, given a function that returns the residuals and their Jacobian
+for any subset of the problems. It knows nothing about what the parameters mean; bounds are
+handled by reparametrisation (:class:`Bounds`, :func:`bounded`).
+
+Per problem, all state lives in tensors of shape ``(N,)``:
+
+- Step: ``(J^T J + lambda D) step = -J^T r`` with Marquardt's scaling ``D = diag(J^T J)``, each
+  entry floored at ``eps * max(diag(J^T J))`` (and at ``tiny``), solved by
+  ``torch.linalg.cholesky_ex`` after a symmetric scaling by ``D^{-1/2}`` (so columns of very
+  different scales lose no accuracy). A system that is not positive definite, or a step that is
+  not finite, is a rejected step.
+- Acceptance: a step is accepted when the residuals and Jacobian at the trial point are finite
+  and the cost strictly decreases, so the parameters are always the best seen and never worse
+  than the start. NaN never reaches the parameters.
+- Damping (Nielsen's rule): with ``rho`` = actual / predicted reduction, an accepted step sets
+  ``lambda *= max(1/3, 1 - (2 rho - 1)^3)`` and ``nu = 2``; a rejected one ``lambda *= nu``,
+  ``nu *= 2`` (so repeated rejections raise ``lambda`` faster and faster). ``lambda`` is floored
+  at the dtype's ``eps``.
+- Convergence (after MINPACK, Moré 1978), tolerances floored at ``16 eps`` of the dtype (below
+  that a cost reduction is rounding noise, and float32 problems would wander for many steps):
+
+  * ``ftol``: an accepted step with actual and predicted reductions both ``<= ftol * cost``;
+  * ``xtol``: an accepted step with ``||step|| <= xtol * (||x|| + xtol)`` (2-norms);
+  * ``gtol``: at the start and after each accepted step, every column of ``J`` is nearly
+    orthogonal to ``r``: ``|J_j^T r| <= gtol * ||J_j|| * ||r||`` (the cosine test, invariant to
+    the scale of the parameters and of the residuals). It holds exactly when ``r = 0`` or when a
+    column of ``J`` is zero, so a zero-residual start or an identically zero Jacobian is
+    ``CONVERGED`` at once, with 0 iterations;
+  * stall: a rejected step whose predicted reduction is ``<= 16 eps * cost`` (the model promises
+    nothing above the cost's rounding: the best point is as good as this precision can tell).
+
+  In float32 the cost resolves parameters to about ``sqrt(eps)`` of their statistical scale only.
+- Failure: when a rejection pushes ``lambda`` above ``max_damping`` (before the stall test
+  holds), the problem stops as ``SINGULAR``: no step reduces the cost, though the model promises
+  a gain (a Jacobian inconsistent with the residuals, or a discontinuous model), or the damped
+  system is not solvable. It stops as ``DIVERGED`` instead if that last trial point was solvable
+  but its residuals or Jacobian were not finite (the model is not finite anywhere near the best
+  point). A problem whose residuals or Jacobian are not finite at the start is ``DIVERGED`` at
+  once, with 0 iterations: its parameters are returned unchanged, its cost and initial cost are
+  ``inf``.
+
+Converged and failed problems are frozen. The loop runs at most ``max_iterations`` steps; every
+``check_every`` steps (and before the first) it counts the running problems, which is the only
+host synchronisation: it stops when none is left and otherwise drops the finished ones, so
+``residual_fn`` is then called on a compacted subset of the rows, with their indices.
+
+References:
+    Marquardt, "An algorithm for least-squares estimation of nonlinear parameters", SIAM J.
+    Appl. Math. 11 (1963).
+    Moré, "The Levenberg-Marquardt algorithm: implementation and theory", Numerical Analysis,
+    Lecture Notes in Mathematics 630 (1978).
+    Nielsen, "Damping parameter in Marquardt's method", IMM-REP-1999-05, DTU (1999).
+    Madsen, Nielsen, Tingleff, "Methods for non-linear least squares problems", IMM DTU (2004), 3.2.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "CONVERGED",
+    "MAX_ITERATIONS",
+    "SINGULAR",
+    "DIVERGED",
+    "STATUS",
+    "LMConfig",
+    "LMResult",
+    "Bounds",
+    "ResidualFn",
+    "bounded",
+    "solve",
+]
+
+CONVERGED, MAX_ITERATIONS, SINGULAR, DIVERGED = 0, 1, 2, 3
+STATUS = ("converged", "max iterations", "singular", "diverged")
+"""Message of each status code, indexed by the code."""
+
+_ROUNDING = 16
+"""Tolerances are floored at this many ``eps`` of the dtype."""
+
+ResidualFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+"""``residual_fn(params (M, P), index (M,) long) -> (residuals (M, R), jacobian (M, R, P))``."""
+
+
+@dataclass(frozen=True)
+class LMConfig:
+    """Settings of :func:`solve`.
+
+    Attributes:
+        max_iterations: LM steps (accepted or rejected) per problem, ``>= 1``.
+        check_every: steps between the all-converged checks and compactions (the only host
+            synchronisations), ``>= 1``.
+        damping: initial ``lambda``, relative to ``diag(J^T J)``, ``> 0``.
+        ftol: relative cost-reduction tolerance, ``>= 0``.
+        xtol: relative step-size tolerance, ``>= 0``.
+        gtol: tolerance on the cosine between ``r`` and each column of ``J``, ``>= 0``.
+        max_damping: a problem whose ``lambda`` exceeds this after a rejection stops as
+            ``SINGULAR`` (or ``DIVERGED``), ``> damping``.
+    """
+
+    max_iterations: int = 50
+    check_every: int = 4
+    damping: float = 1e-3
+    ftol: float = 1e-8
+    xtol: float = 1e-8
+    gtol: float = 1e-10
+    max_damping: float = 1e12
+
+    def __post_init__(self) -> None:
+        for name in ("max_iterations", "check_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"LMConfig.{name} must be an integer >= 1; got {value!r}.")
+        for name in ("damping", "max_damping"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
+                raise ValueError(f"LMConfig.{name} must be a finite number > 0; got {value!r}.")
+        for name in ("ftol", "xtol", "gtol"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 <= value < math.inf):
+                raise ValueError(f"LMConfig.{name} must be a finite number >= 0 (0 disables it); got {value!r}.")
+        if self.max_damping <= self.damping:
+            raise ValueError(
+                f"LMConfig.max_damping must be > damping = {self.damping!r}; got {self.max_damping!r}. "
+                "Raise max_damping or lower damping."
+            )
+
+
+@dataclass(frozen=True)
+class LMResult:
+    """Outcome of :func:`solve`, one entry per problem.
+
+    Attributes:
+        params: ``(N, P)`` best parameters seen (the start for ``DIVERGED`` at the start).
+        cost: ``(N,)`` ``0.5 * sum r^2`` at ``params`` (``inf`` when not finite at the start).
+        initial_cost: ``(N,)`` the cost at the start (``inf`` when not finite).
+        status: ``(N,)`` int8 codes, messages in :data:`STATUS`.
+        iterations: ``(N,)`` int32 LM steps taken (accepted or rejected) until the problem stopped.
+        damping: ``(N,)`` final ``lambda``.
+    """
+
+    params: Tensor
+    cost: Tensor
+    initial_cost: Tensor
+    status: Tensor
+    iterations: Tensor
+    damping: Tensor
+
+    def messages(self) -> list[str]:
+        """The status message of each problem (a host synchronisation)."""
+        return [STATUS[code] for code in self.status.tolist()]
+
+    def counts(self) -> dict[str, int]:
+        """Number of problems per status message, every message present (a host synchronisation)."""
+        tally = torch.bincount(self.status.long().cpu(), minlength=len(STATUS)).tolist()
+        return {message: int(n) for message, n in zip(STATUS, tally, strict=True)}
+
+
+def _checked_output(out, x: Tensor) -> tuple[Tensor, Tensor]:
+    """The residuals and Jacobian returned by ``residual_fn``, detached, after checking their shapes."""
+    m, p = x.shape
+    if not isinstance(out, (tuple, list)) or len(out) != 2:
+        raise ValueError(
+            f"residual_fn must return a pair (residuals (M, R), jacobian (M, R, P)); got {type(out).__name__}."
+        )
+    r, jac = out
+    if not isinstance(r, Tensor) or r.ndim != 2 or r.shape[0] != m:
+        shape = tuple(r.shape) if isinstance(r, Tensor) else type(r).__name__
+        raise ValueError(
+            f"residual_fn's residuals must have shape (M, R) = ({m}, R) for params of shape {(m, p)}; got {shape}."
+        )
+    expected = (m, r.shape[1], p)
+    if not isinstance(jac, Tensor) or tuple(jac.shape) != expected:
+        shape = tuple(jac.shape) if isinstance(jac, Tensor) else type(jac).__name__
+        raise ValueError(
+            f"residual_fn's jacobian must have shape (M, R, P) = {expected} for residuals of shape "
+            f"{tuple(r.shape)} and params of shape {(m, p)}; got {shape}."
+        )
+    for name, value in (("residuals", r), ("jacobian", jac)):
+        if value.dtype != x.dtype or value.device != x.device:
+            raise ValueError(
+                f"residual_fn's {name} must have the dtype and device of params ({x.dtype}, {x.device}); "
+                f"got ({value.dtype}, {value.device}). Compute them from the params passed in."
+            )
+    return r.detach(), jac.detach()
+
+
+def _evaluate(residual_fn: ResidualFn, x: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cost ``(M,)``, ``J^T J`` ``(M, P, P)``, ``J^T r`` ``(M, P)`` and finiteness ``(M,)`` at ``x``.
+
+    Rows that are not finite get cost ``inf``, ``J^T J = I`` and ``J^T r = 0`` so that later
+    batched algebra on them stays harmless (their values are never used).
+    """
+    r, jac = _checked_output(residual_fn(x, index), x)
+    jt = jac.transpose(-1, -2)
+    cost = 0.5 * (r * r).sum(-1)
+    hess = jt @ jac
+    grad = (jt @ r.unsqueeze(-1)).squeeze(-1)
+    # A NaN or inf anywhere in J reaches the diagonal of J^T J; one in r reaches the cost.
+    finite = cost.isfinite() & hess.diagonal(dim1=-2, dim2=-1).isfinite().all(-1) & grad.isfinite().all(-1)
+    eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+    cost = torch.where(finite, cost, torch.full_like(cost, math.inf))
+    hess = torch.where(finite[:, None, None], hess, eye)
+    grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
+    return cost, hess, grad, finite
+
+
+def _gradient_small(grad: Tensor, hess: Tensor, cost: Tensor, gtol: float) -> Tensor:
+    """``|J_j^T r| <= gtol ||J_j|| ||r||`` for every column ``j``: ``(M,)`` bool."""
+    tiny = torch.finfo(grad.dtype).tiny
+    column = hess.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
+    # |J_j^T r| / ||J_j|| <= ||r|| (Cauchy-Schwarz): no overflow; a zero column has J_j^T r = 0.
+    projected = grad.abs() / column.clamp(min=tiny)
+    return (projected <= gtol * (2.0 * cost).sqrt()[:, None]).all(-1)
+
+
+@dataclass
+class _State:
+    """The active problems: everything ``(M, ...)``, ``index`` their rows in the batch."""
+
+    index: Tensor
+    x: Tensor
+    cost: Tensor
+    hess: Tensor
+    grad: Tensor
+    damping: Tensor
+    nu: Tensor
+    running: Tensor
+    status: Tensor
+    iterations: Tensor
+
+    def take(self, keep: Tensor) -> _State:
+        return _State(**{name: value[keep] for name, value in vars(self).items()})
+
+
+def _step(state: _State, residual_fn: ResidualFn, config: LMConfig) -> _State:
+    """One LM step of every running problem; the others are left as they are."""
+    x, cost, hess, grad, lam, running = state.x, state.cost, state.hess, state.grad, state.damping, state.running
+    finfo = torch.finfo(x.dtype)
+    ftol, xtol, gtol = (max(tol, _ROUNDING * finfo.eps) for tol in (config.ftol, config.xtol, config.gtol))
+
+    diag = hess.diagonal(dim1=-2, dim2=-1)
+    scale = torch.maximum(diag, (finfo.eps * diag.amax(-1, keepdim=True)).clamp(min=finfo.tiny))
+    # Solved in the variables s_j = sqrt(scale_j) step_j: S (J^T J) S + lambda I with a unit-ish
+    # diagonal, so that columns of very different scales cost no accuracy in the factorisation.
+    inv = scale.rsqrt()
+    system = hess * inv[:, :, None] * inv[:, None, :] + torch.diag_embed(lam[:, None].expand_as(inv))
+    chol, info = torch.linalg.cholesky_ex(system)
+    step = inv * torch.cholesky_solve(-(grad * inv).unsqueeze(-1), chol).squeeze(-1)
+    solvable = running & (info == 0) & step.isfinite().all(-1)
+    step = torch.where(solvable[:, None], step, torch.zeros_like(step))
+
+    trial = x + step
+    cost_t, hess_t, grad_t, finite_t = _evaluate(residual_fn, trial, state.index)
+    usable = solvable & finite_t
+    actual = torch.where(usable, cost - cost_t, torch.zeros_like(cost))
+    predicted = 0.5 * (lam * (scale * step * step).sum(-1) - (step * grad).sum(-1))
+    accept = usable & (actual > 0)
+
+    small_cost = accept & (actual <= ftol * cost) & (predicted <= ftol * cost)
+    small_step = accept & (step.norm(dim=-1) <= xtol * (x.norm(dim=-1) + xtol))
+    small_grad = accept & _gradient_small(grad_t, hess_t, cost_t, gtol)
+    # A rejected step whose promised gain is below the cost's rounding: nothing left to gain.
+    stalled = solvable & ~accept & (predicted <= _ROUNDING * finfo.eps * cost)
+    converged = running & (small_cost | small_step | small_grad | stalled)
+
+    positive = predicted > 0
+    rho = torch.where(positive, actual / torch.where(positive, predicted, torch.ones_like(predicted)), 0.0)
+    shrink = (1.0 - (2.0 * rho - 1.0) ** 3).clamp(min=1.0 / 3.0)
+    lam_next = torch.where(accept, lam * shrink, lam * state.nu).clamp(min=finfo.eps)
+    nu_next = torch.where(accept, torch.full_like(state.nu, 2.0), 2.0 * state.nu)
+    stuck = running & ~converged & ~accept & (lam_next > config.max_damping)
+    failure = torch.where(solvable & ~finite_t, DIVERGED, SINGULAR).to(torch.int8)
+
+    a1, a2 = accept[:, None], accept[:, None, None]
+    return _State(
+        index=state.index,
+        x=torch.where(a1, trial, x),
+        cost=torch.where(accept, cost_t, cost),
+        hess=torch.where(a2, hess_t, hess),
+        grad=torch.where(a1, grad_t, grad),
+        damping=torch.where(running, lam_next, lam),
+        nu=torch.where(running, nu_next, state.nu),
+        running=running & ~converged & ~stuck,
+        status=torch.where(converged, CONVERGED, torch.where(stuck, failure, state.status)).to(torch.int8),
+        iterations=state.iterations + running.to(torch.int32),
+    )
+
+
+def solve(
+    residual_fn: ResidualFn,
+    params: Tensor,
+    *,
+    config: LMConfig = LMConfig(),
+    progress: Callable[[int, int], object] | None = None,
+) -> LMResult:
+    """Minimise ``0.5 ||r_n(x_n)||^2`` for ``N`` independent problems by Levenberg-Marquardt.
+
+    ``residual_fn(x, index)`` gets the parameters ``x (M, P)`` of ``M <= N`` problems and their
+    rows ``index (M,)`` (int64, on the device of ``params``) in the original batch, and returns
+    their residuals ``(M, R)`` and Jacobian ``d r / d x`` ``(M, R, P)``, in the dtype and on the
+    device of ``x``. Use ``index`` to pick each problem's own data (``data[index]``): after each
+    check the finished problems are dropped, so row ``m`` of ``x`` is problem ``index[m]``, not
+    ``m``. Each problem's outputs must depend on its own row only. Outputs are detached.
+
+    Args:
+        residual_fn: see above; shapes are checked on every call.
+        params: ``(N, P)`` floating starting points; dtype and device of everything computed.
+        config: the solver's settings.
+        progress: called as ``progress(done, total)`` at each check (e.g. a tqdm update hook),
+            ``done`` the number of problems that have stopped; last with ``done == total``.
+
+    Returns:
+        An :class:`LMResult` with ``(N, ...)`` fields; see the module docstring for the statuses.
+
+    Raises:
+        ValueError: ``params`` is not a 2-D floating tensor with ``P >= 1``, or ``residual_fn``
+            returns the wrong shapes, dtype or device.
+
+    Example:
+        >>> t = torch.linspace(0, 1, 20, dtype=torch.float64)
+        >>> y = torch.stack([2.0 * torch.exp(-3.0 * t), 0.5 * torch.exp(-1.0 * t)])  # (N=2, R=20)
+        >>> def residual_fn(x, index):
+        ...     e = torch.exp(-x[:, 1:] * t)
+        ...     return x[:, :1] * e - y[index], torch.stack([e, -x[:, :1] * t * e], -1)
+        >>> result = solve(residual_fn, torch.ones(2, 2, dtype=torch.float64))
+        >>> result.counts()["converged"], torch.allclose(result.params, torch.tensor([[2.0, 3.0], [0.5, 1.0]]).double())
+        (2, True)
+    """
+    if not isinstance(params, Tensor) or params.ndim != 2 or not params.is_floating_point():
+        got = f"shape {tuple(params.shape)}, dtype {params.dtype}" if isinstance(params, Tensor) else type(params)
+        raise ValueError(f"params must be a 2-D floating tensor (N, P); got {got}. Stack the problems as rows.")
+    n, p = params.shape
+    if p < 1:
+        raise ValueError(f"params must have at least one column (N, P >= 1); got shape {tuple(params.shape)}.")
+    like = dict(dtype=params.dtype, device=params.device)
+    x0 = params.detach().clone()
+    out = LMResult(
+        params=x0,
+        cost=torch.full((n,), math.inf, **like),
+        initial_cost=torch.full((n,), math.inf, **like),
+        status=torch.full((n,), MAX_ITERATIONS, dtype=torch.int8, device=params.device),
+        iterations=torch.zeros(n, dtype=torch.int32, device=params.device),
+        damping=torch.full((n,), float(config.damping), **like),
+    )
+    if n == 0:
+        if progress is not None:
+            progress(0, 0)
+        return out
+
+    index = torch.arange(n, device=params.device)
+    cost, hess, grad, finite = _evaluate(residual_fn, x0, index)
+    out.initial_cost.copy_(cost)
+    gtol = max(config.gtol, _ROUNDING * torch.finfo(params.dtype).eps)
+    start_converged = finite & _gradient_small(grad, hess, cost, gtol)
+    state = _State(
+        index=index,
+        x=x0.clone(),
+        cost=cost,
+        hess=hess,
+        grad=grad,
+        damping=out.damping.clone(),
+        nu=torch.full((n,), 2.0, **like),
+        running=finite & ~start_converged,
+        status=torch.where(finite, torch.where(start_converged, CONVERGED, MAX_ITERATIONS), DIVERGED).to(torch.int8),
+        iterations=out.iterations.clone(),
+    )
+
+    for k in range(config.max_iterations + 1):
+        if k > 0:
+            state = _step(state, residual_fn, config)
+        if k % config.check_every == 0 or k == config.max_iterations:
+            for name in ("params", "cost", "status", "iterations", "damping"):
+                getattr(out, name)[state.index] = getattr(state, "x" if name == "params" else name)
+            running = int(state.running.sum())  # the host synchronisation
+            last = running == 0 or k == config.max_iterations
+            if progress is not None:
+                progress(n if last else n - running, n)
+            if last:
+                break
+            if running < state.running.shape[0]:
+                state = state.take(state.running.nonzero().squeeze(-1))
+    return out
+
+
+_KINDS = ("free", "positive", "nonnegative", "interval")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Per-column reparametrisations ``x = f(u)`` of ``(N, P)`` parameters, ``u`` unconstrained.
+
+    Each entry of ``kinds`` describes one column:
+
+    - ``"free"``: ``x = u``;
+    - ``"positive"``: ``x = exp(u)``, ``x > 0``, for scale parameters spanning decades;
+    - ``"nonnegative"``: ``x = softplus(u) = log(1 + exp(u))``, ``x > 0``, linear for large ``u``
+      (gentler far from 0 than ``exp``);
+    - ``("interval", lo, hi)``: ``x = lo + (hi - lo) sigmoid(u)``, ``lo < x < hi``, finite
+      ``lo < hi``. A list ``["interval", lo, hi]`` (as from YAML) is accepted and stored as a tuple.
+
+    Values on or beyond a bound have no preimage: :meth:`to_free` first clamps them into the open
+    domain (``x >= tiny`` for ``positive`` and ``nonnegative``, ``eps <= (x - lo) / (hi - lo) <=
+    1 - eps`` for ``interval``, with the dtype's ``finfo``). A start that close to a bound moves
+    away only slowly (the derivative ``dx/du`` vanishes there): start inside.
+
+    Example:
+        >>> bounds = Bounds(("free", "positive", ("interval", 0.0, 1.0)))
+        >>> x = torch.tensor([[-1.0, 2.0, 0.25]], dtype=torch.float64)
+        >>> torch.allclose(bounds.from_free(bounds.to_free(x))[0], x)
+        True
+    """
+
+    kinds: tuple
+
+    def __post_init__(self) -> None:
+        if isinstance(self.kinds, (str, bytes)) or not hasattr(self.kinds, "__iter__"):
+            raise ValueError(f"Bounds.kinds must be a sequence with one entry per column; got {self.kinds!r}.")
+        kinds = []
+        for j, kind in enumerate(self.kinds):
+            if isinstance(kind, (tuple, list)) and len(kind) == 3 and kind[0] == "interval":
+                lo, hi = kind[1], kind[2]
+                numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi))
+                if not numbers or not (-math.inf < lo < hi < math.inf):
+                    raise ValueError(
+                        f"Bounds.kinds[{j}] must be ('interval', lo, hi) with finite numbers lo < hi; got {kind!r}."
+                    )
+                kinds.append(("interval", float(lo), float(hi)))
+            elif isinstance(kind, str) and kind in _KINDS[:3]:
+                kinds.append(kind)
+            else:
+                raise ValueError(
+                    f"Bounds.kinds[{j}] must be 'free', 'positive', 'nonnegative' or ('interval', lo, hi); "
+                    f"got {kind!r}."
+                )
+        object.__setattr__(self, "kinds", tuple(kinds))
+
+    def _check(self, value: Tensor, name: str) -> None:
+        if not isinstance(value, Tensor) or value.ndim != 2 or value.shape[-1] != len(self.kinds):
+            shape = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise ValueError(f"{name} must have shape (N, P = {len(self.kinds)}) for these Bounds; got {shape}.")
+
+    def to_free(self, x: Tensor) -> Tensor:
+        """Unconstrained ``u (N, P)`` with ``from_free(u) = x (N, P)``, after clamping ``x`` into the domain."""
+        self._check(x, "x")
+        finfo = torch.finfo(x.dtype)
+        columns = []
+        for j, kind in enumerate(self.kinds):
+            v = x[:, j]
+            if kind == "free":
+                u = v
+            elif kind == "positive":
+                u = v.clamp(min=finfo.tiny).log()
+            elif kind == "nonnegative":
+                v = v.clamp(min=finfo.tiny)
+                u = v + torch.log(-torch.expm1(-v))  # log(expm1(v)), stable for small and large v
+            else:
+                _, lo, hi = kind
+                t = ((v - lo) / (hi - lo)).clamp(min=finfo.eps, max=1.0 - finfo.eps)
+                u = t.log() - torch.log1p(-t)
+            columns.append(u)
+        return torch.stack(columns, -1)
+
+    def from_free(self, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Constrained ``x (N, P)`` and the derivative ``dx/du (N, P)`` of each column at ``u (N, P)``."""
+        self._check(u, "u")
+        values, slopes = [], []
+        for j, kind in enumerate(self.kinds):
+            v = u[:, j]
+            if kind == "free":
+                x, dx = v, torch.ones_like(v)
+            elif kind == "positive":
+                x = v.exp()
+                dx = x
+            elif kind == "nonnegative":
+                # softplus without torch's linear threshold, accurate to the last bit for all u
+                x = v.clamp(min=0) + torch.log1p(torch.exp(-v.abs()))
+                dx = torch.sigmoid(v)
+            else:
+                _, lo, hi = kind
+                s = torch.sigmoid(v)
+                x = lo + (hi - lo) * s
+                dx = (hi - lo) * s * torch.sigmoid(-v)
+            values.append(x)
+            slopes.append(dx)
+        return torch.stack(values, -1), torch.stack(slopes, -1)
+
+
+def bounded(residual_fn: ResidualFn, bounds: Bounds) -> ResidualFn:
+    """``residual_fn`` in ``x``-space as a residual function of the free parameters ``u``.
+
+    The returned function maps ``(u (M, P), index (M,))`` to ``r(x(u))`` and ``J_x * dx/du``
+    (the chain rule, column by column). Solve in ``u`` and map the result back.
+
+    Args:
+        residual_fn: ``(x (M, P), index (M,)) -> (residuals (M, R), jacobian (M, R, P))`` in ``x``.
+        bounds: the reparametrisation of each column.
+
+    Returns:
+        The same kind of function, in ``u``.
+
+    Example:
+        >>> bounds = Bounds(("positive",))
+        >>> def residual_fn(x, index):  # unconstrained optimum x = -1; bounded, x -> 0+
+        ...     return x + 1.0, torch.ones_like(x)[:, :, None]
+        >>> result = solve(bounded(residual_fn, bounds), bounds.to_free(torch.ones(1, 1, dtype=torch.float64)))
+        >>> x = bounds.from_free(result.params)[0]  # exp(u) may underflow to the bound itself
+        >>> bool((x >= 0).all() and (x < 1e-3).all())
+        True
+    """
+
+    def free_residual_fn(u: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+        x, dx = bounds.from_free(u)
+        r, jac = residual_fn(x, index)
+        if not isinstance(jac, Tensor) or jac.ndim != 3 or jac.shape[-1] != dx.shape[-1]:
+            shape = tuple(jac.shape) if isinstance(jac, Tensor) else type(jac).__name__
+            raise ValueError(
+                f"residual_fn's jacobian must have shape (M, R, P) = ({u.shape[0]}, R, {u.shape[1]}); got {shape}."
+            )
+        return r, jac * dx[:, None, :]
+
+    return free_residual_fn

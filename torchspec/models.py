@@ -1,0 +1,157 @@
+"""Reflectance models a pixel can be fitted with, and their parameter packing.
+
+Each model is a subset of the Ward parameters of :mod:`torchspec.jacobian` with bounds:
+
+===================  ===============================================  ======================
+model                parameters (in this order)                       bounds
+===================  ===============================================  ======================
+``diffuse``          normal angles a, b; k_d (C)                      k_d >= 0
+``ward-iso``         + grey k_s (1); alpha                            k_s >= 0, alpha in ALPHA_BOUNDS
+``ward-iso-colour``  + k_s (C); alpha                                 k_s >= 0, alpha in ALPHA_BOUNDS
+``ward-aniso``       + k_s (C); alpha_x, alpha_y; rotation            k_s >= 0, alpha in ALPHA_BOUNDS
+===================  ===============================================  ======================
+
+Bounds are kept by reparametrisation in the solver (:class:`torchspec.lm.Bounds`): softplus for
+the coefficients, which may reach 0, and a sigmoid for the roughness.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .brdf import SVBRDF
+from .geometry import angles_from_normal, normal_from_angles
+from .jacobian import jacobian
+from .lights import Lights
+from .lm import Bounds
+
+__all__ = ["Model", "MODELS", "get_model", "ALPHA_BOUNDS"]
+
+ALPHA_BOUNDS = (1e-3, 1.0)
+"""The roughness a fit may take: below, the lobe is narrower than any light kernel resolves; above,
+the Ward lobe no longer describes a gloss. A lobe that fades into the diffuse (``k_s -> 0``) leaves
+``alpha`` undetermined: the bounds keep it finite."""
+
+
+@dataclass(frozen=True)
+class Model:
+    """A reflectance model: which Ward parameters are free.
+
+    Attributes:
+        name: its name in configs and ``svbrdf.json``.
+        lobe: has a specular lobe.
+        grey: one ``k_s`` for every channel.
+        anisotropic: ``alpha_x``, ``alpha_y`` and a rotation, else one ``alpha``.
+    """
+
+    name: str
+    lobe: bool
+    grey: bool = True
+    anisotropic: bool = False
+
+    def size(self, channels: int) -> int:
+        """``P``, the number of parameters for ``channels`` channels."""
+        if not self.lobe:
+            return 2 + channels
+        return 2 + channels + (1 if self.grey else channels) + (3 if self.anisotropic else 1)
+
+    def bounds(self, channels: int) -> Bounds:
+        """The solver's reparametrisation of each parameter."""
+        kinds = ["free", "free"] + ["nonnegative"] * channels
+        if self.lobe:
+            kinds += ["nonnegative"] * (1 if self.grey else channels)
+            alpha = ("interval", *ALPHA_BOUNDS)
+            kinds += [alpha, alpha, "free"] if self.anisotropic else [alpha]
+        return Bounds(tuple(kinds))
+
+    def pack(self, svbrdf: SVBRDF) -> Tensor:
+        """``(N, P)`` parameters of a flat ``svbrdf``."""
+        parts = [angles_from_normal(svbrdf.normal), svbrdf.diffuse]
+        if self.lobe:
+            ks = svbrdf.specular
+            parts.append(ks.mean(-1, keepdim=True) if self.grey else ks.expand_as(svbrdf.diffuse))
+            alpha = svbrdf.roughness
+            if self.anisotropic:
+                rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(alpha[:, 0])
+                parts += [alpha, rotation[:, None]]
+            else:
+                parts.append(alpha.mean(-1, keepdim=True))
+        return torch.cat(parts, -1)
+
+    def unpack(self, params: Tensor, channels: tuple[str, ...]) -> SVBRDF:
+        """A flat :class:`~torchspec.SVBRDF` (``k_s = 0``, ``alpha = 0`` without a lobe)."""
+        c = len(channels)
+        normal = normal_from_angles(params[:, :2])
+        kd = params[:, 2 : 2 + c]
+        if not self.lobe:
+            zero = params.new_zeros((params.shape[0], 1))
+            return SVBRDF(normal, kd, zero, zero.expand(-1, 2).clone(), None, channels)
+        at = 2 + c + (1 if self.grey else c)
+        ks = params[:, 2 + c : at]
+        if self.anisotropic:
+            return SVBRDF(normal, kd, ks, params[:, at : at + 2], params[:, at + 2], channels)
+        return SVBRDF(normal, kd, ks, params[:, at : at + 1].expand(-1, 2), None, channels)
+
+    def select(self, full: Tensor, channels: int) -> Tensor:
+        """This model's columns ``(..., P)`` of a Jacobian in :mod:`torchspec.jacobian`'s order
+        ``(..., 2 + C + C_s + 3)``; an isotropic ``alpha`` moves both ``alpha_x`` and ``alpha_y``."""
+        cs = full.shape[-1] - 5 - channels
+        if not self.lobe:
+            return full[..., : 2 + channels]
+        shape = full[..., 2 + channels + cs :]
+        if self.anisotropic:
+            return full
+        return torch.cat([full[..., : 2 + channels + cs], shape[..., :1] + shape[..., 1:2]], -1)
+
+    def residuals(
+        self,
+        observed: Tensor,
+        weight: Tensor,
+        lights: Lights,
+        view: Tensor,
+        channels: tuple[str, ...],
+        *,
+        path: str = "auto",
+    ) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+        """The solver's residual function for these pixels: ``(params (M, P), index (M,)) ->
+        (residuals (M, K C), jacobian (M, K C, P))`` with ``residual = weight (rendered -
+        observed)``.
+
+        Args:
+            observed: ``(N, K, C)`` recorded values.
+            weight: ``(N, K)`` or ``(N, K, C)``: 0 drops a sample; a per-pixel scale evens the
+                costs of bright and dark pixels.
+        """
+        w = weight if weight.dim() == 3 else weight[..., None]
+
+        def fn(params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+            svbrdf = self.unpack(params, channels)
+            value, full = jacobian(svbrdf, lights, view, path=path, diffuse_only=not self.lobe)
+            wi = w[index]
+            r = ((value - observed[index]) * wi).flatten(1)
+            jac = self.select(full, len(channels)) * wi[..., None]
+            return r, jac.flatten(1, 2)
+
+        return fn
+
+
+MODELS = {
+    m.name: m
+    for m in (
+        Model("diffuse", lobe=False),
+        Model("ward-iso", lobe=True, grey=True),
+        Model("ward-iso-colour", lobe=True, grey=False),
+        Model("ward-aniso", lobe=True, grey=False, anisotropic=True),
+    )
+}
+
+
+def get_model(name: str) -> Model:
+    """The model called ``name``; a clear error lists the known ones."""
+    if name not in MODELS:
+        raise ValueError(f"model must be one of {sorted(MODELS)}; got {name!r}.")
+    return MODELS[name]

@@ -1,0 +1,320 @@
+"""The diffuse stage: sample masks, a light-domain lowpass and robust photometric stereo.
+
+A pixel's diffuse light under an extended kernel is ``k_d / pi <n, d_k>`` with the kernel's
+*effective direction* ``d_k = integral K_k(w) w dmu`` (:func:`torchspec.lights.diffuse_directions`),
+wherever the kernel lies in front of the normal. Photometric stereo solves that linear model per
+pixel, batched, and leaves out what it cannot explain: the specular peak only ever adds light, so
+samples far above the fit are dropped (reweighted least squares with a one-sided cut), and masked
+samples (non-finite, saturated, shadowed) never enter.
+
+- :func:`sample_masks`: the samples to leave out of a ``(K, C, H, W)`` stack, with saturated
+  regions grown in the image by kornia morphology (blooming spreads around a clipped highlight).
+- :func:`lowpass`: smooth each pixel's samples over the light positions. A grid layout is a small
+  image per pixel, ``(N, C, ny, nx)``, blurred by ``kornia.filters``; a scattered one is
+  smoothed with Gaussian kernel weights. Missing samples are handled by normalised convolution.
+- :func:`photometric_stereo`: normal, ``k_d``, inliers, a noise estimate and a quality per pixel.
+
+References:
+    Woodham, "Photometric method for determining surface orientation from multiple images",
+    Optical Engineering 1980.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import kornia
+import torch
+from torch import Tensor
+
+__all__ = ["Masks", "Diffuse", "sample_masks", "grid_layout", "lowpass", "photometric_stereo", "MAD_SCALE"]
+
+MAD_SCALE = 1.4826
+"""The median absolute deviation times this is the standard deviation of Gaussian noise."""
+
+
+@dataclass(frozen=True)
+class Masks:
+    """Samples to leave out of a ``(K, C, H, W)`` stack, each ``(K, H, W)`` bool (a sample is a
+    pixel in a frame, all channels together).
+
+    Attributes:
+        nonfinite: NaN or Inf in some channel.
+        saturated: at or above the saturation level in some channel, grown by ``grow`` pixels.
+        shadowed: far below the pixel's typical level (a cast shadow, or a light behind it).
+    """
+
+    nonfinite: Tensor
+    saturated: Tensor
+    shadowed: Tensor
+
+    @property
+    def invalid(self) -> Tensor:
+        """Any of the three: ``(K, H, W)``."""
+        return self.nonfinite | self.saturated | self.shadowed
+
+    def counts(self) -> dict[str, int]:
+        """Samples flagged per kind (one host sync)."""
+        return {name: int(getattr(self, name).sum()) for name in ("nonfinite", "saturated", "shadowed")}
+
+
+def sample_masks(stack: Tensor, *, saturation: float | None = None, grow: int = 1, shadow: float = 0.02) -> Masks:
+    """Masks of the samples a fit must not use.
+
+    Args:
+        stack: ``(K, C, H, W)`` values as recorded (frames as the batch).
+        saturation: the level at which the sensor clips; ``None`` finds it: the stack's maximum
+            when at least 16 samples share it exactly (a clipped sensor repeats its ceiling),
+            otherwise nothing is saturated.
+        grow: saturated regions are dilated by this many pixels (a ``2 grow + 1`` square), since
+            blooming and demosaicking spread a clipped highlight into its neighbours.
+        shadow: a sample is shadowed below this fraction of its pixel's median over the frames
+            (in every channel); 0 turns the test off.
+
+    Returns:
+        :class:`Masks`.
+    """
+    if stack.dim() != 4:
+        raise ValueError(f"stack must have shape (K, C, H, W); got {tuple(stack.shape)}.")
+    if grow < 0 or shadow < 0:
+        raise ValueError(f"grow and shadow must be >= 0; got grow={grow}, shadow={shadow}.")
+    finite = torch.isfinite(stack)
+    nonfinite = ~finite.all(1)
+    clean = torch.where(finite, stack, torch.zeros_like(stack))
+    if saturation is None:
+        top = clean.max()
+        at_top = (clean == top).sum()
+        level = torch.where(at_top >= 16, top, torch.full_like(top, math.inf))
+    else:
+        level = torch.as_tensor(saturation, dtype=stack.dtype, device=stack.device)
+    saturated = (clean >= level).any(1) & ~nonfinite
+    if grow > 0 and stack.shape[0] > 0:
+        element = torch.ones(2 * grow + 1, 2 * grow + 1, dtype=stack.dtype, device=stack.device)
+        grown = kornia.morphology.dilation(saturated[:, None].to(stack.dtype), element)
+        saturated = grown[:, 0] > 0.5
+    # Shadows: against the per-pixel median of the usable samples, channel by channel.
+    usable = torch.where((~nonfinite & ~saturated)[:, None], clean, torch.full_like(clean, math.nan))
+    median = usable.nanmedian(0).values if stack.shape[0] > 0 else clean.sum(0)
+    shadowed = (clean < shadow * median[None]).all(1) & (median[None] > 0).all(1) & ~nonfinite & ~saturated
+    return Masks(nonfinite=nonfinite, saturated=saturated, shadowed=shadowed)
+
+
+def grid_layout(l: Tensor, *, tolerance: float = 1e-6) -> tuple[Tensor, Tensor, float, float] | None:
+    """The cells of a grid layout of light positions, or ``None`` when they do not lie on one.
+
+    Args:
+        l: ``(K, 2)`` light positions in the l-plane.
+
+    Returns:
+        ``(row, col, spacing_y, spacing_x)``: ``(K,)`` long indices of each position in an evenly
+        spaced lattice (cells may be empty: a grid clipped to a disk), and the spacings.
+    """
+    if l.dim() != 2 or l.shape[-1] != 2 or l.shape[0] < 2:
+        return None
+    cells = []
+    for axis in (1, 0):  # rows run along y, columns along x
+        values = l[:, axis].double()
+        unique = torch.unique(torch.round(values / tolerance)) * tolerance
+        if unique.numel() < 2:
+            return None
+        low, span = values.min(), values.max() - values.min()
+        step = span / torch.round(span / unique.diff().min())  # exact from the span, not the rounded gaps
+        index = torch.round((values - low) / step)
+        if not bool(((values - low - index * step).abs() <= 1e-3 * step).all()):
+            return None
+        cells.append((index.long(), float(step)))
+    (row, dy), (col, dx) = cells
+    key = row * (int(col.max()) + 1) + col
+    if torch.unique(key).numel() != key.numel():  # two frames in one cell
+        return None
+    if (int(row.max()) + 1) * (int(col.max()) + 1) > 4 * l.shape[0]:  # mostly empty: not a grid
+        return None
+    return row, col, dy, dx
+
+
+def lowpass(samples: Tensor, l: Tensor, *, sigma: float, valid: Tensor | None = None) -> Tensor:
+    """Smooth each pixel's samples over the light positions with a Gaussian of std ``sigma``
+    (l-plane units); masked samples are filled from their neighbours (normalised convolution).
+
+    Args:
+        samples: ``(N, K, C)``.
+        l: ``(K, 2)`` light positions.
+        sigma: the lowpass's std in the l-plane; 0 returns the samples (masked ones as NaN).
+        valid: ``(N, K)`` bool, the samples to use; all by default.
+
+    Returns:
+        ``(N, K, C)`` smoothed values at the same positions; NaN where no valid sample is near.
+    """
+    n, k, c = samples.shape
+    if tuple(l.shape) != (k, 2):
+        raise ValueError(f"l must have shape ({k}, 2) for samples {tuple(samples.shape)}; got {tuple(l.shape)}.")
+    if valid is None:
+        valid = torch.isfinite(samples).all(-1)
+    weight = valid.to(samples.dtype)[..., None]
+    values = torch.where(valid[..., None], samples, torch.zeros_like(samples))
+    nan = torch.full_like(samples, math.nan)
+    if sigma <= 0:
+        return torch.where(valid[..., None], samples, nan)
+    grid = grid_layout(l)
+    if grid is not None:
+        row, col, dy, dx = grid
+        ny, nx = int(row.max()) + 1, int(col.max()) + 1
+        image = samples.new_zeros((n, c + 1, ny, nx))
+        image[:, :c, row, col] = values.transpose(1, 2)
+        image[:, c, row, col] = weight[..., 0]
+        sy, sx = sigma / dy, sigma / dx
+        size = (2 * math.ceil(3 * sy) + 1, 2 * math.ceil(3 * sx) + 1)
+        blurred = kornia.filters.gaussian_blur2d(image, size, (sy, sx), border_type="constant")
+        top, bottom = blurred[:, :c, row, col].transpose(1, 2), blurred[:, c, row, col][..., None]
+    else:
+        d2 = (l[:, None, :] - l[None, :, :]).pow(2).sum(-1)
+        kernel = torch.exp(-0.5 * d2 / sigma**2).to(samples.dtype)  # (K, K)
+        top = torch.einsum("jk,nkc->njc", kernel, values)
+        bottom = torch.einsum("jk,nkc->njc", kernel, weight)
+    floor = torch.finfo(samples.dtype).eps * bottom.amax(1, keepdim=True).clamp(min=1.0)
+    return torch.where(bottom > floor, top / bottom.clamp(min=torch.finfo(samples.dtype).tiny), nan)
+
+
+@dataclass(frozen=True)
+class Diffuse:
+    """The result of :func:`photometric_stereo` for ``N`` pixels.
+
+    Attributes:
+        normal: ``(N, 3)`` unit normals (``(0, 0, 1)`` where the pixel could not be solved).
+        diffuse: ``(N, C)`` ``k_d`` (clamped at 0).
+        inliers: ``(N, K)`` the samples the final fit used.
+        noise: ``(N,)`` robust std of the inliers' residual, in the units of the samples.
+        quality: ``(N,)`` in ``[0, 1]``: the share of inliers times the conditioning of the
+            directions they leave (smallest over largest eigenvalue of their scatter, relative
+            to the layout's own); 0 where fewer than 3 samples were left.
+    """
+
+    normal: Tensor
+    diffuse: Tensor
+    inliers: Tensor
+    noise: Tensor
+    quality: Tensor
+
+
+def _weighted_solve(a: Tensor, y: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """``argmin sum_k w_k (y_k - <b, a_k>)^2`` per pixel, the minimum-norm one where the weighted
+    directions leave ``b`` undetermined (a line of lights): ``(N, 3)``, and the eigenvalues of the
+    weighted scatter ``(N, 3)``, ascending."""
+    scatter = torch.einsum("nk,ki,kj->nij", w, a, a)
+    rhs = torch.einsum("nk,nk,ki->ni", w, y, a)
+    eig, vec = torch.linalg.eigh(scatter)
+    keep = eig > 1e3 * torch.finfo(a.dtype).eps * eig[:, -1:].clamp(min=torch.finfo(a.dtype).tiny)
+    inverse = torch.where(keep, 1.0 / torch.where(keep, eig, torch.ones_like(eig)), torch.zeros_like(eig))
+    b = vec @ (inverse[..., None] * (vec.transpose(-1, -2) @ rhs[..., None]))
+    return b[..., 0], eig
+
+
+def photometric_stereo(
+    samples: Tensor,
+    directions: Tensor,
+    *,
+    valid: Tensor | None = None,
+    iterations: int = 8,
+    cut: float = 3.0,
+    trim: float = 0.25,
+) -> Diffuse:
+    """Robust photometric stereo: per pixel, ``samples[k, c] ~ k_d[c] / pi <n, d_k>`` on the
+    samples it can explain.
+
+    The normal comes from the mean over channels (the direction of ``b = mean(k_d) / pi n``), then
+    ``k_d`` per channel by least squares along it. The first fit leaves out the brightest
+    ``trim`` of each pixel's samples; each later one keeps the samples whose residual lies below
+    ``cut`` robust standard deviations (one-sided: a specular peak only adds light; shadows are
+    left to :func:`sample_masks`), and never fewer than the better-fitting half. Layouts that
+    leave the normal undetermined in some direction (lights along a line) get the minimum-norm
+    solution there.
+
+    Args:
+        samples: ``(N, K, C)`` values divided by the frames' exposure and irradiance.
+        directions: ``(K, 3)`` effective directions ``d_k``
+            (:func:`torchspec.lights.diffuse_directions`).
+        valid: ``(N, K)`` samples allowed to enter (e.g. ``~masks.invalid``); all finite ones by
+            default.
+        iterations: reweighting passes after the first fit.
+        cut: the one-sided outlier threshold in robust standard deviations.
+        trim: the share of brightest samples left out of the first fit.
+
+    Returns:
+        :class:`Diffuse`.
+
+    Example:
+        >>> d = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 0.866], [0.0, 0.5, 0.866], [-0.5, 0.0, 0.866]])
+        >>> fit = photometric_stereo((d @ torch.tensor([0.0, 0.0, 0.3]))[None, :, None], d)
+        >>> [round(v, 4) for v in fit.normal[0].tolist()], round(float(fit.diffuse[0, 0]), 4)
+        ([0.0, 0.0, 1.0], 0.9425)
+    """
+    if samples.dim() != 3:
+        raise ValueError(f"samples must have shape (N, K, C); got {tuple(samples.shape)}.")
+    n, k, c = samples.shape
+    if tuple(directions.shape) != (k, 3):
+        raise ValueError(
+            f"directions must have shape ({k}, 3) for samples {tuple(samples.shape)}; got {tuple(directions.shape)}."
+        )
+    if not 0 <= trim < 1 or cut <= 0 or iterations < 0:
+        raise ValueError(
+            f"need 0 <= trim < 1, cut > 0, iterations >= 0; got trim={trim}, cut={cut}, iterations={iterations}."
+        )
+    dtype = samples.dtype
+    d = directions.to(dtype)
+    finite = torch.isfinite(samples).all(-1)
+    valid = finite if valid is None else (valid & finite)
+    values = torch.where(valid[..., None], samples, torch.zeros_like(samples))
+    grey = values.mean(-1)  # (N, K)
+
+    # First fit: the brightest `trim` of the valid samples left out.
+    count = valid.sum(-1)
+    rank = torch.where(valid, grey, torch.full_like(grey, -math.inf)).argsort(-1, descending=True).argsort(-1)
+    weight = (valid & (rank >= (trim * count.to(dtype)).floor()[:, None])).to(dtype)
+    b, _ = _weighted_solve(d, grey, weight)
+    noise = grey.new_zeros(n)
+    for _ in range(iterations):
+        residual = grey - b @ d.T
+        kept = torch.where(weight > 0, residual, torch.full_like(residual, math.nan))
+        centre = kept.nanmedian(-1, keepdim=True).values
+        noise = MAD_SCALE * (kept - centre).abs().nanmedian(-1).values
+        # Floor the scale at a fraction of the pixel's typical value, so a noise-free pixel keeps its
+        # near-exact samples (and a peak's tails do not set the scale).
+        level = torch.where(valid, grey.abs(), torch.full_like(grey, math.nan)).nanmedian(-1).values
+        floor = 1e-4 * torch.nan_to_num(level, nan=0.0) + torch.finfo(dtype).tiny
+        scale = torch.maximum(torch.nan_to_num(noise, nan=0.0), floor)[:, None]
+        # Never fewer than the better-fitting half of the samples: a poor first fit must not
+        # collapse the set onto a handful of samples that fit it by chance.
+        half = torch.where(valid, residual, torch.full_like(residual, math.nan)).nanquantile(0.5, dim=-1, keepdim=True)
+        upper = torch.maximum(cut * scale, torch.nan_to_num(half, nan=0.0))
+        weight = (valid & (residual <= upper)).to(dtype)
+        b, _ = _weighted_solve(d, grey, weight)
+    inliers = weight > 0
+    _, eig = _weighted_solve(d, grey, weight)
+    _, eig_all = _weighted_solve(d, grey, valid.to(dtype))
+    conditioning = (eig[:, 0] / eig[:, 2].clamp(min=torch.finfo(dtype).tiny)) / (
+        eig_all[:, 0] / eig_all[:, 2].clamp(min=torch.finfo(dtype).tiny)
+    ).clamp(min=torch.finfo(dtype).tiny)
+    share = inliers.sum(-1).to(dtype) / count.clamp(min=1).to(dtype)
+    quality = torch.where(inliers.sum(-1) >= 3, share * conditioning.clamp(0.0, 1.0), torch.zeros_like(share))
+
+    length = b.norm(dim=-1, keepdim=True)
+    up = torch.zeros_like(b)
+    up[:, 2] = 1.0
+    solved = (length[:, 0] > torch.finfo(dtype).tiny) & torch.isfinite(length[:, 0])
+    normal = torch.where(solved[:, None], b / length.clamp(min=torch.finfo(dtype).tiny), up)
+    normal = torch.where((normal[:, 2:] < 0), -normal, normal)  # the camera sees the front
+    shading = normal @ d.T  # (N, K)
+    w = weight * (shading > 0).to(dtype)
+    kd = (
+        math.pi
+        * (w[..., None] * values * shading[..., None]).sum(1)
+        / (w * shading * shading).sum(1)[:, None].clamp(min=torch.finfo(dtype).tiny)
+    )
+    return Diffuse(
+        normal=normal,
+        diffuse=kd.clamp(min=0.0),
+        inliers=inliers,
+        noise=torch.nan_to_num(noise, nan=0.0),
+        quality=quality,
+    )

@@ -1,0 +1,325 @@
+"""The specular stage: from what the diffuse fit leaves over, a starting point for the full fit.
+
+Per pixel, the residual ``r_k = y_k - k_d / pi <n, d_k>`` (mean over channels) is the specular
+lobe blurred by the light kernel, sampled at the frames' l-plane positions ``l_k``. Its peak sits
+where the lobe's mirror direction points, ``w_peak``, and the normal is the half vector
+``n = normalize(w_peak + view)``. Three ways to find it, one per function:
+
+- :func:`locate_peak`: finite-rate-of-innovation location (:func:`torchspec.fri.locate`) of the
+  blurred peak, in 2D for a planar layout and along the line for a line of lights (the other
+  coordinate then comes from the photometric-stereo normal). Exact for any symmetric blur.
+- :func:`grid_search`: a dense search over peak positions and widths of a Gaussian surrogate
+  of the blurred lobe, ``k_s`` solved in closed form at every node: the brute-force baseline.
+- :func:`naive_start`: the photometric-stereo normal and a fixed roughness.
+
+``k_s`` and ``alpha`` come from the residual's energy and spread: near the mirror direction the
+Ward lobe is a Gaussian in the l-plane of variance ``2 alpha^2 (n.v)^2``-ish that integrates to
+``k_s``, and the light kernel adds its own variance; so ``k_s ~ sum_k r_k A_k`` (``A_k`` the
+l-plane area per sample) and ``alpha^2 ~ (var(r) - var(kernel)) / 2`` per axis.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from . import fri
+from .geometry import from_plane, normalize
+from .photometric import grid_layout
+
+__all__ = ["Start", "Layout", "layout_of", "specular_residual", "locate_peak", "grid_search", "naive_start"]
+
+ALPHA_RANGE = (0.005, 0.5)
+"""Starting roughness is clamped into this range."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The geometry of the light positions that the peak search needs.
+
+    Attributes:
+        l: ``(K, 2)`` positions in the l-plane.
+        dims: 2 for a planar layout, 1 for lights along a line.
+        axis: ``(2,)`` the line's unit direction (1D); ``origin``: ``(2,)`` a point of it.
+        area: ``(K,)`` the l-plane area (1D: length) each sample stands for.
+        period: the FRI period per dimension: the span plus one spacing.
+        start: ``(dims,)`` the coordinate mapped to 0.
+        grid: for lights on a grid clipped to a disk (or not at all), ``(row, col, ny, nx)``: the
+            cell of each frame ``(K,)`` and the lattice's size; ``None`` otherwise.
+        spacing: the median distance between neighbouring samples.
+    """
+
+    l: Tensor
+    dims: int
+    axis: Tensor
+    origin: Tensor
+    area: Tensor
+    period: tuple[float, ...]
+    start: Tensor
+    grid: tuple[Tensor, Tensor, int, int] | None = None
+    spacing: float = 0.0
+
+    def coordinates(self) -> Tensor:
+        """``(K, dims)`` sample coordinates shifted into ``[0, period)``."""
+        if self.dims == 1:
+            return ((self.l - self.origin) @ self.axis)[:, None] - self.start
+        return self.l - self.start
+
+
+def _spacing(values: Tensor) -> Tensor:
+    """Median distance to the nearest neighbour of ``(K, D)`` points."""
+    d = torch.cdist(values, values)
+    d = d + torch.diag(torch.full_like(d[0], math.inf))
+    return d.min(-1).values.median()
+
+
+def layout_of(l: Tensor) -> Layout:
+    """Describe the light positions ``(K, 2)``: a line (1D) when they are collinear, else planar."""
+    if l.dim() != 2 or l.shape[-1] != 2 or l.shape[0] < 3:
+        raise ValueError(f"light positions must have shape (K, 2) with K >= 3; got {tuple(l.shape)}.")
+    centre = l.mean(0)
+    _, s, vh = torch.linalg.svd(l - centre, full_matrices=False)
+    if s[1] <= 1e-6 * s[0]:
+        axis = vh[0]
+        t = (l - centre) @ axis
+        order = t.sort().values
+        gaps = order.diff()
+        step = gaps.median()
+        area = torch.empty_like(t)
+        width = torch.cat([gaps[:1], 0.5 * (gaps[1:] + gaps[:-1]), gaps[-1:]])
+        area[t.argsort()] = width
+        span = float(order[-1] - order[0] + step)
+        return Layout(l, 1, axis, centre, area, (span,), order[:1] - 0.5 * step, None, float(step))
+    cells = grid_layout(l)
+    low, high = l.min(0).values, l.max(0).values
+    if cells is not None:
+        row, col, dy, dx = cells
+        ny, nx = int(row.max()) + 1, int(col.max()) + 1
+        # Empty cells may be filled with zeros only where the lobe is not: outside the lit disk
+        # (a grid clipped to a radius), not between the frames (every second frame of a grid).
+        filled = torch.zeros(ny, nx, dtype=torch.bool, device=l.device)
+        filled[row, col] = True
+        ys = low[1] + dy * torch.arange(ny, dtype=l.dtype, device=l.device)
+        xs = low[0] + dx * torch.arange(nx, dtype=l.dtype, device=l.device)
+        radius = torch.sqrt(ys[:, None] ** 2 + xs[None, :] ** 2)
+        if (~filled).any() and float(radius[~filled].min()) < float(radius[filled].max()) - 1e-9 * max(dx, dy):
+            cells = None
+    if cells is not None:  # the lattice's own spacing: a period of exactly nx (ny) cells
+        step = torch.tensor([dx, dy], dtype=l.dtype, device=l.device)
+        area = torch.full_like(l[:, 0], dx * dy)
+        period = (nx * dx, ny * dy)
+        return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low, (row, col, ny, nx), float(min(dx, dy)))
+    step = _spacing(l)
+    period = tuple(float(v) for v in (high - low + step))
+    # Each sample stands for its share of the layout's convex area: a disk or a square here.
+    hull = math.pi * float(((l - centre).norm(dim=-1).max() + 0.5 * step) ** 2)
+    box = float((high - low + step).prod())
+    area = torch.full_like(l[:, 0], min(hull, box) / l.shape[0])
+    return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low - 0.5 * step, None, float(step))
+
+
+def specular_residual(samples: Tensor, normal: Tensor, diffuse: Tensor, directions: Tensor) -> Tensor:
+    """``r (N, K)``: the mean over channels of ``samples - k_d / pi <n, d_k>^+``.
+
+    Args:
+        samples: ``(N, K, C)`` divided by exposure and irradiance.
+        normal, diffuse: ``(N, 3)``, ``(N, C)`` from photometric stereo.
+        directions: ``(K, 3)`` effective diffuse directions.
+    """
+    shading = (normal @ directions.to(normal.dtype).T).clamp(min=0.0)
+    return (samples - diffuse[:, None, :] / math.pi * shading[..., None]).mean(-1)
+
+
+@dataclass(frozen=True)
+class Start:
+    """A starting point of the specular fit for ``N`` pixels.
+
+    Attributes:
+        normal: ``(N, 3)`` the half vector of the peak.
+        peak: ``(N, 2)`` the peak's position in the l-plane.
+        specular: ``(N,)`` ``k_s`` from the residual's energy.
+        alpha: ``(N,)`` isotropic roughness from its spread.
+        quality: ``(N,)`` in ``[0, 1]``: the location's quality (1 for searches without one).
+    """
+
+    normal: Tensor
+    peak: Tensor
+    specular: Tensor
+    alpha: Tensor
+    quality: Tensor
+
+
+def _mirror(normal: Tensor, view: Tensor) -> Tensor:
+    """The l-plane position of the direction that ``normal`` mirrors ``view`` into."""
+    v = view.to(normal.dtype)
+    w = 2.0 * (normal @ v)[:, None] * normal - v
+    return w[:, :2]
+
+
+def _half_vector(peak: Tensor, view: Tensor) -> Tensor:
+    inside = peak.norm(dim=-1, keepdim=True).clamp(min=1.0 - 1e-6)
+    peak = torch.where(inside > 1.0 - 1e-6, peak / inside * (1.0 - 1e-6), peak)
+    return normalize(from_plane(peak) + view.to(peak.dtype))
+
+
+def _moments(residual: Tensor, layout: Layout, peak: Tensor, kernel_variance: float, window: float) -> tuple:
+    """``k_s`` and ``alpha`` from the positive residual within ``window`` of the peak."""
+    offset = layout.l[None] - peak[:, None, :]  # (N, K, 2)
+    d2 = offset.pow(2).sum(-1)
+    if layout.dims == 1:
+        d2 = (offset @ layout.axis).pow(2)
+    positive = residual.clamp(min=0.0) * (d2 <= window**2).to(residual.dtype)
+    mass = (positive * layout.area).sum(-1)
+    spread = (positive * layout.area * d2).sum(-1) / mass.clamp(min=torch.finfo(residual.dtype).tiny)
+    variance = spread / layout.dims - kernel_variance  # per axis
+    alpha = (variance.clamp(min=0.0) / 2.0).sqrt().clamp(*ALPHA_RANGE)
+    if layout.dims == 1:  # a line through a 2D Gaussian of std s holds 1 / (sqrt(2 pi) s) of its mass
+        mass = mass * math.sqrt(2.0 * math.pi) * (2.0 * alpha**2 + kernel_variance).sqrt()
+    return mass.clamp(min=0.0), alpha
+
+
+def locate_peak(
+    residual: Tensor,
+    layout: Layout,
+    view: Tensor,
+    *,
+    prior_normal: Tensor,
+    kernel_variance: float,
+    method: str | None = None,
+    num_coefficients: int | None = None,
+) -> Start:
+    """FRI location of the specular peak and the start it gives.
+
+    Args:
+        residual: ``(N, K)`` from :func:`specular_residual`.
+        layout: :func:`layout_of` the frames' positions.
+        view: ``(3,)``.
+        prior_normal: ``(N, 3)`` the photometric-stereo normal, for the coordinate a line of
+            lights cannot see.
+        kernel_variance: the light kernel's variance per axis in the l-plane.
+        method, num_coefficients: for :func:`torchspec.fri.locate`.
+
+    Returns:
+        :class:`Start`.
+    """
+    start = layout.start.to(residual.dtype)
+    if layout.grid is not None:
+        # A (clipped) grid: the lattice's empty cells lie outside the lit disk, where the lobe has
+        # died out, so they are zeros, and the samples are uniform: the periodised peak stays
+        # symmetric about its centre however much of it aliases. Scattered least squares on the
+        # disk alone would alias it asymmetrically.
+        row, col, ny, nx = layout.grid
+        image = residual.new_zeros((residual.shape[0], ny, nx))
+        image[:, row, col] = residual
+        found = fri.locate(image, period=layout.period[::-1], method=method, num_coefficients=num_coefficients)
+        position = found.position.flip(-1)  # (y, x) -> (x, y)
+        spacing = torch.tensor([p / n for p, n in zip(layout.period, (nx, ny), strict=True)], dtype=residual.dtype)
+        period = torch.tensor(layout.period, dtype=residual.dtype)
+        # Positions past the last cell by more than half a cell belong before the first one.
+        position = torch.where(position > period - 0.5 * spacing, position - period, position)
+        peak = position + start
+    else:
+        coords = layout.coordinates().to(residual.dtype)
+        period = layout.period if layout.dims == 2 else layout.period[0]
+        positions = coords if layout.dims == 2 else coords[:, 0]
+        if num_coefficients is None and layout.dims == 2:
+            per_axis = max(1, round(math.sqrt(layout.l.shape[0])))
+            num_coefficients = max(1, min((per_axis - 1) // 2 - 1, 4))
+        found = fri.locate(
+            residual, period=period, method=method, num_coefficients=num_coefficients, positions=positions
+        )
+    if layout.grid is not None:
+        pass
+    elif layout.dims == 2:
+        peak = found.position + start
+    else:
+        t = found.position + start
+        seen = _mirror(prior_normal, view)
+        across = seen - ((seen - layout.origin) @ layout.axis)[:, None] * layout.axis
+        peak = across + t[:, None] * layout.axis
+    finite = torch.isfinite(peak).all(-1, keepdim=True)
+    peak = torch.where(finite, peak, _mirror(prior_normal, view))
+    # A location far from every bright sample is an aliased one (too few samples for the lobe's
+    # width on a scattered layout): fall back on the centroid around the brightest sample.
+    spacing = layout.spacing
+    brightest = layout.l.to(residual.dtype)[residual.argmax(-1)]  # (N, 2)
+    near = layout.l[None] - brightest[:, None, :]
+    near = (near.pow(2).sum(-1) if layout.dims == 2 else (near @ layout.axis).pow(2)) <= (1.5 * spacing) ** 2
+    weight = residual.clamp(min=0.0) * near.to(residual.dtype)
+    centroid = (weight[..., None] * layout.l[None]).sum(1) / weight.sum(1, keepdim=True).clamp(
+        min=torch.finfo(residual.dtype).tiny
+    )
+    if layout.dims == 1:  # keep the line's crossing of the prior
+        centroid = peak + ((centroid - peak) @ layout.axis)[:, None] * layout.axis
+    astray = (peak - brightest).norm(dim=-1) > 1.5 * spacing
+    peak = torch.where(astray[:, None], centroid, peak)
+    quality = torch.where(astray, 0.25 * found.quality, found.quality)
+    window = 3.0 * math.sqrt(2.0 * ALPHA_RANGE[1] ** 2 * 0.25 + kernel_variance)
+    specular, alpha = _moments(residual, layout, peak, kernel_variance, window)
+    # A lobe started narrower than the samples resolve has no gradient towards them; too wide is safe.
+    alpha = alpha.clamp(min=layout.spacing / (2.0 * math.sqrt(2.0)))
+    return Start(_half_vector(peak, view), peak, specular, alpha, quality)
+
+
+def grid_search(
+    residual: Tensor,
+    layout: Layout,
+    view: Tensor,
+    *,
+    prior_normal: Tensor,
+    kernel_variance: float,
+    step: float = 0.01,
+    radius: float = 0.3,
+    alphas: int = 12,
+) -> Start:
+    """Brute force: the best peak position (within ``radius`` of the photometric-stereo mirror
+    point, every ``step``) and roughness (``alphas`` log-spaced values) of a Gaussian surrogate of
+    the blurred lobe, ``r_k ~ k_s g(l_k; peak, 2 alpha^2 + kernel variance)``, with ``k_s`` by
+    least squares at every node. Memory and time grow as ``(radius / step)^2 alphas K`` per pixel."""
+    dtype = residual.dtype
+    centre = _mirror(prior_normal, view)
+    ticks = torch.arange(-radius, radius + 0.5 * step, step, dtype=dtype, device=residual.device)
+    if layout.dims == 2:
+        offsets = torch.stack(torch.meshgrid(ticks, ticks, indexing="ij"), -1).reshape(-1, 2)
+    else:
+        offsets = ticks[:, None] * layout.axis.to(dtype)
+    alpha = torch.logspace(
+        math.log10(ALPHA_RANGE[0]), math.log10(ALPHA_RANGE[1]), alphas, dtype=dtype, device=residual.device
+    )
+    variance = 2.0 * alpha**2 + kernel_variance  # (A,)
+    best = torch.full_like(residual[:, 0], math.inf)
+    best_peak, best_alpha, best_ks = centre.clone(), torch.full_like(best, alpha[0]), torch.zeros_like(best)
+    l = layout.l.to(dtype)
+    for offset in offsets:  # the search nodes: a per-pixel batch at each
+        peak = centre + offset
+        d2 = (l[None] - peak[:, None, :]).pow(2).sum(-1)  # (N, K)
+        if layout.dims == 1:
+            d2 = ((l[None] - peak[:, None, :]) @ layout.axis.to(dtype)).pow(2)
+        shape = torch.exp(-0.5 * d2[..., None] / variance) / (2.0 * math.pi * variance) ** (
+            layout.dims / 2.0
+        )  # (N, K, A)
+        ks = ((shape * residual[..., None]).sum(1) / shape.pow(2).sum(1).clamp(min=torch.finfo(dtype).tiny)).clamp(
+            min=0.0
+        )
+        cost = (residual[..., None] - ks[:, None, :] * shape).pow(2).sum(1)  # (N, A)
+        value, index = cost.min(-1)
+        better = value < best
+        best = torch.where(better, value, best)
+        best_peak = torch.where(better[:, None], peak, best_peak)
+        best_alpha = torch.where(better, alpha[index], best_alpha)
+        best_ks = torch.where(better, ks.gather(-1, index[:, None])[:, 0], best_ks)
+    if layout.dims == 1:  # the surrogate's mass along the line -> the lobe's full mass
+        best_ks = best_ks * (2.0 * math.pi * (2.0 * best_alpha**2 + kernel_variance)).sqrt()
+    return Start(_half_vector(best_peak, view), best_peak, best_ks, best_alpha, torch.ones_like(best))
+
+
+def naive_start(residual: Tensor, layout: Layout, view: Tensor, *, prior_normal: Tensor, alpha: float = 0.1) -> Start:
+    """The photometric-stereo normal, ``alpha`` and ``k_s`` from the residual's energy."""
+    peak = _mirror(prior_normal, view)
+    mass = (residual.clamp(min=0.0) * layout.area).sum(-1)
+    if layout.dims == 1:
+        mass = mass * math.sqrt(2.0 * math.pi) * math.sqrt(2.0) * alpha
+    return Start(prior_normal, peak, mass, torch.full_like(mass, alpha), torch.ones_like(mass))
