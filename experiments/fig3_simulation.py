@@ -48,6 +48,7 @@ class Settings:
     noisy_snr_db: tuple[float, ...]  # extra runs with white Gaussian noise at these SNRs (peak / noise std)
     seed: int
     fit: FitConfig
+    compare_inits: tuple[str, ...]  # noise-free runs from these other starts (FitConfig.init), for comparison
 
 
 def _point_lights(l: torch.Tensor) -> Lights:
@@ -55,16 +56,18 @@ def _point_lights(l: torch.Tensor) -> Lights:
     return Lights(from_plane(l), Kernel("point"), torch.ones(count, 1, dtype=l.dtype), torch.ones(count, dtype=l.dtype))
 
 
-def _run(kind: str, config: SimulationConfig, settings: Settings, snr_db: float | None, workdir: Path) -> dict:
+def _run(
+    kind: str, config: SimulationConfig, settings: Settings, snr_db: float | None, workdir: Path, init: str
+) -> dict:
     sim = simulate(config)
     frames = sim.frames
     if snr_db is not None:
         g = torch.Generator().manual_seed(settings.seed)
         std = frames.abs().max() * 10 ** (-snr_db / 20)
         frames = frames + std * torch.randn(frames.shape, generator=g, dtype=frames.dtype)
-    folder = workdir / f"{kind}-{snr_db}"
+    folder = workdir / f"{kind}-{snr_db}-{init}"
     write_simulation(folder, replace(sim, frames=frames))
-    result = fit(folder, config=settings.fit)
+    result = fit(folder, config=replace(settings.fit, init=init))
     truth = sim.truth.flatten().to(torch.float64)
     fitted = result.svbrdf.flatten().to(torch.float64)
     l = torch.tensor([f.direction[:2] for f in sim.capture.frames], dtype=torch.float64)
@@ -96,6 +99,7 @@ def _run(kind: str, config: SimulationConfig, settings: Settings, snr_db: float 
     kd = (fitted.diffuse.mean(-1) / truth.diffuse.mean(-1) - 1).abs()
     row = {
         "experiment": kind,
+        "init": init,
         "sample_snr_db": snr_db,
         "frames": len(sim.capture.frames),
         "pixels": truth.shape[0],
@@ -135,23 +139,25 @@ def sim_lights(sim, config: SimulationConfig) -> Lights:
 def _figure(one: dict, two: dict, grid: int):
     fig, axes = plt.subplots(1, 4, figsize=(18, 4.2))
     c = one["curves"]
-    t = (c["l"] - c["l"][0]).norm(dim=-1)
-    td = (c["dense"] - c["l"][0]).norm(dim=-1)
+    t = (c["l"] - c["l"][0]).norm(dim=-1).numpy()
+    td = (c["dense"] - c["l"][0]).norm(dim=-1).numpy()
     ax = axes[0]
-    ax.plot(t, c["samples"], "o", ms=3, label="blurred samples")
-    ax.plot(t, c["model"], "-", lw=1, label="fitted model (blurred)")
+    ax.plot(t, c["samples"].numpy(), "o", ms=3, label="blurred samples")
+    ax.plot(t, c["model"].numpy(), "-", lw=1, label="fitted model (blurred)")
     ax.set_title("A  1D: samples under the extended light")
     ax.set_xlabel("position along the line (l-plane)")
     ax.legend(fontsize=8)
     ax = axes[1]
-    ax.plot(td, c["true"], "-", lw=2, label="true reflectance (point light)")
-    ax.plot(td, c["fit"], "--", lw=1.5, label="reconstructed")
+    ax.plot(td, c["true"].numpy(), "-", lw=2, label="true reflectance (point light)")
+    ax.plot(td, c["fit"].numpy(), "--", lw=1.5, label="reconstructed")
     ax.set_title(f"B  1D reconstruction: {one['row']['reconstruction_snr_db']:.1f} dB (paper 43.4)")
     ax.set_xlabel("position along the line (l-plane)")
     ax.legend(fontsize=8)
     c = two["curves"]
     ax = axes[2]
-    dots = ax.scatter(c["l"][:, 0], c["l"][:, 1], c=c["samples"], marker="s", s=12, cmap="magma")
+    dots = ax.scatter(
+        c["l"][:, 0].numpy(), c["l"][:, 1].numpy(), c=c["samples"].numpy(), marker="s", s=12, cmap="magma"
+    )
     fig.colorbar(dots, ax=ax, fraction=0.046)
     ax.set_aspect("equal")
     ax.set_title(f"C  2D: {c['l'].shape[0]} blurred samples")
@@ -160,7 +166,9 @@ def _figure(one: dict, two: dict, grid: int):
     ax = axes[3]
     err = (c["fit"] - c["true"]).reshape(grid, grid).numpy()
     lo, hi = c["dense"].min(0).values, c["dense"].max(0).values
-    im = ax.imshow(err, origin="lower", cmap="coolwarm", extent=(lo[0], hi[0], lo[1], hi[1]))
+    im = ax.imshow(
+        err, origin="lower", cmap="coolwarm", extent=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+    )
     fig.colorbar(im, ax=ax, fraction=0.046)
     ax.set_title(f"D  2D reconstruction error: {two['row']['reconstruction_snr_db']:.1f} dB (paper 52.2)")
     ax.set_xlabel("l_x")
@@ -183,19 +191,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     with tempfile.TemporaryDirectory() as tmp:
         for kind, config in configs.items():
-            for snr_db in (None, *settings.noisy_snr_db):
-                out = _run(kind, config, settings, snr_db, Path(tmp))
+            trials = [(None, settings.fit.init)] + [(snr, settings.fit.init) for snr in settings.noisy_snr_db]
+            trials += [(None, init) for init in settings.compare_inits]
+            for snr_db, init in trials:
+                out = _run(kind, config, settings, snr_db, Path(tmp), init)
                 row = out["row"]
                 rows.append(row)
-                if snr_db is None:
+                if snr_db is None and init == settings.fit.init:
                     clean[kind] = out
                 label = "none" if snr_db is None else f"{snr_db:.0f} dB"
                 print(
-                    f"{kind:4s} {label:>10s} {row['reconstruction_snr_db']:9.1f} "
+                    f"{kind:4s} {init:6s} {label:>10s} {row['reconstruction_snr_db']:9.1f} "
                     f"{row['reconstruction_snr_db_worst']:6.1f} {row['paper_db']:6.1f} "
                     f"{row['normal_error_deg']:11.2e} {row['peak_error_l']:9.2e} {row['alpha_relative_error']:10.2e} "
                     f"{row['alpha_relative_error_worst']:7.2f} {row['ks_relative_error']:9.2e} "
-                    f"{row['lm_iterations']:6.0f}"
+                    f"{row['lm_iterations']:6.0f} {row['seconds']:5.1f}"
                 )
     stem = Path(args.config).stem
     write_json(args.output / f"{stem}.json", {"settings": asdict(settings), "rows": rows})

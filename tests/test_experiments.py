@@ -63,3 +63,38 @@ def test_noise_free_runs(tmp_path):
         bound = 1e-10 if row["dtype"] == "float64" else 1e-5
         assert max(row["max_error"].values()) < bound, row
     assert (tmp_path / "noise_free.png").exists()
+
+
+def test_fig3_runs(tmp_path):
+    one = tmp_path / "one.yaml"
+    one.write_text(
+        "scene: {kind: mirror, mirror: {width: 2, height: 1, kd: [1.0], ks: [0.001], alpha: [0.008, 0.008], "
+        "tilt_deg: 4.7, tilt_azimuth_deg: 38.0}}\nlight: {kernel: gaussian, domain: projected, sigma: 0.03}\n"
+        "layout: {kind: line, n: 30, azimuth_deg: 38.0, theta_min_deg: -30.0, theta_max_deg: 30.0}\nchannels: [Y]\n"
+    )
+    two = tmp_path / "two.yaml"
+    two.write_text(one.read_text().replace(
+        "layout: {kind: line, n: 30, azimuth_deg: 38.0, theta_min_deg: -30.0, theta_max_deg: 30.0}",
+        "layout: {kind: grid, nx: 16, ny: 16, extent: 0.5, radius: 0.75}"))
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        f"one_d: {one}\ntwo_d: {two}\ndense: 50\nnoisy_snr_db: [40.0]\nseed: 0\nfit: {{dtype: float64}}\n"
+        "compare_inits: [naive]\n"
+    )
+    rows = _load("fig3_simulation").main(["--config", str(config), "--output", str(tmp_path)])
+    clean = {r["experiment"]: r for r in rows if r["sample_snr_db"] is None and r["init"] == "fri"}
+    assert clean["1d"]["reconstruction_snr_db"] > 60 and clean["2d"]["reconstruction_snr_db"] > 65, clean
+    assert len(rows) == 6 and (tmp_path / "tiny.png").stat().st_size > 10000
+
+
+def test_fit_painting_runs(tmp_path):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "capture: ../shared/data/painting-dev\nmatte_ks: 0.001\n"
+        "runs: [{label: fri, frames: '::2', fit: {init: fri, model: ward-aniso}}]\n"
+    )
+    rows = _load("fit_painting").main(["--config", str(config), "--output", str(tmp_path)])
+    bound, row = rows
+    assert bound["held_out_psnr_db"] > row["held_out_psnr_db"] > 40.0
+    assert row["normal_deg"] < 0.5 and row["kd"] < 0.03 and row["varnished_alpha"] < 0.1
+    assert row["matte_share_ks0"] > 0.95

@@ -166,14 +166,22 @@ def _half_vector(peak: Tensor, view: Tensor) -> Tensor:
 
 
 def _moments(residual: Tensor, layout: Layout, peak: Tensor, kernel_variance: float, window: float) -> tuple:
-    """``k_s`` and ``alpha`` from the positive residual within ``window`` of the peak."""
+    """``k_s`` and ``alpha`` from the positive residual near the peak: its mass and second moment
+    within a window grown from the sampling's own resolution to three of their standard
+    deviations (at most ``window``): noise far from a narrow peak then never enters, and a broad
+    peak widens the window at each pass."""
     offset = layout.l[None] - peak[:, None, :]  # (N, K, 2)
     d2 = offset.pow(2).sum(-1)
     if layout.dims == 1:
         d2 = (offset @ layout.axis).pow(2)
-    positive = residual.clamp(min=0.0) * (d2 <= window**2).to(residual.dtype)
-    mass = (positive * layout.area).sum(-1)
-    spread = (positive * layout.area * d2).sum(-1) / mass.clamp(min=torch.finfo(residual.dtype).tiny)
+    tiny = torch.finfo(residual.dtype).tiny
+    floor = (1.5 * layout.spacing) ** 2 + 9.0 * kernel_variance  # never narrower than the sampling
+    reach = torch.full_like(residual[:, 0], min(floor, window**2))
+    for _ in range(6):
+        positive = residual.clamp(min=0.0) * (d2 <= reach[:, None]).to(residual.dtype)
+        mass = (positive * layout.area).sum(-1)
+        spread = (positive * layout.area * d2).sum(-1) / mass.clamp(min=tiny)  # E|l - peak|^2
+        reach = (9.0 * spread).clamp(min=floor, max=window**2)
     variance = spread / layout.dims - kernel_variance  # per axis
     alpha = (variance.clamp(min=0.0) / 2.0).sqrt().clamp(*ALPHA_RANGE)
     if layout.dims == 1:  # a line through a 2D Gaussian of std s holds 1 / (sqrt(2 pi) s) of its mass
