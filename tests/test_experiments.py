@@ -17,14 +17,21 @@ def _load(name):
     return importlib.import_module(name)
 
 
-def test_fig2_runs(tmp_path):
+def _main(name, tmp_path, text):
+    """Run the experiment ``name`` on the config ``text``, written as ``tiny.yaml``, into ``tmp_path``."""
     config = tmp_path / "tiny.yaml"
-    config.write_text(
+    config.write_text(text)
+    return _load(name).main(["--config", str(config), "--output", str(tmp_path)])
+
+
+def test_fig2_runs(tmp_path):
+    result = _main(
+        "fig2_crb",
+        tmp_path,
         "period: 1.0\nkernels: [{label: caption, sigma: 0.05}]\nbands: [2]\nsnr_db: [0, 30]\nrepetitions: 300\n"
         "methods: [coherent, ls]\noutlier: 0.1\nseed: 0\ntwo_d: {grid: [5, 5], snr_db: [30]}\n"
-        "timing: {samples: 16, locations: 2000, slow_locations: 500, repeats: 1}\n"
+        "timing: {samples: 16, locations: 2000, slow_locations: 500, repeats: 1}\n",
     )
-    result = _load("fig2_crb").main(["--config", str(config), "--output", str(tmp_path)])
     saved = json.loads((tmp_path / "tiny.json").read_text())
     assert saved["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"] == pytest.approx(
         result["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"])
@@ -40,24 +47,24 @@ def test_fig2_rejects_unknown_keys(tmp_path):
 
 
 def test_bench_runs(tmp_path):
-    config = tmp_path / "tiny.yaml"
-    config.write_text(
+    rows = _main(
+        "bench_fri",
+        tmp_path,
         "samples: 16\nkernel_sigma: 0.05\nsnr_db: 20.0\nlocations: 4000\nslow_locations: 500\n"
-        "scipy_locations: 20\nrepeats: 1\nseed: 0\nrows: [[coherent, float32], [ls, float64]]\n"
+        "scipy_locations: 20\nrepeats: 1\nseed: 0\nrows: [[coherent, float32], [ls, float64]]\n",
     )
-    rows = _load("bench_fri").main(["--config", str(config), "--output", str(tmp_path)])
     assert [r["method"] for r in rows] == ["coherent", "ls", "argmax + parabola", "scipy least_squares"]
     assert all(r["locations_per_second"] > 0 and r["mse_over_crb"] > 0.5 for r in rows)
     assert (tmp_path / "bench_fri.png").exists()
 
 
 def test_noise_free_runs(tmp_path):
-    config = tmp_path / "tiny.yaml"
-    config.write_text(
+    rows = _main(
+        "noise_free",
+        tmp_path,
         "kernels: [{kind: box, width: 0.3}]\nsamples: [5, 16]\ngrids: [[6, 6]]\nlocations: 50\n"
-        "offset: -1.0\nseed: 0\n"
+        "offset: -1.0\nseed: 0\n",
     )
-    rows = _load("noise_free").main(["--config", str(config), "--output", str(tmp_path)])
     assert len(rows) == 3 * 2  # sizes x dtypes
     for row in rows:
         bound = 1e-10 if row["dtype"] == "float64" else 1e-5
@@ -76,24 +83,24 @@ def test_fig3_runs(tmp_path):
     two.write_text(one.read_text().replace(
         "layout: {kind: line, n: 30, azimuth_deg: 38.0, theta_min_deg: -30.0, theta_max_deg: 30.0}",
         "layout: {kind: grid, nx: 16, ny: 16, extent: 0.5, radius: 0.75}"))
-    config = tmp_path / "tiny.yaml"
-    config.write_text(
+    rows = _main(
+        "fig3_simulation",
+        tmp_path,
         f"one_d: {one}\ntwo_d: {two}\ndense: 50\nnoisy_snr_db: [40.0]\nseed: 0\nfit: {{dtype: float64}}\n"
-        "compare_inits: [naive]\n"
+        "compare_inits: [naive]\n",
     )
-    rows = _load("fig3_simulation").main(["--config", str(config), "--output", str(tmp_path)])
     clean = {r["experiment"]: r for r in rows if r["sample_snr_db"] is None and r["init"] == "fri"}
     assert clean["1d"]["reconstruction_snr_db"] > 60 and clean["2d"]["reconstruction_snr_db"] > 65, clean
     assert len(rows) == 6 and (tmp_path / "tiny.png").stat().st_size > 10000
 
 
 def test_fit_painting_runs(tmp_path):
-    config = tmp_path / "tiny.yaml"
-    config.write_text(
+    rows = _main(
+        "fit_painting",
+        tmp_path,
         "capture: ../shared/data/painting-dev\nmatte_ks: 0.001\n"
-        "runs: [{label: fri, frames: '::2', fit: {init: fri, model: ward-aniso}}]\n"
+        "runs: [{label: fri, frames: '::2', fit: {init: fri, model: ward-aniso}}]\n",
     )
-    rows = _load("fit_painting").main(["--config", str(config), "--output", str(tmp_path)])
     bound, row = rows
     assert bound["held_out_psnr_db"] > row["held_out_psnr_db"] > 40.0
     assert row["normal_deg"] < 0.5 and row["kd"] < 0.03 and row["varnished_alpha"] < 0.1
