@@ -105,3 +105,16 @@ def test_fit_painting_runs(tmp_path):
     assert bound["held_out_psnr_db"] > row["held_out_psnr_db"] > 40.0
     assert row["normal_deg"] < 0.5 and row["kd"] < 0.03 and row["varnished_alpha"] < 0.1
     assert row["matte_share_ks0"] > 0.95
+
+
+def test_bench_fit_runs(tmp_path):
+    rows = _main(
+        "bench_fit",
+        tmp_path,
+        f"size: 12\ngrid: 8\nextent: 0.6\nkernel_sigma: 0.08\nphotons_per_unit: 100000.0\nseed: 3\nthreads: 2\n"
+        f"scipy_pixels: 2\ncache: {tmp_path / 'cache'}\nfit: {{}}\n",
+    )
+    ours, scipy = rows
+    assert ours["pixels"] == 144 and ours["pixels_per_second"] > 0 and ours["peak_mb"] > 0
+    assert scipy["pixels"] == 2 and scipy["seconds"] > 0
+    assert ours["sampled_pixels"]["normal_deg"] < 0.5 and scipy["sampled_pixels"]["normal_deg"] < 0.5

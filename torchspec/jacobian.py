@@ -28,10 +28,9 @@ from torch import Tensor
 
 from .brdf import SVBRDF
 from .geometry import angles_from_normal, normal_from_angles
-from .lights import Lights, clamped_diffuse, diffuse_directions
+from .lights import Lights, diffuse_directions
 from .render import (
     BUDGET,
-    DIFFUSE_ORDER,
     FAST_ORDER,
     REFERENCE_ORDER,
     _at_nodes,
@@ -78,6 +77,7 @@ def jacobian(
     *,
     mode: str = "analytic",
     path: str = "auto",
+    order: int | None = None,
     diffuse_only: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Values and Jacobian of :func:`torchspec.render.render` with respect to each pixel's
@@ -87,6 +87,8 @@ def jacobian(
         svbrdf: leading dims ``*``, ``C`` channels; ``rotation`` may be ``None`` (0).
         lights, view, path: as for :func:`torchspec.render.render`.
         mode: ``analytic`` or ``forward``.
+        order: Gauss-Hermite nodes per axis of the fast rule (``FAST_ORDER`` by default), as
+            for :func:`torchspec.render.render`; the analytic mode only.
         diffuse_only: the model without its lobe (``k_s`` taken as 0, the lobe not integrated):
             the values and the same columns, those of ``k_s`` and the lobe's shape being 0.
             Analytic mode only.
@@ -96,15 +98,17 @@ def jacobian(
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}; got {mode!r}.")
-    if diffuse_only and mode != "analytic":
-        raise ValueError("diffuse_only needs mode='analytic'.")
+    if (diffuse_only or order is not None) and mode != "analytic":
+        raise ValueError("diffuse_only and order need mode='analytic'.")
+    if order is not None and order < 1:
+        raise ValueError(f"order must be >= 1; got {order}.")
     lead = svbrdf.shape
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
     params = parameters(flat)
     # Chunks of pixels bound the memory, as render's do (a few hundred MB of node tensors at most);
     # smaller ones cost time in per-call overhead (8x smaller took 2x longer, analytic and forward).
-    chunk = max(1, BUDGET // (lights.directions.shape[0] * FAST_ORDER**2))
+    chunk = max(1, BUDGET // (lights.directions.shape[0] * (order or FAST_ORDER) ** 2))
     values = jacs = None  # filled in place: the Jacobian is the largest tensor of a fit, held once
     for start in range(0, max(params.shape[0], 1), chunk):  # one (empty) chunk for no pixels
         part = params[start : start + chunk]
@@ -120,7 +124,7 @@ def jacobian(
                 columns.append(column)
             jac = torch.stack(columns, -1)
         else:
-            value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path, diffuse_only)
+            value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path, diffuse_only, order)
         if values is None:
             values = value.new_empty((params.shape[0], *value.shape[1:]))
             jacs = jac.new_empty((params.shape[0], *jac.shape[1:]))
@@ -189,7 +193,7 @@ def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor, frame_dt: 
 
 
 def _analytic(
-    svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str, diffuse_only: bool = False
+    svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str, diffuse_only: bool = False, order: int | None = None
 ) -> tuple[Tensor, Tensor]:
     chosen = choose_path(lights, path)
     like = svbrdf.diffuse
@@ -208,26 +212,10 @@ def _analytic(
             [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
         )
 
-    # Diffuse: <n, d_k> and its gradient d_k; the clamp, where it acts, by autograd on those pairs.
-    if kernel.kind == "point":
-        cos = n @ centre.T
-        diffuse = cos.clamp(min=0.0)
-        d_diffuse = torch.where((cos > 0)[..., None], centre[None], torch.zeros_like(centre[None]))
-        d_diffuse = d_diffuse.expand(n.shape[0], -1, -1)
-    else:
-        direction = diffuse_directions(lights)
-        diffuse = _diffuse(n, lights, direction)
-        d_diffuse = direction[None].expand(n.shape[0], -1, -1).clone()
-        clamped = (diffuse - n @ direction.T).abs() > 0
-        pairs = clamped.nonzero()
-        if pairs.shape[0]:
-            p, k = pairs[:, 0], pairs[:, 1]
-            with torch.enable_grad():
-                sub = n[p].detach().requires_grad_(True)
-                linear = (sub * direction[k]).sum(-1)
-                value = clamped_diffuse(kernel, centre[k], sub, linear, order=DIFFUSE_ORDER)
-                grad = torch.autograd.grad(value.sum(), sub)[0]
-            d_diffuse = d_diffuse.index_put((p, k), grad)
+    # Diffuse: <n, d_k> and its gradient d_k; where the clamp acts, the kernel's direction over
+    # the part in front of the normal's horizon.
+    direction = centre if kernel.kind == "point" else diffuse_directions(lights)
+    diffuse, d_diffuse = _diffuse(n, lights, direction, gradient=True)
 
     # Specular: the value's nodes, held fixed.
     if diffuse_only:
@@ -244,7 +232,7 @@ def _analytic(
     else:
         pixels = _pixels(svbrdf, view)
         frame_ds, frame_dt = _frame_derivatives(n, rotation)
-        orders = {"fast": FAST_ORDER, "reference": REFERENCE_ORDER}
+        orders = {"fast": order or FAST_ORDER, "reference": REFERENCE_ORDER}
         if kernel.kind == "tabulated":
             orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
         rule, fallback = _rules(kernel, centre, pixels, chosen, orders)

@@ -407,7 +407,15 @@ def diffuse_directions(lights: Lights, *, order: int = 32) -> Tensor:
     return cache[key]
 
 
-def clamped_diffuse(kernel: Kernel, centre: Tensor, normal: Tensor, linear: Tensor, *, order: int = 12) -> Tensor:
+def clamped_diffuse(
+    kernel: Kernel,
+    centre: Tensor,
+    normal: Tensor,
+    linear: Tensor,
+    *,
+    order: int = 12,
+    direction: Tensor | None = None,
+) -> Tensor | tuple[Tensor, Tensor]:
     """``integral D(l) max(<n, w(l)>, 0) dl`` for pairs of frame centres and normals ``(M, 3)``
     whose kernel reaches behind the normal's horizon: ``(M,)``. ``linear (M,)`` is the unclamped
     integral ``<n, d_k>``.
@@ -420,9 +428,16 @@ def clamped_diffuse(kernel: Kernel, centre: Tensor, normal: Tensor, linear: Tens
     Lines run parallel to the cosine's gradient at the kernel's mean; the normal's horizon crosses
     each at most twice (roots of a quadratic) and the unit circle ends it: Gauss-Legendre on each
     piece, mapped flat at both ends, has no kink or square-root slope inside.
+
+    With ``direction`` (the pairs' effective directions ``d_k (M, 3)``), also returns the
+    gradient in the normal ``(M, 3)``: ``integral D w [<n, w> > 0]``, from the same nodes (the
+    integrand vanishes on the horizon, so the moving limits add nothing).
     """
     if kernel.kind == "point":
-        return (normal * centre).sum(-1).clamp(min=0.0)
+        cos = (normal * centre).sum(-1)
+        if direction is None:
+            return cos.clamp(min=0.0)
+        return cos.clamp(min=0.0), torch.where((cos > 0)[:, None], centre, torch.zeros_like(centre))
     add_back = (linear >= 0)[:, None, None]  # integrate the negative pieces, else the positive ones
     mean, shape, reach = kernel.grid(centre)  # the kernel's mean and extent in the l-plane
     # Lines in proportion to the reach (in widths): ~2 per width is plenty for a smooth correction;
@@ -476,9 +491,17 @@ def clamped_diffuse(kernel: Kernel, centre: Tensor, normal: Tensor, linear: Tens
     t = 0.5 * (xu + 1.0)
     u = a[..., None] + (b - a)[..., None] * (3.0 * t * t - 2.0 * t**3)  # (M, V, 3, U)
     l = base[:, :, None, None, :] + u[..., None] * d[:, :, None, None, :]
-    cos = (from_plane(l) * normal[:, None, None, None, :]).sum(-1)
+    w = from_plane(l)
+    cos = (w * normal[:, None, None, None, :]).sum(-1)
     cos = torch.where(add_back[..., None], (-cos).clamp(min=0.0), cos.clamp(min=0.0))
     density = kernel.density(l, centre[:, None, None, None, :])
     weight = (half_v[:, None] * wv)[..., None, None] * (b - a)[..., None] * 3.0 * t * (1.0 - t) * wu
-    part = (weight * density * cos).sum((-3, -2, -1))
-    return torch.where(linear >= 0, linear + part, part)
+    mass = weight * density
+    part = (mass * cos).sum((-3, -2, -1))
+    value = torch.where(linear >= 0, linear + part, part)
+    if direction is None:
+        return value
+    # The nodes cover one side of the horizon: the part behind it (then d_k minus its share) or in front.
+    side = (mass * (cos > 0).to(mass.dtype))[..., None] * w
+    share = side.sum((-4, -3, -2))
+    return value, torch.where((linear >= 0)[:, None], direction - share, share)

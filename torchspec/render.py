@@ -511,7 +511,7 @@ def _pick(pixels: _Pixels, index: Tensor) -> _Pixels:
     return _Pixels(*(take(f) for f in pixels))
 
 
-def _diffuse(normal: Tensor, lights: Lights, direction: Tensor) -> Tensor:
+def _diffuse(normal: Tensor, lights: Lights, direction: Tensor, gradient: bool = False):
     """``integral D_k <n, w>^+`` ``(N, K)``: ``<n, d_k>``, clamped exactly where the kernel reaches
     behind the normal's horizon (:func:`torchspec.lights.clamped_diffuse`, for the pairs one
     ``nonzero`` per call picks).
@@ -520,11 +520,18 @@ def _diffuse(normal: Tensor, lights: Lights, direction: Tensor) -> Tensor:
     the kernel's mean: the signed distance ``g / |grad g|`` of ``g(l) = <n, w(l)>``, in units of
     the kernel's std along ``grad g``. Beyond that the kernel's mass behind the horizon, and the
     cosine's size there, are too small to matter (less than 1e-6 of the mass).
+
+    With ``gradient``, also the derivative in the normal ``(N, K, 3)``: ``d_k``, or for the
+    clamped pairs the kernel's effective direction over the part in front of the horizon.
     """
     value = normal @ direction.T
     kernel = lights.kernel
     if kernel.kind == "point":  # the clamp is exact as it is
-        return value.clamp(min=0.0)
+        if not gradient:
+            return value.clamp(min=0.0)
+        front = (value > 0)[..., None]
+        return value.clamp(min=0.0), torch.where(front, direction[None], torch.zeros_like(direction[None]))
+    grad_n = direction[None].expand(normal.shape[0], -1, -1).clone() if gradient else None
     centre = lights.directions
     mean = centre[:, :2] + kernel.offset(centre)  # (K, 2)
     mz = torch.sqrt((1.0 - (mean * mean).sum(-1)).clamp(min=1e-12))
@@ -535,9 +542,15 @@ def _diffuse(normal: Tensor, lights: Lights, direction: Tensor) -> Tensor:
     pairs = (g < HORIZON_MARGIN * spread).nonzero()
     if pairs.shape[0]:
         p, k = pairs[:, 0], pairs[:, 1]
-        exact = clamped_diffuse(lights.kernel, lights.directions[k], normal[p], value[p, k], order=DIFFUSE_ORDER)
+        if gradient:
+            exact, slope = clamped_diffuse(
+                kernel, centre[k], normal[p], value[p, k], order=DIFFUSE_ORDER, direction=direction[k]
+            )
+            grad_n = grad_n.index_put((p, k), slope)
+        else:
+            exact = clamped_diffuse(kernel, centre[k], normal[p], value[p, k], order=DIFFUSE_ORDER)
         value = value.index_put((p, k), exact)
-    return value
+    return (value, grad_n) if gradient else value
 
 
 def render(
