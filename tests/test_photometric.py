@@ -163,3 +163,20 @@ def test_photometric_stereo_bad_shapes():
         photometric_stereo(torch.zeros(2, 4, 1), d)
     with pytest.raises(ValueError, match="trim"):
         photometric_stereo(torch.zeros(2, 3, 1), d, trim=1.0)
+
+
+def test_masks_in_bands_equal_masks_at_once(monkeypatch):
+    import torchspec.photometric as photometric
+
+    g = torch.Generator().manual_seed(7)
+    stack = torch.rand(5, 3, 13, 9, generator=g, dtype=torch.float64)
+    stack[2, :, 4:6, 3:5] = 1.0
+    stack[:, :, 0, 0] = 1.0  # a clipped plateau of 16+ samples
+    stack[1, 0, 7, 7] = math.inf
+    stack[3, :, 11, 2] = 1e-4
+    whole = sample_masks(stack, grow=2)
+    monkeypatch.setattr(photometric, "BAND_ELEMENTS", 5 * 3 * 9 * 2)  # two rows per band
+    banded = sample_masks(stack, grow=2)
+    for name in ("nonfinite", "saturated", "shadowed"):
+        assert torch.equal(getattr(whole, name), getattr(banded, name)), name
+    assert whole.saturated.any() and whole.nonfinite.any() and whole.shadowed.any()

@@ -30,6 +30,9 @@ from torch import Tensor
 
 __all__ = ["Masks", "Diffuse", "sample_masks", "grid_layout", "lowpass", "photometric_stereo", "MAD_SCALE"]
 
+BAND_ELEMENTS = 1 << 22
+"""Values of the stack :func:`sample_masks` works on at once (rows of every frame and channel)."""
+
 MAD_SCALE = 1.4826
 """The median absolute deviation times this is the standard deviation of Gaussian noise."""
 
@@ -79,24 +82,45 @@ def sample_masks(stack: Tensor, *, saturation: float | None = None, grow: int = 
         raise ValueError(f"stack must have shape (K, C, H, W); got {tuple(stack.shape)}.")
     if grow < 0 or shadow < 0:
         raise ValueError(f"grow and shadow must be >= 0; got grow={grow}, shadow={shadow}.")
-    finite = torch.isfinite(stack)
-    nonfinite = ~finite.all(1)
-    clean = torch.where(finite, stack, torch.zeros_like(stack))
+    k, c, h, w = stack.shape
+    # Bands of rows bound the working memory (a few copies of a band, not of the stack).
+    rows = max(1, BAND_ELEMENTS // max(k * c * w, 1))
+    bands = [(r, min(r + rows, h)) for r in range(0, h, rows)]
     if saturation is None:
-        top = clean.max()
-        at_top = (clean == top).sum()
+        top = stack.new_full((), -math.inf)
+        for r0, r1 in bands:
+            band = stack[:, :, r0:r1]
+            top = torch.maximum(top, torch.where(torch.isfinite(band), band, -math.inf).amax())
+        at_top = sum((stack[:, :, r0:r1] == top).sum() for r0, r1 in bands)
         level = torch.where(at_top >= 16, top, torch.full_like(top, math.inf))
     else:
         level = torch.as_tensor(saturation, dtype=stack.dtype, device=stack.device)
-    saturated = (clean >= level).any(1) & ~nonfinite
-    if grow > 0 and stack.shape[0] > 0:
+    nonfinite = torch.zeros((k, h, w), dtype=torch.bool, device=stack.device)
+    clipped = torch.zeros_like(nonfinite)
+    for r0, r1 in bands:
+        band = stack[:, :, r0:r1]
+        nonfinite[:, r0:r1] = ~torch.isfinite(band).all(1)
+        clipped[:, r0:r1] = (torch.nan_to_num(band, nan=0.0) >= level).any(1)
+    clipped &= ~nonfinite
+    if grow > 0 and k > 0:
         element = torch.ones(2 * grow + 1, 2 * grow + 1, dtype=stack.dtype, device=stack.device)
-        grown = kornia.morphology.dilation(saturated[:, None].to(stack.dtype), element)
-        saturated = grown[:, 0] > 0.5
+        saturated = torch.zeros_like(clipped)
+        for r0, r1 in bands:  # with a halo of `grow` rows
+            a, b = max(r0 - grow, 0), min(r1 + grow, h)
+            grown = kornia.morphology.dilation(clipped[:, None, a:b].to(stack.dtype), element)
+            saturated[:, r0:r1] = grown[:, 0, r0 - a : r1 - a] > 0.5
+    else:
+        saturated = clipped
     # Shadows: against the per-pixel median of the usable samples, channel by channel.
-    usable = torch.where((~nonfinite & ~saturated)[:, None], clean, torch.full_like(clean, math.nan))
-    median = usable.nanmedian(0).values if stack.shape[0] > 0 else clean.sum(0)
-    shadowed = (clean < shadow * median[None]).all(1) & (median[None] > 0).all(1) & ~nonfinite & ~saturated
+    shadowed = torch.zeros_like(nonfinite)
+    for r0, r1 in bands:
+        band = stack[:, :, r0:r1]
+        usable = (~nonfinite[:, r0:r1] & ~saturated[:, r0:r1])[:, None]
+        if k == 0:
+            break
+        median = torch.where(usable, band, torch.full_like(band, math.nan)).nanmedian(0).values
+        dark = (torch.nan_to_num(band, nan=math.inf) < shadow * median[None]).all(1) & (median[None] > 0).all(1)
+        shadowed[:, r0:r1] = dark & usable[:, 0]
     return Masks(nonfinite=nonfinite, saturated=saturated, shadowed=shadowed)
 
 
