@@ -61,7 +61,8 @@ class FitConfig:
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
         path: the quadrature path of the model (:func:`torchspec.render.render`).
         tile: pixels per tile; 0 sizes tiles to ``memory_gib``.
-        memory_gib: the working-memory budget of a tile.
+        memory_gib: the memory budget of the whole fit: the frame stack, its masks, the torch
+            runtime and a tile (tiles are sized to what is left, at least 256 pixels).
         dtype: ``float32`` or ``float64``.
         device: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ...
         lm: the solver's settings.
@@ -173,15 +174,24 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _tile_size(config: FitConfig, frames: int, channels: int, itemsize: int) -> int:
+RUNTIME_BYTES = 768 * 2**20
+"""What a fit holds besides its stack and tiles: the torch runtime and fixed work arrays (measured:
+~250 MB after importing torch, ~450 MB more at the first tile whatever its size)."""
+
+
+def _tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, reserved: int) -> int:
+    """Pixels per tile: ``config.tile``, or what fits in ``memory_gib`` after ``reserved`` bytes
+    (the stack and its masks) and :data:`RUNTIME_BYTES`."""
     if config.tile:
         return config.tile
     model = get_model(config.model)
     p = model.size(channels)
     # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
-    # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays.
+    # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
+    # for transients (a conservative bound: ~20 kB per pixel was measured at K = 144, C = 3, float32).
     per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
-    return int(max(256, min(1 << 17, config.memory_gib * 2**30 / (2 * per_pixel))))
+    available = config.memory_gib * 2**30 - reserved - RUNTIME_BYTES
+    return int(max(256, min(1 << 17, available / (2 * per_pixel))))
 
 
 def _lm_stage(model, start: SVBRDF, observed, weight, lights, view, channels, config):
@@ -343,7 +353,8 @@ def fit(
 
     k, c, h, w = stack.shape
     pixels = h * w
-    tile = _tile_size(config, k, c, stack.element_size())
+    reserved = stack.numel() * stack.element_size() + 3 * masks.nonfinite.numel()  # the stack, three bool masks
+    tile = _tile_size(config, k, c, stack.element_size(), reserved)
     flat = stack.flatten(2)  # (K, C, H W), a view
     parts = []
     times: dict[str, float] = {}
