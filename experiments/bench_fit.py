@@ -32,6 +32,7 @@ from torchspec._atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
 from torchspec.fit import FitConfig
+from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import diffuse_directions
 from torchspec.models import ALPHA_BOUNDS, get_model
@@ -113,14 +114,9 @@ def _fit_in_child(settings: Settings, capture: Path, maps: Path) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def _angle_deg(a, b):
-    a, b = a.double(), b.double()
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
-
-
 def _scores(svbrdf: SVBRDF, truth: SVBRDF) -> dict:
     return {
-        "normal_deg": float(_angle_deg(svbrdf.normal, truth.normal).median()),
+        "normal_deg": float(torch.rad2deg(angle(svbrdf.normal.double(), truth.normal.double())).median()),
         "kd": float(((svbrdf.diffuse.double() - truth.diffuse.double()) / truth.diffuse.double()).abs().median()),
         "ks": float(((svbrdf.specular.double().mean(-1) / truth.specular.double().mean(-1)) - 1).abs().median()),
         "alpha": float(((svbrdf.roughness[:, 0].double() / truth.roughness[:, 0].double()) - 1).abs().median()),

@@ -32,7 +32,10 @@ from _common import ROOT, parse_args  # noqa: E402
 from torchspec._atomic import save_figure, write_json  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
 from torchspec.fit import FitConfig, fit  # noqa: E402
-from torchspec.geometry import from_plane  # noqa: E402
+from torchspec.geometry import (
+    angle,  # noqa: E402
+    from_plane,  # noqa: E402
+)
 from torchspec.lights import Kernel, Lights  # noqa: E402
 from torchspec.render import render  # noqa: E402
 from torchspec.simulate import SimulationConfig, simulate, write_simulation  # noqa: E402
@@ -86,11 +89,7 @@ def _run(
     fit_rho = render(fitted, point, view, path="point")[..., 0]
     # Every pixel of the (constant) surface is an independent trial: medians over them, and the worst.
     snr = 10 * torch.log10((true_rho**2).sum(-1) / ((fit_rho - true_rho) ** 2).sum(-1))
-    normal = torch.rad2deg(
-        torch.atan2(
-            torch.linalg.cross(fitted.normal, truth.normal).norm(dim=-1), (fitted.normal * truth.normal).sum(-1)
-        )
-    )
+    normal = torch.rad2deg(angle(fitted.normal, truth.normal))
     peak = ((2 * fitted.normal[:, 2:] * fitted.normal)[:, :2] - (2 * truth.normal[:, 2:] * truth.normal)[:, :2]).norm(
         dim=-1
     )

@@ -33,6 +33,7 @@ from torchspec._atomic import save_figure, write_json  # noqa: E402
 from torchspec.brdf import SVBRDF  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
 from torchspec.fit import FitConfig, fit, select_frames  # noqa: E402
+from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
 from torchspec.lights import Lights  # noqa: E402
 from torchspec.relight import lights_of  # noqa: E402
@@ -54,11 +55,6 @@ class Settings:
     capture: str  # relative to the repository root
     matte_ks: float  # a matte pixel counts as fitted matte when its k_s is below this
     runs: tuple[Run, ...]
-
-
-def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    a, b = a.double(), b.double()
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
 
 
 def _relative(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -83,7 +79,7 @@ def _held_out(svbrdf: SVBRDF, capture, frames: list[int], observed: torch.Tensor
 
 def _score(svbrdf: SVBRDF, truth: SVBRDF, regions: torch.Tensor, matte_ks: float) -> dict:
     s, t, r = svbrdf.flatten(), truth.flatten(), regions.reshape(-1).round().long()
-    normal = _angle_deg(s.normal, t.normal)
+    normal = torch.rad2deg(angle(s.normal.double(), t.normal.double()))
     kd = _relative(s.diffuse, t.diffuse)
     ks = _relative(s.specular.mean(-1), t.specular.mean(-1))
     alpha = _relative(s.roughness, t.roughness).mean(-1)
@@ -161,7 +157,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 def _figure(result, truth: SVBRDF, regions: torch.Tensor, label: str):
     s = result.svbrdf
-    normal = _angle_deg(s.normal.reshape(-1, 3), truth.normal.reshape(-1, 3)).reshape(s.shape)
+    normal = torch.rad2deg(angle(s.normal.reshape(-1, 3).double(), truth.normal.reshape(-1, 3).double())).reshape(
+        s.shape
+    )
     fig, axes = plt.subplots(2, 4, figsize=(16, 8))
     panels = [
         ("fitted normal (RGB = (n + 1) / 2)", ((s.normal + 1) / 2).clamp(0, 1).numpy(), None),

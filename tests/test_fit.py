@@ -7,15 +7,11 @@ import torch
 
 from torchspec.cli import main
 from torchspec.fit import FitConfig, fit, select_frames
+from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import PaintingConfig
-
-
-def _angle_deg(a, b):
-    a, b = a.double(), b.double()
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +32,7 @@ def _errors(result, truth, regions):
     lobe = regions.reshape(-1) == 1
     matte = regions.reshape(-1) == 0
     return {
-        "normal": _angle_deg(s.normal, t.normal),
+        "normal": torch.rad2deg(angle(s.normal.double(), t.normal.double())),
         "kd": ((s.diffuse.double() - t.diffuse.double()) / t.diffuse.double()).abs(),
         "ks": ((s.specular.double().mean(-1) - t.specular.double().mean(-1)) / t.specular.double().mean(-1)).abs()[
             lobe
@@ -97,8 +93,8 @@ def test_a_bad_sample_is_masked_not_fitted(painting, tmp_path):
         result = fit(copy)
     assert result.stats["masked_samples"]["nonfinite"] == 1
     truth = read_svbrdf(copy / "truth").svbrdf
-    angle = _angle_deg(result.svbrdf.normal[4, 5], truth.normal[4, 5])
-    assert angle < 0.1, f"normal error at the masked pixel {angle:.3g} deg"
+    error = torch.rad2deg(angle(result.svbrdf.normal[4, 5].double(), truth.normal[4, 5].double()))
+    assert error < 0.1, f"normal error at the masked pixel {error:.3g} deg"
 
 
 def test_select_frames():

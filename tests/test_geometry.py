@@ -64,3 +64,17 @@ def test_normal_angles_smooth_at_zenith():
     angles = torch.zeros(1, 2, dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(g.normal_from_angles, (angles,))
     assert math.isclose(g.normal_from_angles(angles)[0, 2].item(), 1.0)
+
+
+def test_angle_is_accurate_near_zero_and_pi():
+    import math
+
+    from torchspec.geometry import angle
+
+    e = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    for t in (1e-9, 1e-4, 0.5, math.pi / 2, math.pi - 1e-9):
+        b = torch.tensor([math.cos(t), math.sin(t), 0.0], dtype=torch.float64)
+        got = float(angle(e, b))
+        assert abs(got - t) <= 1e-15 * max(t, 1.0), f"angle {t}: error {got - t:.3g}"
+    batch = angle(e.expand(4, 3), torch.eye(3, dtype=torch.float64)[[0, 1, 2, 0]])
+    assert torch.allclose(batch, torch.tensor([0.0, math.pi / 2, math.pi / 2, 0.0], dtype=torch.float64))

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchspec.geometry import from_plane, normalize
+from torchspec.geometry import angle, from_plane, normalize
 from torchspec.lights import Kernel, Lights, diffuse_directions
 from torchspec.photometric import grid_layout, lowpass, photometric_stereo, sample_masks
 from torchspec.simulate import LayoutConfig, layout
@@ -21,12 +21,6 @@ def _normals(count, max_tilt_deg, seed, dtype):
     phi = torch.rand(count, generator=g, dtype=torch.float64) * 2 * math.pi
     n = torch.stack([tilt.sin() * phi.cos(), tilt.sin() * phi.sin(), tilt.cos()], -1)
     return n.to(dtype)
-
-
-def _angle_deg(a, b):
-    """Angle between unit vectors, accurate near 0 (acos is not)."""
-    a, b = a.double(), b.double()
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
 
 
 def _lambertian(normal, kd, directions):
@@ -111,9 +105,9 @@ def test_photometric_stereo_recovers_planted_lambertian(kernel, dtype):
     kd = torch.rand(64, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.8 + 0.05
     samples = _lambertian(normal, kd, d).to(dtype)
     fit = photometric_stereo(samples, d.to(dtype))
-    angle = _angle_deg(fit.normal, normal).max()
+    error = torch.rad2deg(angle(fit.normal.double(), normal.double())).max()
     kd_err = ((fit.diffuse.double() - kd).abs() / kd).max()
-    assert angle < (1e-6 if dtype == torch.float64 else 0.05), f"max normal error {angle:.3g} deg"
+    assert error < (1e-6 if dtype == torch.float64 else 0.05), f"max normal error {error:.3g} deg"
     assert kd_err < TOL[dtype], f"max k_d relative error {kd_err:.3g}"
     assert fit.normal.dtype == dtype and fit.quality.min() > 0.9
     assert fit.inliers.all()
@@ -134,8 +128,8 @@ def test_photometric_stereo_drops_a_specular_peak_and_masked_samples():
     valid[:, 5] = False
     samples[:, 5] = math.nan
     fit = photometric_stereo(samples, d, valid=valid)
-    angle = _angle_deg(fit.normal, normal).max()
-    assert angle < 0.05, f"max normal error {angle:.3g} deg"
+    error = torch.rad2deg(angle(fit.normal.double(), normal.double())).max()
+    assert error < 0.05, f"max normal error {error:.3g} deg"
     kd_err = ((fit.diffuse - kd).abs() / kd).max()
     assert kd_err < 5e-3, f"max k_d relative error {kd_err:.3g}"
     assert not fit.inliers[:, 5].any()

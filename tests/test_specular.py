@@ -4,17 +4,13 @@ import pytest
 import torch
 
 from torchspec.brdf import SVBRDF
-from torchspec.geometry import from_plane, normalize
+from torchspec.geometry import angle, from_plane, normalize
 from torchspec.lights import Kernel, Lights, diffuse_directions
 from torchspec.render import render
 from torchspec.simulate import LayoutConfig, layout
 from torchspec.specular import grid_search, layout_of, locate_peak, naive_start, specular_residual
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-
-
-def _angle_deg(a, b):
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
 
 
 def _scene(config: LayoutConfig, count=24, seed=0, sigma=0.08):
@@ -71,9 +67,9 @@ def test_fri_start_recovers_the_lobe_from_the_exact_residual():
     residual = specular_residual(samples, truth.normal, truth.diffuse, d)
     lay = layout_of(lights.directions[:, :2])
     start = locate_peak(residual, lay, VIEW, prior_normal=truth.normal, kernel_variance=0.08**2)
-    angle = _angle_deg(start.normal, truth.normal)
-    assert angle.max() < 0.5 and angle.median() < 0.15, (
-        f"normal error median {angle.median():.3g}, max {angle.max():.3g} deg"
+    error = torch.rad2deg(angle(start.normal.double(), truth.normal.double()))
+    assert error.max() < 0.5 and error.median() < 0.15, (
+        f"normal error median {error.median():.3g}, max {error.max():.3g} deg"
     )
     alpha = ((start.alpha - truth.roughness[:, 0]) / truth.roughness[:, 0]).abs()
     ks = ((start.specular - truth.specular[:, 0]) / truth.specular[:, 0]).abs()
@@ -92,8 +88,8 @@ def test_fri_start_on_a_line_takes_the_other_coordinate_from_the_prior():
     residual = specular_residual(samples, truth.normal, truth.diffuse, d)
     lay = layout_of(lights.directions[:, :2])
     start = locate_peak(residual, lay, VIEW, prior_normal=truth.normal, kernel_variance=0.03**2)
-    angle = _angle_deg(start.normal, truth.normal)
-    assert angle.max() < 0.3, f"max normal error {angle.max():.3g} deg"
+    error = torch.rad2deg(angle(start.normal.double(), truth.normal.double()))
+    assert error.max() < 0.3, f"max normal error {error.max():.3g} deg"
 
 
 def test_grid_search_and_naive_start():
@@ -103,8 +99,8 @@ def test_grid_search_and_naive_start():
     lay = layout_of(lights.directions[:, :2])
     prior = normalize(truth.normal + torch.tensor([0.03, -0.02, 0.0], dtype=torch.float64))
     found = grid_search(residual, lay, VIEW, prior_normal=prior, kernel_variance=0.08**2, step=0.02, radius=0.2)
-    angle = _angle_deg(found.normal, truth.normal)
-    assert angle.max() < 0.6, f"max normal error {angle.max():.3g} deg (the search step is 0.02 in l: ~0.3 deg)"
+    error = torch.rad2deg(angle(found.normal.double(), truth.normal.double()))
+    assert error.max() < 0.6, f"max normal error {error.max():.3g} deg (the search step is 0.02 in l: ~0.3 deg)"
     naive = naive_start(residual, lay, VIEW, prior_normal=prior, alpha=0.1)
     assert torch.equal(naive.normal, prior) and torch.all(naive.alpha == 0.1)
     assert torch.all(naive.specular > 0)

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "angle",
     "dot",
     "normalize",
     "from_plane",
@@ -98,3 +99,10 @@ def normal_from_angles(angles: Tensor) -> Tensor:
 def angles_from_normal(n: Tensor) -> Tensor:
     """The inverse of :func:`normal_from_angles` for normals with ``n_z > 0``: ``(*, 2)``."""
     return torch.stack([torch.atan2(n[..., 0], n[..., 2]), torch.atan2(n[..., 1], n[..., 2])], -1)
+
+
+def angle(a: Tensor, b: Tensor) -> Tensor:
+    """The angle between directions ``a`` and ``b`` ``(*, 3)``, in radians ``(*)``: from
+    ``atan2(|a x b|, a . b)``, accurate near 0 and pi where ``acos`` of the dot product is not
+    (it loses half the digits there: 1e-8 rad in float64)."""
+    return torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1))

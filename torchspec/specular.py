@@ -160,8 +160,9 @@ def _mirror(normal: Tensor, view: Tensor) -> Tensor:
 
 
 def _half_vector(peak: Tensor, view: Tensor) -> Tensor:
-    inside = peak.norm(dim=-1, keepdim=True).clamp(min=1.0 - 1e-6)
-    peak = torch.where(inside > 1.0 - 1e-6, peak / inside * (1.0 - 1e-6), peak)
+    """``normalize(w + view)`` for the direction ``w`` at ``peak (N, 2)``, pulled inside the unit disk."""
+    length = peak.norm(dim=-1, keepdim=True)
+    peak = peak * ((1.0 - 1e-6) / length.clamp(min=torch.finfo(peak.dtype).tiny)).clamp(max=1.0)
     return normalize(from_plane(peak) + view.to(peak.dtype))
 
 
@@ -239,15 +240,12 @@ def locate_peak(
         found = fri.locate(
             residual, period=period, method=method, num_coefficients=num_coefficients, positions=positions
         )
-    if layout.grid is not None:
-        pass
-    elif layout.dims == 2:
-        peak = found.position + start
-    else:
-        t = found.position + start
-        seen = _mirror(prior_normal, view)
-        across = seen - ((seen - layout.origin) @ layout.axis)[:, None] * layout.axis
-        peak = across + t[:, None] * layout.axis
+        if layout.dims == 2:
+            peak = found.position + start
+        else:  # along the line; across it, where the photometric-stereo normal mirrors the view
+            seen = _mirror(prior_normal, view)
+            across = seen - ((seen - layout.origin) @ layout.axis)[:, None] * layout.axis
+            peak = across + (found.position + start)[:, None] * layout.axis
     finite = torch.isfinite(peak).all(-1, keepdim=True)
     peak = torch.where(finite, peak, _mirror(prior_normal, view))
     # A location far from every bright sample is an aliased one (too few samples for the lobe's
