@@ -31,15 +31,12 @@ from _common import parse_args
 from torchspec._atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.fit import FitConfig
+from torchspec.fit import FitConfig, start
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
-from torchspec.lights import diffuse_directions
 from torchspec.models import ALPHA_BOUNDS, get_model
-from torchspec.photometric import photometric_stereo
 from torchspec.relight import lights_of
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.specular import layout_of, locate_peak, specular_residual
 from torchspec.synth import PaintingConfig, SensorConfig
 
 
@@ -134,22 +131,17 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
     view = torch.tensor(capture.view, dtype=dtype)
     stack = capture.read_frames(dtype=dtype).flatten(2)  # (K, C, H W)
     y = stack[:, :, pick].permute(2, 0, 1)  # (n, K, C)
-    samples = y / lights.scale
-    d = diffuse_directions(lights)
-    ps = photometric_stereo(samples, d)
-    residual = specular_residual(samples, ps.normal, ps.diffuse, d)
-    kernel_variance = float(lights.kernel.covariance(lights.directions[:1])[0].diagonal().mean())
-    start = locate_peak(
-        residual, layout_of(lights.directions[:, :2]), view, prior_normal=ps.normal, kernel_variance=kernel_variance
-    )
+    # The fit's own start (photometric stereo, then the FRI peak), as the fit would make it.
+    begun = start(y, torch.isfinite(y).all(-1), lights, view, config=settings.fit)
     model = get_model(settings.fit.model)
     channels = capture.channels
-    level = samples.mean((-1, -2))
+    level = begun.level
+    peak = begun.specular
     init = SVBRDF(
-        start.normal,
-        ps.diffuse,
-        start.specular.clamp(min=1e-3 * level)[:, None],
-        start.alpha[:, None].expand(-1, 2),
+        peak.normal,
+        begun.diffuse.diffuse,
+        peak.specular.clamp(min=1e-3 * level)[:, None],
+        peak.alpha[:, None].expand(-1, 2),
         None,
         channels,
     )

@@ -31,11 +31,12 @@ from .io import Capture, read_capture, write_svbrdf
 from .lights import Lights, diffuse_directions
 from .lm import STATUS, LMConfig, bounded, solve
 from .models import get_model
-from .photometric import photometric_stereo, sample_masks
+from .photometric import Diffuse, photometric_stereo, sample_masks
 from .relight import lights_of
+from .specular import Start as SpecularStart
 from .specular import grid_search, layout_of, locate_peak, naive_start, specular_residual
 
-__all__ = ["FitConfig", "Fit", "fit", "write_fit", "select_frames", "INITS"]
+__all__ = ["FitConfig", "Fit", "Start", "fit", "start", "write_fit", "select_frames", "INITS"]
 
 INITS = ("fri", "naive", "grid")
 
@@ -202,10 +203,52 @@ def _lm_stage(model, start: SVBRDF, observed, weight, lights, view, channels, co
     return model.unpack(bounds.from_free(result.params)[0], channels), result
 
 
-def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, config: FitConfig, ctx: dict) -> dict:
-    """All stages for one tile: ``y (n, K, C)`` recorded values, ``valid (n, K)``."""
-    scale = lights.scale.to(y.dtype)  # (K, C or 1)
-    samples = y / scale
+@dataclass(frozen=True)
+class Start:
+    """What the stages before the solver give a batch of ``n`` pixels (:func:`start`).
+
+    Attributes:
+        diffuse: the photometric-stereo fit (:class:`torchspec.photometric.Diffuse`).
+        specular: the specular start (:class:`torchspec.specular.Start`).
+        lobe: ``(n,)`` bool, the pixels whose residual peaks above the noise: fitted with a lobe.
+        level: ``(n,)`` the pixels' mean value (divided by exposure and irradiance).
+        times: seconds per stage.
+    """
+
+    diffuse: Diffuse
+    specular: SpecularStart
+    lobe: Tensor
+    level: Tensor
+    times: dict
+
+
+def _context(lights: Lights) -> dict:
+    """What the stages need of the lights, computed once per fit."""
+    point = lights.kernel.kind == "point"
+    return {
+        "directions": lights.directions if point else diffuse_directions(lights),
+        "layout": layout_of(lights.directions[:, :2]),
+        "kernel_variance": 0.0
+        if point
+        else float(lights.kernel.covariance(lights.directions[:1])[0].diagonal().mean()),
+    }
+
+
+def start(
+    y: Tensor, valid: Tensor, lights: Lights, view: Tensor, *, config: FitConfig, context: dict | None = None
+) -> Start:
+    """The fit's stages before the solver, for ``n`` pixels: photometric stereo, the lobe test and
+    the specular start of ``config.init``.
+
+    Args:
+        y: ``(n, K, C)`` recorded values.
+        valid: ``(n, K)`` samples to use.
+        lights, view: the frames' lights and the view.
+        config: the fit's settings.
+        context: :func:`_context` of ``lights`` when the caller has it.
+    """
+    ctx = context if context is not None else _context(lights)
+    samples = y / lights.scale.to(y.dtype)
     times = {}
     t0 = time.perf_counter()
     ps = photometric_stereo(samples, ctx["directions"], valid=valid, cut=config.cut, trim=config.trim)
@@ -221,7 +264,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     lobe = residual.amax(-1) > config.detect * noise
     start_args = dict(prior_normal=ps.normal, kernel_variance=ctx["kernel_variance"])
     if config.init == "fri":
-        start = locate_peak(
+        found = locate_peak(
             residual,
             ctx["layout"],
             view,
@@ -230,11 +273,18 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
             **start_args,
         )
     elif config.init == "grid":
-        start = grid_search(residual, ctx["layout"], view, **start_args)
+        found = grid_search(residual, ctx["layout"], view, **start_args)
     else:
-        start = naive_start(residual, ctx["layout"], view, prior_normal=ps.normal, alpha=config.naive_alpha)
+        found = naive_start(residual, ctx["layout"], view, prior_normal=ps.normal, alpha=config.naive_alpha)
     times["specular_start"] = time.perf_counter() - t0
+    return Start(ps, found, lobe, level, times)
 
+
+def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, config: FitConfig, ctx: dict) -> dict:
+    """All stages for one tile: ``y (n, K, C)`` recorded values, ``valid (n, K)``."""
+    begun = start(y, valid, lights, view, config=config, context=ctx)
+    ps, peak, lobe, level, times = begun.diffuse, begun.specular, begun.lobe, begun.level, dict(begun.times)
+    count = valid.sum(-1).clamp(min=1).to(y.dtype)
     t0 = time.perf_counter()
     model = get_model(config.model)
     n, c = y.shape[0], y.shape[-1]
@@ -261,15 +311,15 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
                 plain, ps_svbrdf[index], observed[index], weight[index], lights, view, channels, config
             )
         else:
-            ks = start.specular[index].clamp(min=1e-3 * level[index])[:, None]
-            alpha = start.alpha[index][:, None].expand(-1, 2)
-            init = SVBRDF(start.normal[index], ps.diffuse[index], ks, alpha, None, channels)
+            ks = peak.specular[index].clamp(min=1e-3 * level[index])[:, None]
+            alpha = peak.alpha[index][:, None].expand(-1, 2)
+            init = SVBRDF(peak.normal[index], ps.diffuse[index], ks, alpha, None, channels)
             fitted, result = _lm_stage(model, init, observed[index], weight[index], lights, view, channels, config)
             specular[index] = fitted.specular
             roughness[index] = fitted.roughness
             if rotation is not None:
                 rotation[index] = fitted.rotation
-            found_quality[index] = start.quality[index]
+            found_quality[index] = peak.quality[index]
         normal[index], diffuse[index] = fitted.normal, fitted.diffuse
         status[index], iterations[index], cost[index] = result.status, result.iterations, result.cost
     times["lm"] = time.perf_counter() - t0
@@ -342,13 +392,7 @@ def fit(
     clock = time.perf_counter()
     masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
     invalid = masks.invalid.flatten(1)  # (K, H W)
-    ctx = {
-        "directions": lights.directions if lights.kernel.kind == "point" else diffuse_directions(lights),
-        "layout": layout_of(lights.directions[:, :2]),
-        "kernel_variance": 0.0
-        if lights.kernel.kind == "point"
-        else float(lights.kernel.covariance(lights.directions[:1])[0].diagonal().mean()),
-    }
+    ctx = _context(lights)
     mask_seconds = time.perf_counter() - clock
 
     k, c, h, w = stack.shape
@@ -359,15 +403,15 @@ def fit(
     parts = []
     times: dict[str, float] = {}
     with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
-        for start in range(0, pixels, tile):
-            stop = min(start + tile, pixels)
-            y = flat[:, :, start:stop].permute(2, 0, 1)  # (n, K, C)
-            valid = ~invalid[:, start:stop].T
+        for first in range(0, pixels, tile):
+            stop = min(first + tile, pixels)
+            y = flat[:, :, first:stop].permute(2, 0, 1)  # (n, K, C)
+            valid = ~invalid[:, first:stop].T
             out = _tile(y, valid, lights, view, capture.channels, config, ctx)
             for name, seconds in out.pop("times").items():
                 times[name] = times.get(name, 0.0) + seconds
             parts.append(out)
-            bar.update(stop - start)
+            bar.update(stop - first)
 
     def join(name):
         return torch.cat([p[name] for p in parts]).reshape(h, w, *parts[0][name].shape[1:])
