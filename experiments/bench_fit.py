@@ -135,16 +135,7 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
     begun = start(y, torch.isfinite(y).all(-1), lights, view, config=settings.fit)
     model = get_model(settings.fit.model)
     channels = capture.channels
-    level = begun.level
-    peak = begun.specular
-    init = SVBRDF(
-        peak.normal,
-        begun.diffuse.diffuse,
-        peak.specular.clamp(min=1e-3 * level)[:, None],
-        peak.alpha[:, None].expand(-1, 2),
-        None,
-        channels,
-    )
+    init = begun.svbrdf(channels)
     x0 = model.pack(init).double().numpy()
     kinds = model.bounds(len(channels)).kinds
     lower = [-np.inf if k == "free" else (ALPHA_BOUNDS[0] if isinstance(k, tuple) else 0.0) for k in kinds]
@@ -152,7 +143,7 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
     fitted, evaluations = [], []
     begin = time.perf_counter()
     for i in range(pick.numel()):
-        weight = torch.full((1, y.shape[1]), 1.0, dtype=dtype) / level[i]  # as the fit weighs a pixel
+        weight = torch.full((1, y.shape[1]), 1.0, dtype=dtype) / begun.level[i]  # as the fit weighs a pixel
         fn = model.residuals(y[i : i + 1], weight, lights, view, channels)
         index = torch.zeros(1, dtype=torch.long)
         cache = {}

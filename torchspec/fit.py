@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 from .brdf import SVBRDF
 from .io import Capture, read_capture, write_svbrdf
 from .lights import Lights, diffuse_directions
-from .lm import STATUS, LMConfig, bounded, solve
+from .lm import CONVERGED, DIVERGED, STATUS, LMConfig, bounded, solve
 from .models import get_model
 from .photometric import Diffuse, photometric_stereo, sample_masks
 from .relight import lights_of
@@ -221,6 +221,14 @@ class Start:
     level: Tensor
     times: dict
 
+    def svbrdf(self, channels: tuple[str, ...]) -> SVBRDF:
+        """The solver's starting point for a lobe, ``(n,)`` pixels: the peak's normal, the
+        photometric ``k_d``, a grey ``k_s`` (at least 1e-3 of the pixel's level, so the solver's
+        softplus starts off its flat end) and an isotropic ``alpha``."""
+        peak = self.specular
+        ks = peak.specular.clamp(min=1e-3 * self.level)[:, None]
+        return SVBRDF(peak.normal, self.diffuse.diffuse, ks, peak.alpha[:, None].expand(-1, 2), None, channels)
+
 
 def _context(lights: Lights) -> dict:
     """What the stages need of the lights, computed once per fit."""
@@ -283,7 +291,7 @@ def start(
 def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, config: FitConfig, ctx: dict) -> dict:
     """All stages for one tile: ``y (n, K, C)`` recorded values, ``valid (n, K)``."""
     begun = start(y, valid, lights, view, config=config, context=ctx)
-    ps, peak, lobe, level, times = begun.diffuse, begun.specular, begun.lobe, begun.level, dict(begun.times)
+    ps, lobe, level, times = begun.diffuse, begun.lobe, begun.level, dict(begun.times)
     count = valid.sum(-1).clamp(min=1).to(y.dtype)
     t0 = time.perf_counter()
     model = get_model(config.model)
@@ -311,25 +319,21 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
                 plain, ps_svbrdf[index], observed[index], weight[index], lights, view, channels, config
             )
         else:
-            ks = peak.specular[index].clamp(min=1e-3 * level[index])[:, None]
-            alpha = peak.alpha[index][:, None].expand(-1, 2)
-            init = SVBRDF(peak.normal[index], ps.diffuse[index], ks, alpha, None, channels)
+            init = begun.svbrdf(channels)[index]
             fitted, result = _lm_stage(model, init, observed[index], weight[index], lights, view, channels, config)
             specular[index] = fitted.specular
             roughness[index] = fitted.roughness
             if rotation is not None:
                 rotation[index] = fitted.rotation
-            found_quality[index] = peak.quality[index]
+            found_quality[index] = begun.specular.quality[index]
         normal[index], diffuse[index] = fitted.normal, fitted.diffuse
         status[index], iterations[index], cost[index] = result.status, result.iterations, result.cost
     times["lm"] = time.perf_counter() - t0
 
     rms = (2.0 * cost / (count * c)).sqrt()
     quality = ps.quality * found_quality
-    quality = torch.where(status == STATUS.index("converged"), quality, 0.5 * quality)
-    quality = torch.where(
-        (status == STATUS.index("diverged")) | (valid.sum(-1) < 3), torch.zeros_like(quality), quality
-    )
+    quality = torch.where(status == CONVERGED, quality, 0.5 * quality)
+    quality = torch.where((status == DIVERGED) | (valid.sum(-1) < 3), torch.zeros_like(quality), quality)
     return {
         "svbrdf": SVBRDF(normal, diffuse, specular, roughness, rotation, channels),
         "residual": torch.nan_to_num(rms, nan=math.inf),

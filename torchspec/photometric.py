@@ -295,7 +295,7 @@ def photometric_stereo(
     count = valid.sum(-1)
     rank = torch.where(valid, grey, torch.full_like(grey, -math.inf)).argsort(-1, descending=True).argsort(-1)
     weight = (valid & (rank >= (trim * count.to(dtype)).floor()[:, None])).to(dtype)
-    b, _ = _weighted_solve(d, grey, weight)
+    b, eig = _weighted_solve(d, grey, weight)
     noise = grey.new_zeros(n)
     for _ in range(iterations):
         residual = grey - b @ d.T
@@ -312,9 +312,8 @@ def photometric_stereo(
         half = torch.where(valid, residual, torch.full_like(residual, math.nan)).nanquantile(0.5, dim=-1, keepdim=True)
         upper = torch.maximum(cut * scale, torch.nan_to_num(half, nan=0.0))
         weight = (valid & (residual <= upper)).to(dtype)
-        b, _ = _weighted_solve(d, grey, weight)
+        b, eig = _weighted_solve(d, grey, weight)
     inliers = weight > 0
-    _, eig = _weighted_solve(d, grey, weight)
     _, eig_all = _weighted_solve(d, grey, valid.to(dtype))
     conditioning = (eig[:, 0] / eig[:, 2].clamp(min=torch.finfo(dtype).tiny)) / (
         eig_all[:, 0] / eig_all[:, 2].clamp(min=torch.finfo(dtype).tiny)
