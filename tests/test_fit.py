@@ -120,6 +120,8 @@ def test_config_is_checked():
         FitConfig(model="diffuse")
     with pytest.raises(ValueError, match="model must be one of"):
         FitConfig(model="phong")
+    with pytest.raises(ValueError, match="quadrature must be one of"):
+        FitConfig(quadrature="rough")
 
 
 def test_write_fit_and_cli(painting, tmp_path):
@@ -148,3 +150,40 @@ def test_configs_fit_yaml_spells_out_the_defaults():
     from torchspec.config import load_config
 
     assert load_config(Path(__file__).parents[1] / "configs" / "fit.yaml", FitConfig) == FitConfig()
+
+
+def test_the_fits_quadrature_changes_little(painting):
+    """The fit's fewer nodes (``quadrature: fit``) against the renderer's rules: the same maps to
+    well within their errors against the truth (test_fit_recovers_a_simulated_painting)."""
+    fast = fit(painting, frames="::2", config=FitConfig(dtype="float64"))
+    exact = fit(painting, frames="::2", config=FitConfig(dtype="float64", quadrature="render"))
+    normal = torch.rad2deg(angle(fast.svbrdf.normal, exact.svbrdf.normal)).max()
+    assert normal < 0.01, f"normals differ by {normal:.3g} deg"
+    for name in ("diffuse", "specular", "roughness"):
+        a, b = getattr(fast.svbrdf, name), getattr(exact.svbrdf, name)
+        err = ((a - b).abs() / b.abs().clamp(min=1e-3)).max()
+        assert err < 2e-3, f"{name}: max relative difference {err:.3g}"
+
+
+def _fitmodule():
+    import importlib
+
+    return importlib.import_module("torchspec.fit")
+
+
+def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
+    module = _fitmodule()
+    jacobian_module = __import__("importlib").import_module("torchspec.jacobian")
+
+    def broken(function):
+        raise RuntimeError("no C++ compiler here")
+
+    monkeypatch.setattr(jacobian_module, "_compiled", broken)
+    monkeypatch.setattr(__import__("importlib").import_module("torchspec.render"), "_compiled", broken)
+    monkeypatch.setattr(module, "_COMPILE_FAILED", [])
+    with pytest.warns(UserWarning, match="torch.compile failed .*no C\\+\\+ compiler here.*fitting without it"):
+        result = fit(painting, frames="::3", config=FitConfig(compile=True))
+    assert len(module._COMPILE_FAILED) == 1  # not tried again in this process
+    plain = fit(painting, frames="::3", config=FitConfig(compile=False))
+    torch.testing.assert_close(result.svbrdf.normal, plain.svbrdf.normal)
+    torch.testing.assert_close(result.svbrdf.roughness, plain.svbrdf.roughness)

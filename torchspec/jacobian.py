@@ -16,7 +16,11 @@ Pixels are independent, so each column of the Jacobian is one derivative for all
   nodes as the value, held fixed, so they are the quadrature of the true derivative, which
   differs from the derivative of the quadrature by the quadrature's own error (1e-3 of the
   derivative at most on the fast path, see ``tests/test_jacobian.py``). The diffuse clamp,
-  where it acts, is differentiated by automatic differentiation on just those pairs.
+  where it acts, takes its gradient from the nodes of its value
+  (:func:`torchspec.lights.clamped_diffuse`).
+
+A fit may take fewer nodes (``order``, ``reference_order``, ``clamp="fast"``: ``torchspec.fit``'s
+``quadrature``) and fuse the node loops with ``torch.compile`` (``compile``).
 """
 
 from __future__ import annotations
@@ -31,9 +35,11 @@ from .geometry import angles_from_normal, normal_from_angles
 from .lights import Lights, diffuse_directions
 from .render import (
     BUDGET,
+    CLAMPS,
     FAST_ORDER,
     REFERENCE_ORDER,
     _at_nodes,
+    _compiled,
     _diffuse,
     _pick,
     _pixels,
@@ -79,6 +85,9 @@ def jacobian(
     path: str = "auto",
     order: int | None = None,
     diffuse_only: bool = False,
+    clamp: str = "exact",
+    compile: bool = False,
+    reference_order: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Values and Jacobian of :func:`torchspec.render.render` with respect to each pixel's
     parameters (:func:`parameters`).
@@ -92,16 +101,26 @@ def jacobian(
         diffuse_only: the model without its lobe (``k_s`` taken as 0, the lobe not integrated):
             the values and the same columns, those of ``k_s`` and the lobe's shape being 0.
             Analytic mode only.
+        clamp: the rule of the diffuse clamp (:data:`torchspec.render.CLAMPS`): ``exact``, the
+            renderer's, or ``fast``, a fit's. Analytic mode only.
+        reference_order: radii of the reference rule (``REFERENCE_ORDER`` by default; a tabulated
+            kernel's two per pixel of its table at least), as ``order``.
+        compile: fuse the integrations over nodes with ``torch.compile`` (2.3x faster on the
+            CPU, after a one-off compilation of ~70 s, ~30 s from torch's cache). Analytic mode only.
 
     Returns:
         ``(values (*, K, C), jacobian (*, K, C, P))``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}; got {mode!r}.")
-    if (diffuse_only or order is not None) and mode != "analytic":
-        raise ValueError("diffuse_only and order need mode='analytic'.")
-    if order is not None and order < 1:
-        raise ValueError(f"order must be >= 1; got {order}.")
+    if clamp not in CLAMPS:
+        raise ValueError(f"clamp must be one of {sorted(CLAMPS)}; got {clamp!r}.")
+    custom = diffuse_only or order is not None or reference_order is not None or clamp != "exact" or compile
+    if custom and mode != "analytic":
+        raise ValueError("diffuse_only, order, reference_order, clamp and compile need mode='analytic'.")
+    for name, value in (("order", order), ("reference_order", reference_order)):
+        if value is not None and value < 1:
+            raise ValueError(f"{name} must be >= 1; got {value}.")
     lead = svbrdf.shape
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
@@ -124,7 +143,16 @@ def jacobian(
                 columns.append(column)
             jac = torch.stack(columns, -1)
         else:
-            value, jac = _analytic(_svbrdf(part, flat.channels, grey), lights, view, path, diffuse_only, order)
+            value, jac = _analytic(
+                _svbrdf(part, flat.channels, grey),
+                lights,
+                view,
+                path,
+                diffuse_only,
+                (order, reference_order),
+                clamp,
+                compile,
+            )
         if values is None:
             values = value.new_empty((params.shape[0], *value.shape[1:]))
             jacs = jac.new_empty((params.shape[0], *jac.shape[1:]))
@@ -159,9 +187,13 @@ def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
     return c * ds0 + s * dt0, c * dt0 - s * ds0
 
 
-def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor, frame_dt: Tensor, alpha: Tensor):
+def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor | None, frame_dt: Tensor | None, alpha: Tensor):
     """The lobe ``L`` at nodes ``(N, F, Q)`` and its derivatives: ``dL/dn (N, F, Q, 3)``,
-    ``dL/d(alpha_x, alpha_y, rotation) (N, F, Q, 3)``."""
+    ``dL/d(alpha_x, alpha_y, rotation) (N, F, Q, 3)``.
+
+    ``frame_ds = frame_dt = None`` for isotropic lobes (``alpha_x = alpha_y``): the lobe is then
+    ``exp(-(|h|^2 / <h, n>^2 - 1) / alpha^2)`` whatever the tangent frame, so the frame's
+    derivatives drop out and the rotation's column is 0 (1.7x faster)."""
     wz, ci, front, (hx, hy, hz), hn = _at_nodes(lx, ly, pixels)
     (sx, sy, sz), (tx, ty, tz) = pixels.s, pixels.t
     co = pixels.cos_view
@@ -171,29 +203,42 @@ def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor, frame_dt: 
     hs, ht = s_h * pixels.inv_ax, t_h * pixels.inv_ay
     ci_s = torch.where(front, ci, torch.ones_like(ci))
     co_s = torch.where(co > 0, co, torch.ones_like(co))
-    energy = (hs * hs + ht * ht) / (hn * hn)
+    inv_hn2 = 1.0 / (hn * hn)
+    energy = (hs * hs + ht * ht) * inv_hn2
     lobe = torch.where(front, torch.exp(-energy) * torch.sqrt(ci_s / co_s) * pixels.scale, torch.zeros_like(ci))
     h = torch.stack(torch.broadcast_tensors(hx, hy, hz), -1)
     w = torch.stack(torch.broadcast_tensors(lx, ly, wz), -1)
-    # dE/dn with E = -(hs^2 + ht^2) / hn^2; hs = s(n).h / a_x, ht = t(n).h / a_y, hn = n.h.
-    ds_h = torch.einsum("nij,nfqi->nfqj", frame_ds, h)  # (ds/dn)^T h
-    dt_h = torch.einsum("nij,nfqi->nfqj", frame_dt, h)
     inv_ax, inv_ay = pixels.inv_ax[..., None], pixels.inv_ay[..., None]
-    d_energy = -2.0 * (hs[..., None] * ds_h * inv_ax + ht[..., None] * dt_h * inv_ay) / (hn * hn)[..., None]
-    d_energy = d_energy + 2.0 * energy[..., None] * h / hn[..., None]
-    v = torch.tensor(pixels.view, dtype=lx.dtype, device=lx.device)
-    d_log = d_energy + 0.5 * (w / ci_s[..., None] - v / co_s[..., None])
+    if frame_ds is None:
+        # dE/dn of E = -(|h|^2 / hn^2 - 1) / alpha^2 is 2 (energy + 1 / alpha^2) h / hn.
+        d_energy = (2.0 * (energy + pixels.inv_ax * pixels.inv_ax) / hn)[..., None] * h
+    else:
+        # dE/dn with E = -(hs^2 + ht^2) / hn^2; hs = s(n).h / a_x, ht = t(n).h / a_y, hn = n.h.
+        ds_h = torch.einsum("nij,nfqi->nfqj", frame_ds, h)  # (ds/dn)^T h
+        dt_h = torch.einsum("nij,nfqi->nfqj", frame_dt, h)
+        d_energy = -2.0 * (hs[..., None] * ds_h * inv_ax + ht[..., None] * dt_h * inv_ay) * inv_hn2[..., None]
+        d_energy = d_energy + (2.0 * energy / hn)[..., None] * h
+    v = torch.stack([c / co_s for c in pixels.view], -1)  # (N, 1, 1, 3)
+    d_log = d_energy + 0.5 * (w / ci_s[..., None] - v)
     d_normal = lobe[..., None] * d_log
-    ax, ay = 1.0 / pixels.inv_ax, 1.0 / pixels.inv_ay
-    d_ax = lobe * (2.0 * hs * hs / (hn * hn) - 1.0) / ax
-    d_ay = lobe * (2.0 * ht * ht / (hn * hn) - 1.0) / ay
-    # s and t turn with the rotation: d(s.h)/dA = t.h, d(t.h)/dA = -s.h.
-    d_rot = lobe * (-2.0 * (hs * t_h * pixels.inv_ax - ht * s_h * pixels.inv_ay) / (hn * hn))
+    d_ax = lobe * (2.0 * hs * hs * inv_hn2 - 1.0) * pixels.inv_ax
+    d_ay = lobe * (2.0 * ht * ht * inv_hn2 - 1.0) * pixels.inv_ay
+    if frame_ds is None:
+        d_rot = torch.zeros_like(lobe)
+    else:  # s and t turn with the rotation: d(s.h)/dA = t.h, d(t.h)/dA = -s.h.
+        d_rot = lobe * (-2.0 * (hs * t_h * pixels.inv_ax - ht * s_h * pixels.inv_ay) * inv_hn2)
     return lobe, d_normal, torch.stack([d_ax, d_ay, d_rot], -1)
 
 
 def _analytic(
-    svbrdf: SVBRDF, lights: Lights, view: Tensor, path: str, diffuse_only: bool = False, order: int | None = None
+    svbrdf: SVBRDF,
+    lights: Lights,
+    view: Tensor,
+    path: str,
+    diffuse_only: bool = False,
+    order: tuple[int | None, int | None] = (None, None),
+    clamp: str = "exact",
+    compiled: bool = False,
 ) -> tuple[Tensor, Tensor]:
     chosen = choose_path(lights, path)
     like = svbrdf.diffuse
@@ -215,9 +260,12 @@ def _analytic(
     # Diffuse: <n, d_k> and its gradient d_k; where the clamp acts, the kernel's direction over
     # the part in front of the normal's horizon.
     direction = centre if kernel.kind == "point" else diffuse_directions(lights)
-    diffuse, d_diffuse = _diffuse(n, lights, direction, gradient=True)
+    diffuse, d_diffuse = _diffuse(n, lights, direction, gradient=True, clamp=clamp, compiled=compiled)
+    integrate = _compiled(_integrate_gradients) if compiled else _integrate_gradients
 
     # Specular: the value's nodes, held fixed.
+    isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
+    frames = (None, None) if isotropic or diffuse_only else _frame_derivatives(n, rotation)
     if diffuse_only:
         spec = torch.zeros_like(diffuse)
         d_spec_n, d_spec_shape = d_diffuse.new_zeros(d_diffuse.shape), d_diffuse.new_zeros(d_diffuse.shape)
@@ -225,28 +273,28 @@ def _analytic(
         svbrdf = SVBRDF(n, svbrdf.diffuse, no_lobe, svbrdf.roughness, rotation, svbrdf.channels)
     elif chosen == "point":
         pixels = _pixels(svbrdf, view)
-        frame_ds, frame_dt = _frame_derivatives(n, rotation)
+        frame_ds, frame_dt = frames
         lx, ly = centre[None, :, None, 0], centre[None, :, None, 1]
         lobe, d_n, d_shape = _lobe_gradients(lx, ly, pixels, frame_ds, frame_dt, svbrdf.roughness)
         spec, d_spec_n, d_spec_shape = lobe[..., 0], d_n[..., 0, :], d_shape[..., 0, :]
     else:
         pixels = _pixels(svbrdf, view)
-        frame_ds, frame_dt = _frame_derivatives(n, rotation)
-        orders = {"fast": order or FAST_ORDER, "reference": REFERENCE_ORDER}
+        frame_ds, frame_dt = frames
+        orders = {"fast": order[0] or FAST_ORDER, "reference": order[1] or REFERENCE_ORDER}
         if kernel.kind == "tabulated":
             orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
         rule, fallback = _rules(kernel, centre, pixels, chosen, orders)
-        spec, d_spec_n, d_spec_shape = _integrate_gradients(
+        spec, d_spec_n, d_spec_shape = integrate(
             kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *(r.detach() for r in rule)
         )
         if fallback is not None:
             p, k, rule = fallback
-            value, d_value_n, d_value_shape = _integrate_gradients(
+            value, d_value_n, d_value_shape = integrate(
                 kernel,
                 centre[k][:, None],
                 _pick(pixels, p),
-                frame_ds[p],
-                frame_dt[p],
+                None if isotropic else frame_ds[p],
+                None if isotropic else frame_dt[p],
                 svbrdf.roughness[p],
                 *(r.detach() for r in rule),
             )
@@ -258,8 +306,10 @@ def _analytic(
     k_d, k_s = svbrdf.diffuse[:, None, :], svbrdf.specular[:, None, :]
     value = (k_d / math.pi * diffuse[..., None] + k_s * spec[..., None]) * scale
     # Columns: angles (2), k_d (C), k_s (C or 1), alpha_x, alpha_y, rotation.
-    d_geom_n = k_d[..., None] / math.pi * d_diffuse[:, :, None, :] + k_s[..., None] * d_spec_n[:, :, None, :]
-    d_angles = (d_geom_n @ dn[:, None]) * scale[..., None]  # (N, K, C, 2)
+    # Through the angles first (N, K, 2), then per channel: no (N, K, C, 3) products.
+    diffuse_angles, spec_angles = d_diffuse @ dn, d_spec_n @ dn
+    d_angles = k_d[..., None] / math.pi * diffuse_angles[:, :, None, :] + k_s[..., None] * spec_angles[:, :, None, :]
+    d_angles = d_angles * scale[..., None]  # (N, K, C, 2)
     eye = torch.eye(count, dtype=like.dtype, device=like.device)
     d_kd = (diffuse[..., None, None] / math.pi * eye) * scale[..., None]  # (N, K, C, C)
     if grey:

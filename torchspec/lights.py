@@ -324,10 +324,8 @@ class Lights:
 
 def _legendre(order: int, like: Tensor) -> tuple[Tensor, Tensor]:
     x, w = np.polynomial.legendre.leggauss(order)
-    return (
-        torch.tensor(x, dtype=like.dtype, device=like.device),
-        torch.tensor(w, dtype=like.dtype, device=like.device),
-    )
+    # from_numpy, not torch.tensor: under torch.compile the arrays are traced as tensors.
+    return torch.from_numpy(x).to(like), torch.from_numpy(w).to(like)
 
 
 def polar_nodes(
@@ -414,6 +412,7 @@ def clamped_diffuse(
     linear: Tensor,
     *,
     order: int = 12,
+    lines: int | None = None,
     direction: Tensor | None = None,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """``integral D(l) max(<n, w(l)>, 0) dl`` for pairs of frame centres and normals ``(M, 3)``
@@ -427,7 +426,9 @@ def clamped_diffuse(
 
     Lines run parallel to the cosine's gradient at the kernel's mean; the normal's horizon crosses
     each at most twice (roots of a quadratic) and the unit circle ends it: Gauss-Legendre on each
-    piece, mapped flat at both ends, has no kink or square-root slope inside.
+    piece (``order`` nodes), mapped flat at both ends, has no kink or square-root slope inside.
+    ``lines`` across the kernel: by default ``ACROSS`` per kernel width of its reach, and at least
+    ``order``; for a tabulated kernel two per pixel of its table at least, whatever is given.
 
     With ``direction`` (the pairs' effective directions ``d_k (M, 3)``), also returns the
     gradient in the normal ``(M, 3)``: ``integral D w [<n, w> > 0]``, from the same nodes (the
@@ -438,11 +439,13 @@ def clamped_diffuse(
         if direction is None:
             return cos.clamp(min=0.0)
         return cos.clamp(min=0.0), torch.where((cos > 0)[:, None], centre, torch.zeros_like(centre))
+    if lines is not None and lines < 1:
+        raise ValueError(f"lines must be >= 1; got {lines}.")
     add_back = (linear >= 0)[:, None, None]  # integrate the negative pieces, else the positive ones
     mean, shape, reach = kernel.grid(centre)  # the kernel's mean and extent in the l-plane
     # Lines in proportion to the reach (in widths): ~2 per width is plenty for a smooth correction;
     # a tabulated kernel is a piecewise cubic with a knot per pixel: two lines per pixel.
-    across = max(order, math.ceil(ACROSS * reach))
+    across = max(order, math.ceil(ACROSS * reach)) if lines is None else lines
     if kernel.kind == "tabulated":
         across = max(across, 2 * max(kernel.table.shape))
     xv, wv = _legendre(across, centre)

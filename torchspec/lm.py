@@ -97,7 +97,9 @@ class LMConfig:
     Attributes:
         max_iterations: LM steps (accepted or rejected) per problem, ``>= 1``.
         check_every: steps between the all-converged checks and compactions (the only host
-            synchronisations), ``>= 1``.
+            synchronisations), ``>= 1``; ``None``: 1 on the CPU, where a check costs nothing and
+            every step on a finished problem is wasted (4 cost 1.3x the time of a fit), and 4
+            on other devices, where a synchronisation stalls the queue.
         damping: initial ``lambda``, relative to ``diag(J^T J)``, ``> 0``.
         ftol: relative cost-reduction tolerance, ``>= 0``.
         xtol: relative step-size tolerance, ``>= 0``.
@@ -107,7 +109,7 @@ class LMConfig:
     """
 
     max_iterations: int = 50
-    check_every: int = 4
+    check_every: int | None = None
     damping: float = 1e-3
     ftol: float = 1e-8
     xtol: float = 1e-8
@@ -117,6 +119,8 @@ class LMConfig:
     def __post_init__(self) -> None:
         for name in ("max_iterations", "check_every"):
             value = getattr(self, name)
+            if name == "check_every" and value is None:
+                continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"LMConfig.{name} must be an integer >= 1; got {value!r}.")
         for name in ("damping", "max_damping"):
@@ -374,10 +378,11 @@ def solve(
         iterations=out.iterations.clone(),
     )
 
+    every = config.check_every or (1 if params.device.type == "cpu" else 4)
     for k in range(config.max_iterations + 1):
         if k > 0:
             state = _step(state, residual_fn, config)
-        if k % config.check_every == 0 or k == config.max_iterations:
+        if k % every == 0 or k == config.max_iterations:
             for name in ("params", "cost", "status", "iterations", "damping"):
                 getattr(out, name)[state.index] = getattr(state, "x" if name == "params" else name)
             running = int(state.running.sum())  # the host synchronisation

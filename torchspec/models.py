@@ -116,6 +116,10 @@ class Model:
         channels: tuple[str, ...],
         *,
         path: str = "auto",
+        order: int | None = None,
+        reference_order: int | None = None,
+        clamp: str = "exact",
+        compile: bool = False,
     ) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
         """The solver's residual function for these pixels: ``(params (M, P), index (M,)) ->
         (residuals (M, K C), jacobian (M, K C, P))`` with ``residual = weight (rendered -
@@ -125,12 +129,24 @@ class Model:
             observed: ``(N, K, C)`` recorded values.
             weight: ``(N, K)`` or ``(N, K, C)``: 0 drops a sample; a per-pixel scale evens the
                 costs of bright and dark pixels.
+            path, order, reference_order, clamp, compile: the model's quadrature
+                (:func:`torchspec.jacobian.jacobian`).
         """
         w = weight if weight.dim() == 3 else weight[..., None]
 
         def fn(params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
             svbrdf = self.unpack(params, channels)
-            value, full = jacobian(svbrdf, lights, view, path=path, diffuse_only=not self.lobe)
+            value, full = jacobian(
+                svbrdf,
+                lights,
+                view,
+                path=path,
+                diffuse_only=not self.lobe,
+                order=order,
+                reference_order=reference_order,
+                clamp=clamp,
+                compile=compile,
+            )
             wi = w[index]
             r = ((value - observed[index]) * wi).flatten(1)
             jac = self.select(full, len(channels)) * wi[..., None]

@@ -297,22 +297,32 @@ def photometric_stereo(
     weight = (valid & (rank >= (trim * count.to(dtype)).floor()[:, None])).to(dtype)
     b, eig = _weighted_solve(d, grey, weight)
     noise = grey.new_zeros(n)
+    # Floor the scale at a fraction of the pixel's typical value, so a noise-free pixel keeps its
+    # near-exact samples (and a peak's tails do not set the scale).
+    level = torch.where(valid, grey.abs(), torch.full_like(grey, math.nan)).nanmedian(-1).values
+    floor = (1e-4 * torch.nan_to_num(level, nan=0.0) + torch.finfo(dtype).tiny)[:, None]
+    # Only the pixels whose inlier set still changes are iterated: one whose set is unchanged has
+    # reached its fixed point (the same solve, residuals and set again), so stopping it is exact.
+    active = torch.arange(n, device=grey.device)
     for _ in range(iterations):
-        residual = grey - b @ d.T
-        kept = torch.where(weight > 0, residual, torch.full_like(residual, math.nan))
+        if not active.numel():
+            break
+        g, ok, w_old = grey[active], valid[active], weight[active]
+        residual = g - b[active] @ d.T
+        kept = torch.where(w_old > 0, residual, torch.full_like(residual, math.nan))
         centre = kept.nanmedian(-1, keepdim=True).values
-        noise = MAD_SCALE * (kept - centre).abs().nanmedian(-1).values
-        # Floor the scale at a fraction of the pixel's typical value, so a noise-free pixel keeps its
-        # near-exact samples (and a peak's tails do not set the scale).
-        level = torch.where(valid, grey.abs(), torch.full_like(grey, math.nan)).nanmedian(-1).values
-        floor = 1e-4 * torch.nan_to_num(level, nan=0.0) + torch.finfo(dtype).tiny
-        scale = torch.maximum(torch.nan_to_num(noise, nan=0.0), floor)[:, None]
+        spread = MAD_SCALE * (kept - centre).abs().nanmedian(-1).values
+        scale = torch.maximum(torch.nan_to_num(spread, nan=0.0)[:, None], floor[active])
         # Never fewer than the better-fitting half of the samples: a poor first fit must not
-        # collapse the set onto a handful of samples that fit it by chance.
-        half = torch.where(valid, residual, torch.full_like(residual, math.nan)).nanquantile(0.5, dim=-1, keepdim=True)
+        # collapse the set onto a handful of samples that fit it by chance (the lower median: half
+        # of an even count; nanmedian is 2x faster than nanquantile).
+        half = torch.where(ok, residual, torch.full_like(residual, math.nan)).nanmedian(-1, keepdim=True).values
         upper = torch.maximum(cut * scale, torch.nan_to_num(half, nan=0.0))
-        weight = (valid & (residual <= upper)).to(dtype)
-        b, eig = _weighted_solve(d, grey, weight)
+        w_new = (ok & (residual <= upper)).to(dtype)
+        noise[active] = spread
+        weight[active] = w_new
+        b[active], eig[active] = _weighted_solve(d, g, w_new)
+        active = active[(w_new != w_old).any(-1)]
     inliers = weight > 0
     _, eig_all = _weighted_solve(d, grey, valid.to(dtype))
     conditioning = (eig[:, 0] / eig[:, 2].clamp(min=torch.finfo(dtype).tiny)) / (

@@ -57,7 +57,7 @@ from .lights import (
     polar_nodes,
 )
 
-__all__ = ["render", "choose_path", "PATHS", "FAST_ORDER", "REFERENCE_ORDER", "DIFFUSE_ORDER"]
+__all__ = ["render", "choose_path", "PATHS", "FAST_ORDER", "REFERENCE_ORDER", "DIFFUSE_ORDER", "ClampRule", "CLAMPS"]
 
 PATHS = ("auto", "point", "fast", "reference")
 FAST_ORDER = 4  # Gauss-Hermite nodes per axis of the fast path
@@ -70,11 +70,30 @@ PULL = 0.98  # the largest l-plane radius about which the factors are linearised
 BUDGET = 1 << 20  # pixel x frame x node elements per chunk
 
 
+class ClampRule(NamedTuple):
+    """How the diffuse clamp is integrated (:func:`_diffuse`): the pairs within ``margin`` kernel
+    stds of the normal's horizon, with ``order`` Gauss-Legendre nodes per piece of ``lines``
+    lines (``None``: ``torchspec.lights.ACROSS`` per kernel width)."""
+
+    margin: float
+    order: int
+    lines: int | None
+
+
+CLAMPS = {
+    # The renderer's: the kernel's mass left out under 1e-6, the integral to ~1e-7.
+    "exact": ClampRule(HORIZON_MARGIN, DIFFUSE_ORDER, None),
+    # A fit's: 4x fewer pairs x nodes on bench_fit's capture, within 5e-4 of a pixel's largest value
+    # for normals tilted up to 70 deg (tests/test_jacobian.py), far below a capture's noise.
+    "fast": ClampRule(4.0, 8, 11),
+}
+
+
 def _hermite(order: int, like: Tensor) -> tuple[Tensor, Tensor]:
     """2D standard-normal Gauss-Hermite rule: points ``(Q, 2)``, weights ``(Q,)`` summing to 1."""
     x, w = np.polynomial.hermite.hermgauss(order)
-    x = torch.tensor(x * math.sqrt(2.0), dtype=like.dtype, device=like.device)
-    w = torch.tensor(w / math.sqrt(math.pi), dtype=like.dtype, device=like.device)
+    x = torch.from_numpy(x * math.sqrt(2.0)).to(like)  # not torch.tensor: see lights._legendre
+    w = torch.from_numpy(w / math.sqrt(math.pi)).to(like)
     grid = torch.stack(torch.meshgrid(x, x, indexing="ij"), -1).reshape(-1, 2)
     return grid, (w[:, None] * w[None, :]).reshape(-1)
 
@@ -460,13 +479,16 @@ def _integrate_beckmann(svbrdf: SVBRDF, view: Tensor):
 _COMPILED = {}
 
 
+def _compiled(function):
+    """``function`` fused by ``torch.compile`` for any shapes (built on first use, kept)."""
+    if function not in _COMPILED:
+        _COMPILED[function] = torch.compile(function, dynamic=True)
+    return _COMPILED[function]
+
+
 def _integrator(compiled: bool):
-    """The node integration, eager or fused by ``torch.compile`` (built on first use, kept)."""
-    if not compiled:
-        return _integrate
-    if "integrate" not in _COMPILED:
-        _COMPILED["integrate"] = torch.compile(_integrate, dynamic=True)
-    return _COMPILED["integrate"]
+    """The node integration, eager or fused by ``torch.compile``."""
+    return _compiled(_integrate) if compiled else _integrate
 
 
 def _specular(svbrdf, lights, view, path, orders, compiled=False, lobe="ward") -> Tensor:
@@ -511,18 +533,22 @@ def _pick(pixels: _Pixels, index: Tensor) -> _Pixels:
     return _Pixels(*(take(f) for f in pixels))
 
 
-def _diffuse(normal: Tensor, lights: Lights, direction: Tensor, gradient: bool = False):
+def _diffuse(
+    normal: Tensor, lights: Lights, direction: Tensor, gradient: bool = False, clamp: str = "exact", compiled=False
+):
     """``integral D_k <n, w>^+`` ``(N, K)``: ``<n, d_k>``, clamped exactly where the kernel reaches
     behind the normal's horizon (:func:`torchspec.lights.clamped_diffuse`, for the pairs one
     ``nonzero`` per call picks).
 
-    A pair is picked when the normal's horizon passes within ``HORIZON_MARGIN`` kernel stds of
-    the kernel's mean: the signed distance ``g / |grad g|`` of ``g(l) = <n, w(l)>``, in units of
-    the kernel's std along ``grad g``. Beyond that the kernel's mass behind the horizon, and the
-    cosine's size there, are too small to matter (less than 1e-6 of the mass).
+    A pair is picked when the normal's horizon passes within the ``margin`` of the rule
+    ``CLAMPS[clamp]`` in kernel stds of the kernel's mean: the signed distance ``g / |grad g|`` of
+    ``g(l) = <n, w(l)>``, in units of the kernel's std along ``grad g``. Beyond ``HORIZON_MARGIN``
+    the kernel's mass behind the horizon, and the cosine's size there, are too small to matter
+    (less than 1e-6 of the mass).
 
     With ``gradient``, also the derivative in the normal ``(N, K, 3)``: ``d_k``, or for the
     clamped pairs the kernel's effective direction over the part in front of the horizon.
+    ``compiled``: the clamp's integral fused by ``torch.compile``.
     """
     value = normal @ direction.T
     kernel = lights.kernel
@@ -539,16 +565,17 @@ def _diffuse(normal: Tensor, lights: Lights, direction: Tensor, gradient: bool =
     grad = normal[:, None, :2] - normal[:, None, 2:] * (mean / mz[:, None])[None]  # (N, K, 2)
     cov = kernel.covariance(centre)  # (K, 2, 2)
     spread = torch.einsum("nki,kij,nkj->nk", grad, cov, grad).clamp(min=0.0).sqrt()
-    pairs = (g < HORIZON_MARGIN * spread).nonzero()
+    rule = CLAMPS[clamp]
+    pairs = (g < rule.margin * spread).nonzero()
     if pairs.shape[0]:
         p, k = pairs[:, 0], pairs[:, 1]
+        nodes = {"order": rule.order, "lines": rule.lines}
+        integral = _compiled(clamped_diffuse) if compiled else clamped_diffuse
         if gradient:
-            exact, slope = clamped_diffuse(
-                kernel, centre[k], normal[p], value[p, k], order=DIFFUSE_ORDER, direction=direction[k]
-            )
+            exact, slope = integral(kernel, centre[k], normal[p], value[p, k], direction=direction[k], **nodes)
             grad_n = grad_n.index_put((p, k), slope)
         else:
-            exact = clamped_diffuse(kernel, centre[k], normal[p], value[p, k], order=DIFFUSE_ORDER)
+            exact = integral(kernel, centre[k], normal[p], value[p, k], **nodes)
         value = value.index_put((p, k), exact)
     return (value, grad_n) if gradient else value
 
