@@ -5,7 +5,7 @@ import torch
 
 from torchspec.brdf import SVBRDF
 from torchspec.geometry import normal_from_angles
-from torchspec.jacobian import _svbrdf, jacobian, parameters
+from torchspec.jacobian import _svbrdf, jacobian, normal_equations, parameters
 from torchspec.lights import Kernel, Lights
 from torchspec.render import render
 
@@ -173,8 +173,9 @@ def test_the_fits_quadrature_is_close_to_the_renderers(kernel):
 
 
 def test_compiled_is_eager():
-    """``compile=True`` (torch.compile of the node integrations, as a large fit uses) gives the
-    eager values and derivatives, to the rounding of sums taken in another order."""
+    """``compile=True`` (torch.compile of the node integrations and of the normal equations' pass
+    over the frames, as a large fit uses) gives the eager values, derivatives and normal
+    equations, to the rounding of sums taken in another order."""
     maps, lights = _problem(False, Kernel("gaussian", "projected", 0.08), seed=4)
     maps = maps.to(torch.float32)
     lights = lights.to(dtype=torch.float32)
@@ -189,3 +190,11 @@ def test_compiled_is_eager():
         eager = jacobian(batch, lights, VIEW.float(), order=3, clamp="fast")
         fused = jacobian(batch, lights, VIEW.float(), order=3, clamp="fast", compile=True)
         torch.testing.assert_close(fused, eager, rtol=1e-4, atol=1e-6)
+        observed = eager[0] * 1.1
+        weight = torch.ones_like(observed)
+        select = torch.eye(eager[1].shape[-1])
+        args = (batch, lights, VIEW.float(), observed, weight, select)
+        plain = normal_equations(*args, order=3, clamp="fast")
+        torch.testing.assert_close(
+            normal_equations(*args, order=3, clamp="fast", compile=True), plain, rtol=1e-4, atol=1e-7
+        )

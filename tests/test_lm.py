@@ -18,6 +18,7 @@ from torchspec.lm import (
     Bounds,
     LMConfig,
     LMResult,
+    NormalEquations,
     bounded,
     solve,
 )
@@ -534,3 +535,30 @@ def test_bounds_errors(kinds, match):
 
 def test_bounds_accepts_lists():
     assert Bounds(["free", ["interval", 0, 1]]).kinds == ("free", ("interval", 0.0, 1.0))
+
+
+@pytest.mark.parametrize("dtype", [F64])
+def test_normal_equations_give_the_same_solve(dtype):
+    """A residual function that returns the NormalEquations of its residuals takes the same steps
+    (bounded too), and its shapes are checked."""
+    truth, data, start = _peaks(16, seed=3)
+    fn = _peak_fn(data.to(dtype))
+
+    def normal(x, index):
+        r, jac = fn(x, index)
+        jt = jac.transpose(1, 2)
+        return NormalEquations(0.5 * (r * r).sum(-1), jt @ jac, (jt @ r[..., None])[..., 0])
+
+    bounds = Bounds(("free", "positive", "free", "positive"))
+    for wrap in (lambda f: f, lambda f: bounded(f, bounds)):
+        x0 = start.to(dtype) if wrap(fn) is fn else bounds.to_free(start.abs().to(dtype) + 0.1)
+        a, b = solve(wrap(fn), x0), solve(wrap(normal), x0)
+        torch.testing.assert_close(b.params, a.params, rtol=1e-10, atol=1e-12)
+        assert torch.equal(a.status, b.status) and torch.equal(a.iterations, b.iterations)
+
+    def wrong(x, index):
+        out = normal(x, index)
+        return NormalEquations(out.cost, out.hess[:, :3, :3], out.grad)
+
+    with pytest.raises(ValueError, match=r"NormalEquations.hess must have shape \(16, 4, 4\)"):
+        solve(wrong, start.to(dtype))

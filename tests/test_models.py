@@ -78,3 +78,42 @@ def test_residual_jacobian_matches_central_differences(name):
 def test_unknown_model_is_named():
     with pytest.raises(ValueError, match="model must be one of"):
         get_model("phong")
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("grey_weight", [True, False])
+def test_normal_equations_are_those_of_the_residuals(name, grey_weight):
+    """``normal=True``: the cost, ``J^T J`` and ``J^T r`` of the same residuals and Jacobian, to
+    rounding, with weights per frame or per channel, and for a subset of the rows."""
+    model = get_model(name)
+    lights = _lights()
+    svbrdf = _svbrdf(count=4, seed=3)
+    k = lights.directions.shape[0]
+    g = torch.Generator().manual_seed(4)
+    observed = torch.rand(4, k, 3, generator=g, dtype=torch.float64)
+    weight = (
+        torch.rand(4, k, generator=g, dtype=torch.float64)
+        if grey_weight
+        else torch.rand(4, k, 3, generator=g, dtype=torch.float64)
+    )
+    params = model.pack(svbrdf)[[3, 1]]
+    index = torch.tensor([3, 1])
+    r, jac = model.residuals(observed, weight, lights, VIEW, ("R", "G", "B"))(params, index)
+    ne = model.residuals(observed, weight, lights, VIEW, ("R", "G", "B"), normal=True)(params, index)
+    torch.testing.assert_close(ne.cost, 0.5 * (r * r).sum(-1), rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(ne.hess, jac.transpose(1, 2) @ jac, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(ne.grad, (jac.transpose(1, 2) @ r[..., None])[..., 0], rtol=1e-12, atol=1e-15)
+
+
+def test_normal_equations_check_their_inputs():
+    from torchspec.jacobian import normal_equations
+
+    lights = _lights()
+    svbrdf = _svbrdf(count=2)
+    k = lights.directions.shape[0]
+    select = get_model("ward-aniso").selection(3, svbrdf.diffuse)
+    good = torch.ones(2, k, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=rf"weight must have shape \(2, {k}, 3\); got \(2, {k}\)"):
+        normal_equations(svbrdf, lights, VIEW, good, good[..., 0], select)
+    with pytest.raises(ValueError, match="clamp must be one of"):
+        normal_equations(svbrdf, lights, VIEW, good, good, select, clamp="rough")

@@ -211,7 +211,8 @@ def _tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, res
     p = model.size(channels)
     # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
     # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
-    # for transients (a conservative bound: ~20 kB per pixel was measured at K = 144, C = 3, float32).
+    # for transients (~20 kB per pixel was measured at K = 144, C = 3, float32, when the solver held
+    # the Jacobian; it now takes normal equations, the Jacobian living in chunks: a conservative bound).
     per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
     available = config.memory_gib * 2**30 - reserved - RUNTIME_BYTES
     return int(max(256, min(1 << 17, available / (2 * per_pixel))))
@@ -226,7 +227,9 @@ def _lm_stage(model, start: SVBRDF, observed, weight, lights, view, channels, co
     params = bounds.to_free(model.pack(start))
 
     def run(compile: bool):
-        fn = model.residuals(observed, weight, lights, view, channels, path=config.path, compile=compile, **quadrature)
+        fn = model.residuals(
+            observed, weight, lights, view, channels, path=config.path, compile=compile, normal=True, **quadrature
+        )
         return solve(bounded(fn, bounds), params, config=config.lm)
 
     if config.compile and not _COMPILE_FAILED:

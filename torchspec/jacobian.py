@@ -48,7 +48,7 @@ from .render import (
     render,
 )
 
-__all__ = ["jacobian", "parameters", "MODES"]
+__all__ = ["jacobian", "normal_equations", "parameters", "MODES"]
 
 MODES = ("analytic", "forward")
 
@@ -143,7 +143,7 @@ def jacobian(
                 columns.append(column)
             jac = torch.stack(columns, -1)
         else:
-            value, jac = _analytic(
+            parts = _parts(
                 _svbrdf(part, flat.channels, grey),
                 lights,
                 view,
@@ -153,6 +153,7 @@ def jacobian(
                 clamp,
                 compile,
             )
+            value, jac = _assemble(*parts)
         if values is None:
             values = value.new_empty((params.shape[0], *value.shape[1:]))
             jacs = jac.new_empty((params.shape[0], *jac.shape[1:]))
@@ -230,7 +231,7 @@ def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor | None, fra
     return lobe, d_normal, torch.stack([d_ax, d_ay, d_rot], -1)
 
 
-def _analytic(
+def _parts(
     svbrdf: SVBRDF,
     lights: Lights,
     view: Tensor,
@@ -239,14 +240,15 @@ def _analytic(
     order: tuple[int | None, int | None] = (None, None),
     clamp: str = "exact",
     compiled: bool = False,
-) -> tuple[Tensor, Tensor]:
+) -> tuple:
+    """Per pixel and frame, what the values and every column are made of (:func:`_assemble`):
+    the diffuse and specular integrals, their derivatives in the normal and the lobe's shape,
+    ``dn/d(angles)``, the frames' scale and the coefficients."""
     chosen = choose_path(lights, path)
     like = svbrdf.diffuse
     lights = lights.to(dtype=like.dtype, device=like.device)
     view = view.to(dtype=like.dtype, device=like.device)
     kernel, centre = lights.kernel, lights.directions
-    count = svbrdf.diffuse.shape[-1]
-    grey = svbrdf.specular.shape[-1] == 1 and count != 1
     rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[:, 0])
     n = svbrdf.normal
     # dn / d(a, b) (N, 3, 2) of n ~ (tan a, tan b, 1).
@@ -303,7 +305,15 @@ def _analytic(
             d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
 
     scale = lights.scale[None]  # (1, K, C or 1)
-    k_d, k_s = svbrdf.diffuse[:, None, :], svbrdf.specular[:, None, :]
+    return diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, svbrdf.diffuse, svbrdf.specular
+
+
+def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s) -> tuple[Tensor, Tensor]:
+    """Values ``(N, K, C)`` and the Jacobian ``(N, K, C, 2 + C + C_s + 3)`` from :func:`_parts`."""
+    count = k_d.shape[-1]
+    grey = k_s.shape[-1] == 1 and count != 1
+    like = k_d
+    k_d, k_s = k_d[:, None, :], k_s[:, None, :]
     value = (k_d / math.pi * diffuse[..., None] + k_s * spec[..., None]) * scale
     # Columns: angles (2), k_d (C), k_s (C or 1), alpha_x, alpha_y, rotation.
     # Through the angles first (N, K, 2), then per channel: no (N, K, C, 3) products.
@@ -319,6 +329,62 @@ def _analytic(
     d_shape = k_s[..., None] * d_spec_shape[:, :, None, :] * scale[..., None]
     d_shape = d_shape.expand(-1, -1, count, -1)  # (N, K, C, 3), also for a grey k_s under grey irradiance
     return value, torch.cat([d_angles, d_kd, d_ks, d_shape], -1)
+
+
+def _normal(parts: tuple, observed: Tensor, weight: Tensor, select: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``0.5 |r|^2 (N,)``, ``J^T J (N, P, P)`` and ``J^T r (N, P)`` of ``r = weight (value -
+    observed)`` and ``J = weight dvalue/dparams @ select`` (one pass over the frames when fused)."""
+    value, jac = _assemble(*parts)
+    r = (value - observed) * weight
+    js = (jac @ select) * weight[..., None]
+    return 0.5 * (r * r).sum((1, 2)), torch.einsum("nkcp,nkcq->npq", js, js), torch.einsum("nkcp,nkc->np", js, r)
+
+
+def normal_equations(
+    svbrdf: SVBRDF,
+    lights: Lights,
+    view: Tensor,
+    observed: Tensor,
+    weight: Tensor,
+    select: Tensor,
+    *,
+    path: str = "auto",
+    order: int | None = None,
+    reference_order: int | None = None,
+    diffuse_only: bool = False,
+    clamp: str = "exact",
+    compile: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The least-squares normal equations of ``r = weight (render - observed)`` in the parameters
+    ``params @ select``, without the Jacobian ``(N, K, C, P)`` in memory: what Levenberg-Marquardt
+    needs (:class:`torchspec.lm.NormalEquations`).
+
+    Args:
+        svbrdf: ``N`` pixels (flat), ``C`` channels.
+        observed: ``(N, K, C)``; weight: ``(N, K, C)`` (0 drops a sample).
+        select: ``(2 + C + C_s + 3, P)``: the model's parameters as combinations of this
+            module's columns (:meth:`torchspec.models.Model.selection`).
+        path, order, reference_order, diffuse_only, clamp, compile: as for :func:`jacobian`;
+            with ``compile`` the assembly and the sums over frames are fused too.
+
+    Returns:
+        ``(cost (N,), J^T J (N, P, P), J^T r (N, P))``, ``cost = 0.5 |r|^2``.
+    """
+    if clamp not in CLAMPS:
+        raise ValueError(f"clamp must be one of {sorted(CLAMPS)}; got {clamp!r}.")
+    n, k = svbrdf.diffuse.shape[0], lights.directions.shape[0]
+    expected = (n, k, svbrdf.diffuse.shape[-1])
+    for name, value in (("observed", observed), ("weight", weight)):
+        if tuple(value.shape) != expected:
+            raise ValueError(f"{name} must have shape {expected}; got {tuple(value.shape)}.")
+    chunk = max(1, BUDGET // (k * (order or FAST_ORDER) ** 2))
+    normal = _compiled(_normal) if compile else _normal
+    out = []
+    for start in range(0, max(n, 1), chunk):
+        part = svbrdf[start : start + chunk]
+        parts = _parts(part, lights, view, path, diffuse_only, (order, reference_order), clamp, compile)
+        out.append(normal(parts, observed[start : start + chunk], weight[start : start + chunk], select))
+    return tuple(torch.cat(column) for column in zip(*out, strict=True))
 
 
 def _integrate_gradients(kernel, centre, pixels, frame_ds, frame_dt, alpha, lx, ly, area):

@@ -3,7 +3,9 @@
 ``solve`` minimises ``0.5 ||r_n(x_n)||^2`` for ``N`` problems at once, each with ``P``
 parameters and ``R`` residuals, given a function that returns the residuals and their Jacobian
 for any subset of the problems. It knows nothing about what the parameters mean; bounds are
-handled by reparametrisation (:class:`Bounds`, :func:`bounded`).
+handled by reparametrisation (:class:`Bounds`, :func:`bounded`). The solver only ever uses the
+cost, ``J^T J`` and ``J^T r``, so a function may return those instead (:class:`NormalEquations`)
+and never hold the Jacobian ``(M, R, P)``, the largest tensor of a fit.
 
 Per problem, all state lives in tensors of shape ``(N,)``:
 
@@ -61,6 +63,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -75,6 +78,7 @@ __all__ = [
     "LMResult",
     "Bounds",
     "ResidualFn",
+    "NormalEquations",
     "bounded",
     "solve",
 ]
@@ -86,8 +90,19 @@ STATUS = ("converged", "max iterations", "singular", "diverged")
 _ROUNDING = 16
 """Tolerances are floored at this many ``eps`` of the dtype."""
 
-ResidualFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
-"""``residual_fn(params (M, P), index (M,) long) -> (residuals (M, R), jacobian (M, R, P))``."""
+
+class NormalEquations(NamedTuple):
+    """What a residual function may return instead of ``(residuals, jacobian)``: the cost
+    ``0.5 |r|^2 (M,)``, ``J^T J (M, P, P)`` and ``J^T r (M, P)``, the only things the solver uses."""
+
+    cost: Tensor
+    hess: Tensor
+    grad: Tensor
+
+
+ResidualFn = Callable[[Tensor, Tensor], "tuple[Tensor, Tensor] | NormalEquations"]
+"""``residual_fn(params (M, P), index (M,) long) -> (residuals (M, R), jacobian (M, R, P))``, or
+the :class:`NormalEquations` of those."""
 
 
 @dataclass(frozen=True)
@@ -197,17 +212,39 @@ def _checked_output(out, x: Tensor) -> tuple[Tensor, Tensor]:
     return r.detach(), jac.detach()
 
 
+def _checked_normal(out: NormalEquations, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The :class:`NormalEquations` returned by ``residual_fn``, detached, after checking them."""
+    m, p = x.shape
+    for name, shape in (("cost", (m,)), ("hess", (m, p, p)), ("grad", (m, p))):
+        value = getattr(out, name)
+        if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise ValueError(
+                f"residual_fn's NormalEquations.{name} must have shape {shape} for params of shape {(m, p)}; got {got}."
+            )
+        if value.dtype != x.dtype or value.device != x.device:
+            raise ValueError(
+                f"residual_fn's NormalEquations.{name} must have the dtype and device of params "
+                f"({x.dtype}, {x.device}); got ({value.dtype}, {value.device})."
+            )
+    return out.cost.detach(), out.hess.detach(), out.grad.detach()
+
+
 def _evaluate(residual_fn: ResidualFn, x: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Cost ``(M,)``, ``J^T J`` ``(M, P, P)``, ``J^T r`` ``(M, P)`` and finiteness ``(M,)`` at ``x``.
 
     Rows that are not finite get cost ``inf``, ``J^T J = I`` and ``J^T r = 0`` so that later
     batched algebra on them stays harmless (their values are never used).
     """
-    r, jac = _checked_output(residual_fn(x, index), x)
-    jt = jac.transpose(-1, -2)
-    cost = 0.5 * (r * r).sum(-1)
-    hess = jt @ jac
-    grad = (jt @ r.unsqueeze(-1)).squeeze(-1)
+    out = residual_fn(x, index)
+    if isinstance(out, NormalEquations):
+        cost, hess, grad = _checked_normal(out, x)
+    else:
+        r, jac = _checked_output(out, x)
+        jt = jac.transpose(-1, -2)
+        cost = 0.5 * (r * r).sum(-1)
+        hess = jt @ jac
+        grad = (jt @ r.unsqueeze(-1)).squeeze(-1)
     # A NaN or inf anywhere in J reaches the diagonal of J^T J; one in r reaches the cost.
     finite = cost.isfinite() & hess.diagonal(dim1=-2, dim2=-1).isfinite().all(-1) & grad.isfinite().all(-1)
     eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
@@ -310,10 +347,11 @@ def solve(
 
     ``residual_fn(x, index)`` gets the parameters ``x (M, P)`` of ``M <= N`` problems and their
     rows ``index (M,)`` (int64, on the device of ``params``) in the original batch, and returns
-    their residuals ``(M, R)`` and Jacobian ``d r / d x`` ``(M, R, P)``, in the dtype and on the
-    device of ``x``. Use ``index`` to pick each problem's own data (``data[index]``): after each
-    check the finished problems are dropped, so row ``m`` of ``x`` is problem ``index[m]``, not
-    ``m``. Each problem's outputs must depend on its own row only. Outputs are detached.
+    their residuals ``(M, R)`` and Jacobian ``d r / d x`` ``(M, R, P)`` (or their
+    :class:`NormalEquations`), in the dtype and on the device of ``x``. Use ``index`` to pick each
+    problem's own data (``data[index]``): after each check the finished problems are dropped, so
+    row ``m`` of ``x`` is problem ``index[m]``, not ``m``. Each problem's outputs must depend on
+    its own row only. Outputs are detached.
 
     Args:
         residual_fn: see above; shapes are checked on every call.
@@ -503,7 +541,8 @@ def bounded(residual_fn: ResidualFn, bounds: Bounds) -> ResidualFn:
     """``residual_fn`` in ``x``-space as a residual function of the free parameters ``u``.
 
     The returned function maps ``(u (M, P), index (M,))`` to ``r(x(u))`` and ``J_x * dx/du``
-    (the chain rule, column by column). Solve in ``u`` and map the result back.
+    (the chain rule, column by column), or to the :class:`NormalEquations` of those when
+    ``residual_fn`` returns normal equations. Solve in ``u`` and map the result back.
 
     Args:
         residual_fn: ``(x (M, P), index (M,)) -> (residuals (M, R), jacobian (M, R, P))`` in ``x``.
@@ -522,9 +561,18 @@ def bounded(residual_fn: ResidualFn, bounds: Bounds) -> ResidualFn:
         True
     """
 
-    def free_residual_fn(u: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+    def free_residual_fn(u: Tensor, index: Tensor) -> tuple[Tensor, Tensor] | NormalEquations:
         x, dx = bounds.from_free(u)
-        r, jac = residual_fn(x, index)
+        out = residual_fn(x, index)
+        if isinstance(out, NormalEquations):  # J dx: dx J^T J dx and dx J^T r
+            hess, grad = out.hess, out.grad
+            if not isinstance(hess, Tensor) or hess.ndim != 3 or hess.shape[-1] != dx.shape[-1]:
+                shape = tuple(hess.shape) if isinstance(hess, Tensor) else type(hess).__name__
+                raise ValueError(
+                    f"residual_fn's NormalEquations.hess must have shape (M, {u.shape[1]}, {u.shape[1]}); got {shape}."
+                )
+            return NormalEquations(out.cost, hess * dx[:, :, None] * dx[:, None, :], grad * dx)
+        r, jac = out
         if not isinstance(jac, Tensor) or jac.ndim != 3 or jac.shape[-1] != dx.shape[-1]:
             shape = tuple(jac.shape) if isinstance(jac, Tensor) else type(jac).__name__
             raise ValueError(

@@ -25,9 +25,9 @@ from torch import Tensor
 
 from .brdf import SVBRDF
 from .geometry import angles_from_normal, normal_from_angles
-from .jacobian import jacobian
+from .jacobian import jacobian, normal_equations
 from .lights import Lights
-from .lm import Bounds
+from .lm import Bounds, NormalEquations
 
 __all__ = ["Model", "MODELS", "get_model", "ALPHA_BOUNDS"]
 
@@ -107,6 +107,12 @@ class Model:
             return full
         return torch.cat([full[..., : 2 + channels + cs], shape[..., :1] + shape[..., 1:2]], -1)
 
+    def selection(self, channels: int, like: Tensor) -> Tensor:
+        """:meth:`select` as a matrix ``(2 + C + C_s + 3, P)``: ``select(J) = J @ selection``."""
+        cs = 1 if self.grey else channels
+        eye = torch.eye(5 + channels + cs, dtype=like.dtype, device=like.device)
+        return self.select(eye, channels)
+
     def residuals(
         self,
         observed: Tensor,
@@ -120,7 +126,8 @@ class Model:
         reference_order: int | None = None,
         clamp: str = "exact",
         compile: bool = False,
-    ) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+        normal: bool = False,
+    ) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor] | NormalEquations]:
         """The solver's residual function for these pixels: ``(params (M, P), index (M,)) ->
         (residuals (M, K C), jacobian (M, K C, P))`` with ``residual = weight (rendered -
         observed)``.
@@ -131,22 +138,37 @@ class Model:
                 costs of bright and dark pixels.
             path, order, reference_order, clamp, compile: the model's quadrature
                 (:func:`torchspec.jacobian.jacobian`).
+            normal: return the :class:`~torchspec.lm.NormalEquations` instead
+                (:func:`torchspec.jacobian.normal_equations`): the same solver steps without the
+                Jacobian in memory, and with ``compile`` one fused pass over the frames.
         """
         w = weight if weight.dim() == 3 else weight[..., None]
 
+        quadrature = {"path": path, "order": order, "reference_order": reference_order, "clamp": clamp}
+        if normal:
+            select = self.selection(len(channels), observed)
+
+            def equations(params: Tensor, index: Tensor) -> NormalEquations:
+                svbrdf = self.unpack(params, channels)
+                wi = w[index].expand(-1, -1, len(channels))
+                out = normal_equations(
+                    svbrdf,
+                    lights,
+                    view,
+                    observed[index],
+                    wi,
+                    select,
+                    diffuse_only=not self.lobe,
+                    compile=compile,
+                    **quadrature,
+                )
+                return NormalEquations(*out)
+
+            return equations
+
         def fn(params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
             svbrdf = self.unpack(params, channels)
-            value, full = jacobian(
-                svbrdf,
-                lights,
-                view,
-                path=path,
-                diffuse_only=not self.lobe,
-                order=order,
-                reference_order=reference_order,
-                clamp=clamp,
-                compile=compile,
-            )
+            value, full = jacobian(svbrdf, lights, view, diffuse_only=not self.lobe, compile=compile, **quadrature)
             wi = w[index]
             r = ((value - observed[index]) * wi).flatten(1)
             jac = self.select(full, len(channels)) * wi[..., None]
