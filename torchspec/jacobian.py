@@ -39,8 +39,8 @@ from .render import (
     FAST_ORDER,
     REFERENCE_ORDER,
     _at_nodes,
-    _compiled,
     _diffuse,
+    _fused,
     _pick,
     _pixels,
     _rules,
@@ -263,7 +263,6 @@ def _parts(
     # the part in front of the normal's horizon.
     direction = centre if kernel.kind == "point" else diffuse_directions(lights)
     diffuse, d_diffuse = _diffuse(n, lights, direction, gradient=True, clamp=clamp, compiled=compiled)
-    integrate = _compiled(_integrate_gradients) if compiled else _integrate_gradients
 
     # Specular: the value's nodes, held fixed.
     isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
@@ -286,12 +285,12 @@ def _parts(
         if kernel.kind == "tabulated":
             orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
         rule, fallback = _rules(kernel, centre, pixels, chosen, orders)
-        spec, d_spec_n, d_spec_shape = integrate(
+        spec, d_spec_n, d_spec_shape = _fused(_integrate_gradients, compiled, n.shape[0])(
             kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *(r.detach() for r in rule)
         )
         if fallback is not None:
             p, k, rule = fallback
-            value, d_value_n, d_value_shape = integrate(
+            value, d_value_n, d_value_shape = _fused(_integrate_gradients, compiled, p.shape[0])(
                 kernel,
                 centre[k][:, None],
                 _pick(pixels, p),
@@ -305,7 +304,18 @@ def _parts(
             d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
 
     scale = lights.scale[None]  # (1, K, C or 1)
-    return diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, svbrdf.diffuse, svbrdf.specular
+    # Contiguous coefficients: slices of the solver's parameters sit at offsets torch.compile guards on.
+    return (
+        diffuse,
+        d_diffuse,
+        spec,
+        d_spec_n,
+        d_spec_shape,
+        dn,
+        scale,
+        svbrdf.diffuse.contiguous(),
+        svbrdf.specular.contiguous(),
+    )
 
 
 def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s) -> tuple[Tensor, Tensor]:
@@ -378,11 +388,11 @@ def normal_equations(
         if tuple(value.shape) != expected:
             raise ValueError(f"{name} must have shape {expected}; got {tuple(value.shape)}.")
     chunk = max(1, BUDGET // (k * (order or FAST_ORDER) ** 2))
-    normal = _compiled(_normal) if compile else _normal
     out = []
     for start in range(0, max(n, 1), chunk):
         part = svbrdf[start : start + chunk]
         parts = _parts(part, lights, view, path, diffuse_only, (order, reference_order), clamp, compile)
+        normal = _fused(_normal, compile, part.diffuse.shape[0])
         out.append(normal(parts, observed[start : start + chunk], weight[start : start + chunk], select))
     return tuple(torch.cat(column) for column in zip(*out, strict=True))
 

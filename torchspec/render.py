@@ -152,8 +152,8 @@ def _pixels(svbrdf: SVBRDF, view: Tensor) -> _Pixels:
     safe = torch.where(lobe[:, None], alpha, torch.ones_like(alpha))
     scale = torch.where(lobe, 1.0 / (4.0 * math.pi * safe[:, 0] * safe[:, 1]), torch.zeros_like(safe[:, 0]))
 
-    def split(v):
-        return tuple(v[:, j, None, None] for j in range(3))
+    def split(v):  # contiguous: views at offsets 0, 1, 2 would make torch.compile guard on them
+        return tuple(v[:, j, None, None].contiguous() for j in range(3))
 
     cos_view = (n * view).sum(-1)
     return _Pixels(
@@ -486,6 +486,12 @@ def _compiled(function):
     return _COMPILED[function]
 
 
+def _fused(function, compiled: bool, rows: int):
+    """``function``, fused by torch.compile when ``compiled`` and its batch has 2 rows or more
+    (the compiler specialises sizes 0 and 1: a batch of 1 would compile again; it runs eager)."""
+    return _compiled(function) if compiled and rows > 1 else function
+
+
 def _integrator(compiled: bool):
     """The node integration, eager or fused by ``torch.compile``."""
     return _compiled(_integrate) if compiled else _integrate
@@ -570,7 +576,7 @@ def _diffuse(
     if pairs.shape[0]:
         p, k = pairs[:, 0], pairs[:, 1]
         nodes = {"order": rule.order, "lines": rule.lines}
-        integral = _compiled(clamped_diffuse) if compiled else clamped_diffuse
+        integral = _fused(clamped_diffuse, compiled, pairs.shape[0])
         if gradient:
             exact, slope = integral(kernel, centre[k], normal[p], value[p, k], direction=direction[k], **nodes)
             grad_n = grad_n.index_put((p, k), slope)
