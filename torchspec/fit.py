@@ -73,7 +73,7 @@ class FitConfig:
         path: the quadrature path of the model (:func:`torchspec.render.render`).
         quadrature: ``fit`` (the default): 3 x 3 nodes per frame for the lobe (8 radii where
             the reference rule takes over) and the clamp's fast rule
-            (:data:`torchspec.render.CLAMPS`): within 1e-3 of a pixel's largest value and 3x faster;
+            (:data:`torchspec.render.CLAMPS`): within 1e-3 of a pixel's largest value, 2.7x faster;
             ``render``: the renderer's own rules (1e-6).
         compile: fuse the model's integrations with ``torch.compile``: 2x faster solver steps
             on the CPU, after a one-off compilation of ~70 s (~30 s once torch has cached it on
