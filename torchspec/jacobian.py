@@ -125,9 +125,7 @@ def jacobian(
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
     params = parameters(flat)
-    # Chunks of pixels bound the memory, as render's do (a few hundred MB of node tensors at most);
-    # smaller ones cost time in per-call overhead (8x smaller took 2x longer, analytic and forward).
-    chunk = max(1, BUDGET // (lights.directions.shape[0] * (order or FAST_ORDER) ** 2))
+    chunk = _chunk(lights.directions.shape[0], order)
     values = jacs = None  # filled in place: the Jacobian is the largest tensor of a fit, held once
     for start in range(0, max(params.shape[0], 1), chunk):  # one (empty) chunk for no pixels
         part = params[start : start + chunk]
@@ -160,6 +158,13 @@ def jacobian(
         values[start : start + chunk] = value
         jacs[start : start + chunk] = jac
     return values.reshape(*lead, *values.shape[1:]), jacs.reshape(*lead, *jacs.shape[1:])
+
+
+def _chunk(frames: int, order: int | None) -> int:
+    """Pixels per chunk. Chunks bound the memory, as render's do (a few hundred MB of node tensors
+    at most); smaller ones cost time in per-call overhead (8x smaller took 2x longer, analytic and
+    forward)."""
+    return max(1, BUDGET // (frames * (order or FAST_ORDER) ** 2))
 
 
 def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
@@ -387,7 +392,7 @@ def normal_equations(
     for name, value in (("observed", observed), ("weight", weight)):
         if tuple(value.shape) != expected:
             raise ValueError(f"{name} must have shape {expected}; got {tuple(value.shape)}.")
-    chunk = max(1, BUDGET // (k * (order or FAST_ORDER) ** 2))
+    chunk = _chunk(k, order)
     out = []
     for start in range(0, max(n, 1), chunk):
         part = svbrdf[start : start + chunk]
