@@ -40,6 +40,8 @@ from .render import (
     REFERENCE_ORDER,
     _at_nodes,
     _diffuse,
+    _fallback,
+    _fast_rule,
     _fused,
     _pick,
     _pixels,
@@ -289,13 +291,32 @@ def _parts(
         orders = {"fast": order[0] or FAST_ORDER, "reference": order[1] or REFERENCE_ORDER}
         if kernel.kind == "tabulated":
             orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
-        rule, fallback = _rules(kernel, centre, pixels, chosen, orders)
-        spec, d_spec_n, d_spec_shape = _fused(_integrate_gradients, compiled, n.shape[0])(
-            kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *(r.detach() for r in rule)
-        )
+        if chosen == "reference":
+            rule, fallback = _rules(kernel, centre, pixels, chosen, orders)
+            spec, d_spec_n, d_spec_shape = _fused(_integrate_gradients, compiled, n.shape[0])(
+                kernel, centre[None], pixels, frame_ds, frame_dt, svbrdf.roughness, *(r.detach() for r in rule)
+            )
+        else:  # the fast rule's nodes, then their integration: one pass each when fused (in one,
+            # the compiler computes the pairs' moments again for each node and output: ~20x slower)
+            lx, ly, area, reaches = _fused(_fast_rule, compiled, n.shape[0])(
+                kernel, centre[None], pixels, orders["fast"]
+            )
+            spec, d_spec_n, d_spec_shape = _fused(_integrate_gradients, compiled, n.shape[0])(
+                kernel,
+                centre[None],
+                pixels,
+                frame_ds,
+                frame_dt,
+                svbrdf.roughness,
+                lx.detach(),
+                ly.detach(),
+                area.detach(),
+            )
+            fallback = _fallback(kernel, centre, pixels, reaches, orders["reference"]) if chosen == "auto" else None
         if fallback is not None:
+            # Eager: a few pairs, broadcast unlike the main call (compiled, they cost a second compilation).
             p, k, rule = fallback
-            value, d_value_n, d_value_shape = _fused(_integrate_gradients, compiled, p.shape[0])(
+            value, d_value_n, d_value_shape = _integrate_gradients(
                 kernel,
                 centre[k][:, None],
                 _pick(pixels, p),
@@ -346,12 +367,13 @@ def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, 
     return value, torch.cat([d_angles, d_kd, d_ks, d_shape], -1)
 
 
-def _normal(parts: tuple, observed: Tensor, weight: Tensor, select: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``0.5 |r|^2 (N,)``, ``J^T J (N, P, P)`` and ``J^T r (N, P)`` of ``r = weight (value -
-    observed)`` and ``J = weight dvalue/dparams @ select`` (one pass over the frames when fused)."""
+def _normal(parts: tuple, observed: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``0.5 |r|^2 (N,)``, ``J^T J`` and ``J^T r`` of ``r = weight (value - observed)`` in all of
+    :func:`_assemble`'s columns, ``J = weight dvalue/dparams`` (one pass over the frames when
+    fused; every model shares the compiled code, and picks its columns after)."""
     value, jac = _assemble(*parts)
     r = (value - observed) * weight
-    js = (jac @ select) * weight[..., None]
+    js = jac * weight[..., None]
     return 0.5 * (r * r).sum((1, 2)), torch.einsum("nkcp,nkcq->npq", js, js), torch.einsum("nkcp,nkc->np", js, r)
 
 
@@ -398,7 +420,8 @@ def normal_equations(
         part = svbrdf[start : start + chunk]
         parts = _parts(part, lights, view, path, diffuse_only, (order, reference_order), clamp, compile)
         normal = _fused(_normal, compile, part.diffuse.shape[0])
-        out.append(normal(parts, observed[start : start + chunk], weight[start : start + chunk], select))
+        cost, hess, grad = normal(parts, observed[start : start + chunk], weight[start : start + chunk])
+        out.append((cost, select.T @ hess @ select, grad @ select))
     return tuple(torch.cat(column) for column in zip(*out, strict=True))
 
 

@@ -322,10 +322,19 @@ class Lights:
         return Lights(moved[0], self.kernel, moved[1], moved[2])
 
 
+def _gauss_table(rule, orders: range) -> dict[int, tuple[tuple[float, ...], tuple[float, ...]]]:
+    return {n: tuple(tuple(float(v) for v in a) for a in rule(n)) for n in orders}
+
+
+# Gauss rules as Python floats, tabulated once: torch.compile folds them into its graph as constants
+# (numpy's rules are opaque to it and would split the graph; other orders still work, split).
+_LEGENDRE = _gauss_table(np.polynomial.legendre.leggauss, range(1, 65))
+
+
 def _legendre(order: int, like: Tensor) -> tuple[Tensor, Tensor]:
-    x, w = np.polynomial.legendre.leggauss(order)
-    # from_numpy, not torch.tensor: under torch.compile the arrays are traced as tensors.
-    return torch.from_numpy(x).to(like), torch.from_numpy(w).to(like)
+    """Gauss-Legendre nodes and weights ``(order,)`` on ``[-1, 1]``, in the dtype and on the device of ``like``."""
+    x, w = _LEGENDRE[order] if order in _LEGENDRE else np.polynomial.legendre.leggauss(order)
+    return torch.tensor(x, dtype=like.dtype, device=like.device), torch.tensor(w, dtype=like.dtype, device=like.device)
 
 
 def polar_nodes(

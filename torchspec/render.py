@@ -51,6 +51,7 @@ from .geometry import from_plane, tangent_frame
 from .lights import (
     Kernel,
     Lights,
+    _gauss_table,
     _legendre,
     clamped_diffuse,
     diffuse_directions,
@@ -89,11 +90,19 @@ CLAMPS = {
 }
 
 
+def _standard_hermite(order: int):
+    """The standard-normal rule (weights summing to 1) in float64."""
+    x, w = np.polynomial.hermite.hermgauss(order)
+    return x * math.sqrt(2.0), w / math.sqrt(math.pi)
+
+
+_HERMITE = _gauss_table(_standard_hermite, range(1, 33))  # see lights._legendre
+
+
 def _hermite(order: int, like: Tensor) -> tuple[Tensor, Tensor]:
     """2D standard-normal Gauss-Hermite rule: points ``(Q, 2)``, weights ``(Q,)`` summing to 1."""
-    x, w = np.polynomial.hermite.hermgauss(order)
-    x = torch.from_numpy(x * math.sqrt(2.0)).to(like)  # not torch.tensor: see lights._legendre
-    w = torch.from_numpy(w / math.sqrt(math.pi)).to(like)
+    x, w = _HERMITE[order] if order in _HERMITE else _standard_hermite(order)
+    x, w = torch.tensor(x, dtype=like.dtype, device=like.device), torch.tensor(w, dtype=like.dtype, device=like.device)
     grid = torch.stack(torch.meshgrid(x, x, indexing="ij"), -1).reshape(-1, 2)
     return grid, (w[:, None] * w[None, :]).reshape(-1)
 
@@ -349,7 +358,19 @@ def _fast_rule(kernel: Kernel, centre: Tensor, p: _Pixels, order: int):
     kernel, else the half-vector slopes, where the Ward lobe is (measured both ways by
     ``experiments/render_accuracy.py``: each choice is the more accurate for its kernel)."""
     q = _pairs(kernel, centre, p)
-    points, weights = _hermite(order, centre)
+    lx, ly, area = _fast_nodes(kernel, q, p, order)
+    return lx, ly, area, _reaches(q)
+
+
+def _reaches(q: _Pairs) -> Tensor:
+    """The pairs ``(N, F)`` whose product reaches the horizon (within ``INSIDE`` widths)."""
+    with torch.no_grad():
+        return (torch.sqrt(q.mean[0] ** 2 + q.mean[1] ** 2) + INSIDE * _std(q.cov, largest=True) >= 1.0)[..., 0]
+
+
+def _fast_nodes(kernel: Kernel, q: _Pairs, p: _Pixels, order: int):
+    """The fast rule's nodes ``(N, F, Q)`` (x, y, area) from the pairs' moments (:func:`_fast_rule`)."""
+    points, weights = _hermite(order, p.inv_ax)
     xi, eta = points[:, 0], points[:, 1]
     # weight over the standard-normal density (times the Jacobian det(L) of each map below).
     weights = weights / (torch.exp(-0.5 * (points * points).sum(-1)) / (2.0 * math.pi))
@@ -364,9 +385,7 @@ def _fast_rule(kernel: Kernel, centre: Tensor, p: _Pixels, order: int):
         sx, sy, ratio = _from_slope(p, u, v)
         lx, ly = torch.where(q.facing, sx, lx), torch.where(q.facing, sy, ly)
         area = torch.where(q.facing, slope_area * ratio, area)
-    with torch.no_grad():
-        reaches = torch.sqrt(q.mean[0] ** 2 + q.mean[1] ** 2) + INSIDE * _std(q.cov, largest=True) >= 1.0
-    return lx, ly, area, reaches[..., 0]
+    return lx, ly, area
 
 
 def _first_root(a2: Tensor, a1: Tensor, a0: Tensor) -> Tensor:
@@ -449,12 +468,17 @@ def _rules(kernel: Kernel, centre: Tensor, p: _Pixels, path: str, orders: dict):
     lx, ly, area, reaches = _fast_rule(kernel, centre[None], p, orders["fast"])
     if path == "fast":
         return (lx, ly, area), None
+    return (lx, ly, area), _fallback(kernel, centre, p, reaches, orders["reference"])
+
+
+def _fallback(kernel: Kernel, centre: Tensor, p: _Pixels, reaches: Tensor, order: int):
+    """The pairs ``(pixel, frame)`` of ``reaches (N, F)`` with their reference nodes ``(M, 1, Q')``
+    (x, y, area), or ``None`` when there are none."""
     cut = reaches.nonzero()
     if not cut.shape[0]:
-        return (lx, ly, area), None
+        return None
     pixel, frame = cut[:, 0], cut[:, 1]
-    sub = _reference_rule(kernel, centre[frame][:, None], _pick(p, pixel), orders["reference"])
-    return (lx, ly, area), (pixel, frame, sub)
+    return pixel, frame, _reference_rule(kernel, centre[frame][:, None], _pick(p, pixel), order)
 
 
 def _integrate(kernel, centre, pixels, lx, ly, area) -> Tensor:
