@@ -38,8 +38,8 @@ from torchspec.io import read_capture, read_svbrdf  # noqa: E402
 from torchspec.lights import Lights  # noqa: E402
 from torchspec.relight import lights_of  # noqa: E402
 from torchspec.render import render  # noqa: E402
+from torchspec.report import score  # noqa: E402
 
-REGIONS = ("matte", "varnished", "gilded")
 TARGETS = {"normal_deg": 0.5, "kd": 0.03, "alpha": 0.10, "held_out_psnr_db": 40.0}
 
 
@@ -57,10 +57,6 @@ class Settings:
     runs: tuple[Run, ...]
 
 
-def _relative(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return ((a.double() - b.double()) / b.double()).abs()
-
-
 def _subset(lights: Lights, index: list[int]) -> Lights:
     i = torch.tensor(index)
     return Lights(lights.directions[i], lights.kernel, lights.irradiance[i], lights.exposure[i])
@@ -75,28 +71,6 @@ def _held_out(svbrdf: SVBRDF, capture, frames: list[int], observed: torch.Tensor
     mse = (predicted - truth).pow(2).mean().item()
     peak = observed.abs().max().item()
     return 10 * math.log10(peak * peak / mse)
-
-
-def _score(svbrdf: SVBRDF, truth: SVBRDF, regions: torch.Tensor, matte_ks: float) -> dict:
-    s, t, r = svbrdf.flatten(), truth.flatten(), regions.reshape(-1).round().long()
-    normal = torch.rad2deg(angle(s.normal.double(), t.normal.double()))
-    kd = _relative(s.diffuse, t.diffuse)
-    ks = _relative(s.specular.mean(-1), t.specular.mean(-1))
-    alpha = _relative(s.roughness, t.roughness).mean(-1)
-    out = {
-        "normal_deg": float(normal.median()),
-        "normal_deg_p90": float(normal.quantile(0.9)),
-        "kd": float(kd.median()),
-        "matte_share_ks0": float((s.specular[r == 0].amax(-1) < matte_ks).double().mean()),
-    }
-    for code, name in enumerate(REGIONS):
-        m = r == code
-        out[f"{name}_normal_deg"] = float(normal[m].median())
-        out[f"{name}_kd"] = float(kd[m].median())
-        if name != "matte":
-            out[f"{name}_ks"] = float(ks[m].median())
-            out[f"{name}_alpha"] = float(alpha[m].median())
-    return out
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -117,7 +91,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print(header)
     # The bound: the truth maps with the format's Ward model.
     odd = select_frames("1::2", count)
-    bound = {"label": "truth maps (the Ward bound)", "frames": "-", **_score(truth, truth, regions, settings.matte_ks)}
+    bound = {"label": "truth maps (the Ward bound)", "frames": "-", **score(truth, truth, regions, settings.matte_ks)}
     bound["held_out_psnr_db"] = _held_out(truth, capture, odd, observed)
     bound["all_frames_psnr_db"] = _held_out(truth, capture, list(range(count)), observed)
     rows.append(bound)
@@ -125,7 +99,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for run in settings.runs:
         picked = select_frames(run.frames, count)
         result = fit(folder, config=run.fit, frames=picked)
-        row = {"label": run.label, "frames": run.frames, **_score(result.svbrdf, truth, regions, settings.matte_ks)}
+        row = {"label": run.label, "frames": run.frames, **score(result.svbrdf, truth, regions, settings.matte_ks)}
         left = sorted(set(range(count)) - set(picked))
         row["held_out_psnr_db"] = _held_out(result.svbrdf, capture, left, observed) if left else None
         row["fitted_frames_psnr_db"] = _held_out(result.svbrdf, capture, picked, observed)

@@ -2,8 +2,11 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 import torchspec
 from torchspec.cli import main
+from torchspec.io import read_svbrdf
 
 
 def test_version():
@@ -11,14 +14,27 @@ def test_version():
     assert out.stdout.strip() == f"torchspec {torchspec.__version__}"
 
 
-def test_demo_writes_its_report(tmp_path, capsys):
-    assert main(["demo", "-o", str(tmp_path), "--pixels", "2048"]) == 0
-    summary = json.loads((tmp_path / "demo.json").read_text())
-    assert summary["pixels"] == 2048
-    assert summary["mse_over_crb"] < 1.3, summary
-    assert (tmp_path / "demo.png").stat().st_size > 1000
-    assert not list(tmp_path.glob(".*.part*")), "a temporary file was left behind"
-    assert "MSE / CRB" in capsys.readouterr().out
+def test_demo_writes_maps_previews_and_a_report(tmp_path, capsys):
+    assert main(["demo", "-o", str(tmp_path), "--size", "24", "--quiet"]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    scores = report["scores"]
+    # The fit's targets (issue 4) on the demo's own simulated painting, against its truth.
+    assert scores["normal_deg"] < 0.5 and scores["kd"] < 0.03, scores
+    assert scores["varnished_alpha"] < 0.1 and scores["matte_share_ks0"] > 0.95, scores
+    assert scores["heldout_psnr_db"] > 40, scores
+    assert read_svbrdf(tmp_path / "maps").svbrdf.shape == (24, 24)
+    assert (tmp_path / "capture" / "truth" / "svbrdf.json").is_file()
+    for name in ("report.png", "relit.png", "previews/normal.png", "previews/diffuse.png", "previews/specular.png",
+                 "previews/roughness.png", "previews/model.png", "previews/normal_error.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert not list(tmp_path.rglob(".*.part*")), "a temporary file was left behind"
+    assert "held-out frames predicted" in capsys.readouterr().out
+
+
+def test_demo_size_is_checked(capsys):
+    with pytest.raises(SystemExit):
+        main(["demo", "--size", "2"])
+    assert "--size must be in 8..4096" in capsys.readouterr().err
 
 
 def test_no_command_prints_help(capsys):

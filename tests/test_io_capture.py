@@ -1,21 +1,19 @@
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from capture_cases import DATA, H, W, edit_manifest, needs_data, random_frames, small_capture
 
 import torchspec.io.capture as capture_module
 from torchspec.brdf import SVBRDF
 from torchspec.io import (
     Capture,
     CaptureError,
-    Frame,
     LightSpec,
     read_capture,
     read_exr,
@@ -25,38 +23,12 @@ from torchspec.io import (
 )
 
 
-def _shared_data() -> Path:
-    beside = Path(__file__).resolve().parents[2] / "shared" / "data"
-    return beside if beside.is_dir() else Path("/work/shared/data")
-
-
-DATA = _shared_data()
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"no shared captures at {DATA}")
-
-H, W = 4, 5
-
-
-def _direction(lx, ly):
-    return (lx, ly, math.sqrt(1 - lx * lx - ly * ly))
-
-
 def _capture(root=".", light=None, count=3, channels=("R", "G", "B")) -> Capture:
-    frames = tuple(
-        Frame(f"frames/{k:04d}.exr", _direction(0.1 * k, -0.05 * k), 1.0 + k, 0.5 * (k + 1)) for k in range(count)
-    )
-    return Capture(
-        root=Path(root),
-        width=W,
-        height=H,
-        channels=channels,
-        view=(0.0, 0.0, 1.0),
-        light=light or LightSpec("gaussian", domain="projected", sigma=0.05),
-        frames=frames,
-    )
+    return small_capture(root, light, count, channels)
 
 
 def _frames(count=3, channels=3, seed=0):
-    return torch.from_numpy(np.random.default_rng(seed).uniform(0, 2, (count, channels, H, W)).astype(np.float32))
+    return random_frames(count, channels, seed)
 
 
 @pytest.fixture
@@ -64,13 +36,6 @@ def written(tmp_path):
     """A small capture on disk and the frames written."""
     frames = _frames()
     return write_capture(tmp_path / "cap", _capture(), frames), frames
-
-
-def _edit_manifest(root: Path, edit) -> None:
-    path = root / "capture.json"
-    manifest = json.loads(path.read_text())
-    edit(manifest)
-    path.write_text(json.dumps(manifest))
 
 
 # --- round trips -----------------------------------------------------------------------------------
@@ -207,7 +172,7 @@ MANIFEST_ERRORS = {
 @pytest.mark.parametrize("edit, message", MANIFEST_ERRORS.values(), ids=MANIFEST_ERRORS.keys())
 def test_manifest_errors_name_file_and_key(written, edit, message):
     capture, _ = written
-    _edit_manifest(capture.root, edit)
+    edit_manifest(capture.root, edit)
     with pytest.raises(CaptureError, match=message) as info:
         read_capture(capture.root)
     assert str(capture.manifest) in str(info.value)
@@ -234,10 +199,11 @@ def test_first_missing_frame_is_named(written):
 
 def test_near_unit_direction_is_renormalised_with_a_warning(written):
     capture, _ = written
-    _edit_manifest(capture.root, _set(["frames", 1, "direction"], [0.0, 0.0, 1.0005]))
-    with pytest.warns(UserWarning, match=r"frames\[1\]\.direction has norm 1\.0005.*renormalised"):
+    # frames[0] is the one at (0, 0, 1): another frame there would repeat its light direction
+    edit_manifest(capture.root, _set(["frames", 0, "direction"], [0.0, 0.0, 1.0005]))
+    with pytest.warns(UserWarning, match=r"frames\[0\]\.direction has norm 1\.0005.*renormalised"):
         back = read_capture(capture.root)
-    assert back.frames[1].direction == (0.0, 0.0, 1.0)
+    assert back.frames[0].direction == (0.0, 0.0, 1.0)
 
 
 def test_unknown_keys_warn(written):
@@ -249,7 +215,7 @@ def test_unknown_keys_warn(written):
         manifest["light"]["radius"] = 1
         manifest["camera"]["fov"] = 3
 
-    _edit_manifest(capture.root, edit)
+    edit_manifest(capture.root, edit)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         back = read_capture(capture.root)

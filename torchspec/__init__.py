@@ -1,9 +1,25 @@
 """torchspec: reflectance of nearly flat objects from a few HDR photographs under an extended
 light, by finite-rate-of-innovation location of the specular peak and batched fitting."""
 
-from . import brdf, crb, fri, geometry, jacobian, lights, lm, models, photometric, relight, simulate, specular, synth
+from . import (
+    brdf,
+    crb,
+    fri,
+    geometry,
+    info,
+    jacobian,
+    lights,
+    lm,
+    models,
+    photometric,
+    relight,
+    simulate,
+    specular,
+    synth,
+)
 from ._version import __version__
 from .brdf import SVBRDF
+from .errors import TorchspecError
 from .fit import Fit, FitConfig, fit, write_fit
 from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
 from .render import render
@@ -12,12 +28,14 @@ __all__ = [
     "Fit",
     "FitConfig",
     "SVBRDF",
+    "TorchspecError",
     "__version__",
     "brdf",
     "crb",
     "fri",
     "geometry",
     "fit",
+    "info",
     "jacobian",
     "lights",
     "lm",

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import shlex
+import shutil
 import sys
 from pathlib import Path
 
 from ._version import __version__
 
 __all__ = ["main"]
+
+CHECKPOINT = ".torchspec-fit"
+"""The folder, inside a fit's output, of its finished tiles until the maps are written."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -18,9 +23,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"torchspec {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
-    demo = commands.add_parser("demo", help="run the embedded default example and report accuracy and speed")
-    demo.add_argument("-o", "--output", type=Path, default=None, help="folder for demo.json and demo.png")
-    demo.add_argument("--pixels", type=int, default=65536, help="number of simulated pixels (default: 65536)")
+    demo = commands.add_parser(
+        "demo", help="simulate a small painting, fit it, and write maps, previews, relit renders and a report"
+    )
+    demo.add_argument("-o", "--output", type=Path, default=None,
+                      help="the folder to write (default: ./torchspec-demo)")
+    demo.add_argument("--size", type=int, default=64, help="the painting's width and height in pixels (default: 64)")
+    demo.add_argument("--quiet", action="store_true", help="no progress bar")
 
     simulate = commands.add_parser("simulate", help="render a synthetic capture (with truth/) from a config")
     simulate.add_argument("config", type=Path, help="a simulation config (YAML), e.g. configs/sim_painting.yaml")
@@ -34,6 +43,9 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--frames", default=None,
                      help="frames to fit: 'all', a slice like '::2' (every second) or a list like '0,3,10-19'")
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("--resume", action="store_true",
+                     help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
+                          f"{CHECKPOINT})")
 
     render = commands.add_parser("render", help="predict a capture's frames from SVBRDF maps")
     render.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
@@ -43,6 +55,20 @@ def _parser() -> argparse.ArgumentParser:
                         help="a JSON light description to use instead of the capture's (needed for 'unknown' kernels)")
     render.add_argument("--path", default="auto", choices=["auto", "point", "fast", "reference"],
                         help="quadrature path (default: auto)")
+
+    export = commands.add_parser("export", help="export SVBRDF maps: a Mitsuba 3 scene, a glTF 2.0 quad or 16-bit PNG")
+    export.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
+    export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16}", help="the format (see docs/export.md)")
+    export.add_argument("-o", "--output", type=Path, required=True, help="the folder to write")
+    export.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
+                        help="mitsuba: add a directional emitter lighting from this direction (surface frame)")
+    export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
+                        help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1)")
+
+    info = commands.add_parser("info", help="summarise and validate a capture (exit status 2 when unusable)")
+    info.add_argument("capture", type=Path, help="the capture folder (with capture.json)")
+    info.add_argument("--json", action="store_true", help="print the report as JSON instead of a summary")
+    info.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -61,11 +87,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "demo":
-        if args.pixels < 1:
-            parser.error(f"--pixels must be >= 1; got {args.pixels}")
+        if not 8 <= args.size <= 4096:
+            parser.error(f"--size must be in 8..4096; got {args.size}")
         from . import demo
 
-        demo.run(args.output, pixels=args.pixels)
+        demo.run(args.output, size=args.size, progress=not args.quiet)
     elif args.command == "simulate":
         from .config import load_config
         from .simulate import SimulationConfig, simulate, write_simulation
@@ -76,11 +102,26 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
               f"{''.join(result.channels)}, with truth/")
     elif args.command == "fit":
         from .config import load_config
-        from .fit import FitConfig, fit, write_fit
+        from .fit import FitConfig, FitInterrupted, fit, write_fit
 
         config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
-        result = fit(args.capture, config=config, frames=args.frames, progress=not args.quiet)
+        checkpoint = args.output / CHECKPOINT
+        try:
+            result = fit(
+                args.capture,
+                config=config,
+                frames=args.frames,
+                progress=not args.quiet,
+                checkpoint=checkpoint,
+                resume=args.resume,
+            )
+        except FitInterrupted as stop:
+            again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
+            print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
+                  f"continue with: torchspec {again} --resume", file=sys.stderr)
+            return 130
         write_fit(args.output, result)
+        shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
         stats = result.stats
         print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
               f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
@@ -94,6 +135,19 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         if report.get("psnr_db") is not None:
             print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
                   f"relative RMS error {100 * report['relative_rms']:.2f} %")
+    elif args.command == "export":
+        from .export import export
+
+        written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
+        print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
+    elif args.command == "info":
+        import json
+
+        from .info import UNUSABLE, format_report, inspect_capture
+
+        report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
+        print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
+        return 2 if report["verdict"] == UNUSABLE else 0
     return 0
 
 

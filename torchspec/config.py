@@ -10,10 +10,12 @@ from pathlib import Path
 
 import yaml
 
+from .errors import TorchspecError
+
 __all__ = ["ConfigError", "load_config", "from_mapping"]
 
 
-class ConfigError(ValueError):
+class ConfigError(TorchspecError):
     """A config file that cannot be read into its settings."""
 
 

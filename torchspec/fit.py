@@ -27,6 +27,8 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from ._atomic import atomic_path, read_json, write_json
+from ._version import __version__
 from .brdf import SVBRDF
 from .io import Capture, read_capture, write_svbrdf
 from .lights import Lights, diffuse_directions
@@ -37,7 +39,7 @@ from .relight import lights_of
 from .specular import Start as SpecularStart
 from .specular import grid_search, layout_of, locate_peak, naive_start, specular_residual
 
-__all__ = ["FitConfig", "Fit", "Start", "fit", "start", "write_fit", "select_frames", "INITS"]
+__all__ = ["FitConfig", "Fit", "FitInterrupted", "Start", "fit", "start", "write_fit", "select_frames", "INITS"]
 
 INITS = ("fri", "naive", "grid")
 # torch.compile's one-off cost (~70 s; ~30 s from its on-disk cache) against the ~0.7 ms it saves
@@ -386,12 +388,107 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     }
 
 
+class FitInterrupted(KeyboardInterrupt):
+    """A fit stopped by Ctrl-C (or another ``KeyboardInterrupt``) with a checkpoint: its finished
+    tiles are saved and ``fit(..., checkpoint=..., resume=True)`` continues it."""
+
+    def __init__(self, done: int, total: int, checkpoint: Path):
+        super().__init__(f"the fit was interrupted after {done} of {total} tiles; they are saved in {checkpoint}.")
+        self.done, self.total, self.checkpoint = done, total, checkpoint
+
+
+STATE = "state.json"
+"""The checkpoint's record of the job it belongs to (:func:`_job`)."""
+
+
+def _job(capture: Capture, picked: list[int], config: FitConfig, tile: int, pixels: int) -> dict:
+    """What a checkpoint's tiles depend on: the manifest, each frame file's size and time, the
+    frames, the settings and the tiling (a resumed fit must be the same job to give the same maps)."""
+    files = [capture.root / capture.frames[k].file for k in picked]
+    return {
+        "torchspec": __version__,
+        "capture": str(capture.root.resolve()),
+        "manifest": _stamp(capture.manifest) if capture.manifest.is_file() else None,
+        "files": [_stamp(f) if f.is_file() else None for f in files],
+        "frames": picked,
+        "settings": asdict(config),
+        "tile_pixels": tile,
+        "pixels": pixels,
+    }
+
+
+def _stamp(path: Path) -> list:
+    info = path.stat()
+    return [path.name, info.st_size, info.st_mtime_ns]
+
+
+def _checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, dict]:
+    """Open the checkpoint folder: its finished tiles ``{first pixel: tile}`` when resuming the
+    same job, none for a new one. Raises ``ValueError`` (naming what differs) for another job,
+    and for an unfinished one that is not to be resumed (its work is never silently dropped)."""
+    state = folder / STATE
+    if not state.is_file():
+        if resume and folder.exists() and any(folder.glob("tile-*.pt")):
+            raise ValueError(f"{folder} holds tiles but no {STATE}; remove {folder} to start over.")
+        folder.mkdir(parents=True, exist_ok=True)
+        write_json(state, job)
+        return {}
+    saved = read_json(state, ValueError, "")
+    finished = sorted(folder.glob("tile-*.pt"))
+    if not resume:
+        raise ValueError(
+            f"{folder} holds an unfinished fit ({len(finished)} tile(s) done): continue it with --resume "
+            f"(resume=True), or remove {folder} to start over."
+        )
+    differ = [key for key in job if saved.get(key) != job[key]]
+    if differ:
+        raise ValueError(
+            f"{folder} holds a fit of another job (its {', '.join(differ)} differ from this one's), so resuming "
+            f"it would mix two fits; run the same command as before, or remove {folder} to start over."
+        )
+    tiles = {}
+    for path in finished:
+        try:
+            tile = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as error:  # a tile is written atomically: this is damage from outside
+            raise ValueError(f"{path} is not a readable tile ({type(error).__name__}: {error}); remove it.") from error
+        tiles[int(tile["first"])] = tile
+    for stale in folder.glob(".tile-*"):  # temporaries of a write the interruption cut short
+        stale.unlink(missing_ok=True)
+    return tiles
+
+
+def _save_tile(folder: Path, first: int, out: dict) -> None:
+    def cpu(value):
+        if isinstance(value, Tensor):
+            return value.cpu()
+        if isinstance(value, SVBRDF):
+            return value.to(device="cpu")
+        return value
+
+    with atomic_path(folder / f"tile-{first:012d}.pt") as tmp:
+        torch.save({"first": first, **{name: cpu(value) for name, value in out.items()}}, tmp)
+
+
+def _load_tile(tile: dict, device: torch.device) -> dict:
+    def move(value):
+        if isinstance(value, Tensor):
+            return value.to(device)
+        if isinstance(value, SVBRDF):
+            return value.to(device=device)
+        return value
+
+    return {name: move(value) for name, value in tile.items() if name != "first"}
+
+
 def fit(
     capture: Capture | str | Path,
     *,
     config: FitConfig | None = None,
     frames: str | list[int] | None = None,
     progress: bool = False,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
 ) -> Fit:
     """Fit SVBRDF maps to a capture.
 
@@ -400,6 +497,13 @@ def fit(
         config: :class:`FitConfig` (the defaults otherwise).
         frames: the frames to fit: a SPEC of :func:`select_frames` or a list of indices.
         progress: show a tqdm bar over the pixels.
+        checkpoint: a folder where each finished tile is saved (atomically), so that an
+            interrupted fit can be continued; a ``KeyboardInterrupt`` then becomes
+            :class:`FitInterrupted`. The caller removes the folder once the maps are written.
+        resume: continue the fit whose tiles ``checkpoint`` holds (the same capture, frames,
+            settings and tiling, else ``ValueError``): the maps are identical to an
+            uninterrupted fit's. Without it, a checkpoint holding tiles is an error (never
+            silently dropped).
 
     Returns:
         :class:`Fit`.
@@ -447,18 +551,31 @@ def fit(
     reserved = stack.numel() * stack.element_size() + 3 * masks.nonfinite.numel()  # the stack, three bool masks
     tile = _tile_size(config, k, c, stack.element_size(), reserved)
     flat = stack.flatten(2)  # (K, C, H W), a view
+    folder = Path(checkpoint) if checkpoint is not None else None
+    done = _checkpoint(folder, _job(capture, picked, config, tile, pixels), resume) if folder is not None else {}
+    firsts = range(0, pixels, tile)
     parts = []
     times: dict[str, float] = {}
     with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
-        for first in range(0, pixels, tile):
-            stop = min(first + tile, pixels)
-            y = flat[:, :, first:stop].permute(2, 0, 1)  # (n, K, C)
-            valid = ~invalid[:, first:stop].T
-            out = _tile(y, valid, lights, view, capture.channels, config, ctx)
-            for name, seconds in out.pop("times").items():
-                times[name] = times.get(name, 0.0) + seconds
-            parts.append(out)
-            bar.update(stop - first)
+        try:
+            for first in firsts:
+                stop = min(first + tile, pixels)
+                if first in done:  # resumed: the tile as it was computed (its times are that run's)
+                    out = _load_tile(done[first], device)
+                else:
+                    y = flat[:, :, first:stop].permute(2, 0, 1)  # (n, K, C)
+                    valid = ~invalid[:, first:stop].T
+                    out = _tile(y, valid, lights, view, capture.channels, config, ctx)
+                    if folder is not None:
+                        _save_tile(folder, first, out)
+                for name, seconds in out["times"].items():
+                    times[name] = times.get(name, 0.0) + seconds
+                parts.append(out)
+                bar.update(stop - first)
+        except KeyboardInterrupt as interrupt:
+            if folder is None:
+                raise
+            raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
 
     def join(name):
         return torch.cat([p[name] for p in parts]).reshape(h, w, *parts[0][name].shape[1:])
@@ -482,6 +599,7 @@ def fit(
         "device": str(device),
         "pixels": pixels,
         "tile_pixels": tile,
+        "resumed_tiles": len(done),
         "seconds": {"read": read_seconds, "masks": mask_seconds, **times, "total": total},
         "pixels_per_second": pixels / total if total > 0 else None,
         "masked_samples": masks.counts(),

@@ -36,6 +36,10 @@ BAND_ELEMENTS = 1 << 22
 MAD_SCALE = 1.4826
 """The median absolute deviation times this is the standard deviation of Gaussian noise."""
 
+CLIP_REPEATS = 16
+"""A stack's maximum is the sensor's clipping level when at least this many values share it
+exactly (a clipped sensor repeats its ceiling; a smooth highlight does not)."""
+
 
 @dataclass(frozen=True)
 class Masks:
@@ -87,12 +91,7 @@ def sample_masks(stack: Tensor, *, saturation: float | None = None, grow: int = 
     rows = max(1, BAND_ELEMENTS // max(k * c * w, 1))
     bands = [(r, min(r + rows, h)) for r in range(0, h, rows)]
     if saturation is None:
-        top = stack.new_full((), -math.inf)
-        for r0, r1 in bands:
-            band = stack[:, :, r0:r1]
-            top = torch.maximum(top, torch.where(torch.isfinite(band), band, -math.inf).amax())
-        at_top = sum((stack[:, :, r0:r1] == top).sum() for r0, r1 in bands)
-        level = torch.where(at_top >= 16, top, torch.full_like(top, math.inf))
+        level = _saturation_level([_peak(stack[:, :, r0:r1]) for r0, r1 in bands])
     else:
         level = torch.as_tensor(saturation, dtype=stack.dtype, device=stack.device)
     nonfinite = torch.zeros((k, h, w), dtype=torch.bool, device=stack.device)
@@ -122,6 +121,29 @@ def sample_masks(stack: Tensor, *, saturation: float | None = None, grow: int = 
         dark = (torch.nan_to_num(band, nan=math.inf) < shadow * median[None]).all(1) & (median[None] > 0).all(1)
         shadowed[:, r0:r1] = dark & usable[:, 0]
     return Masks(nonfinite=nonfinite, saturated=saturated, shadowed=shadowed)
+
+
+def _peak(values: Tensor) -> tuple[Tensor, Tensor]:
+    """``(top, count)``, 0-dim tensors: the largest finite value of ``values`` (``-inf`` when there
+    is none) and how many values equal it, of one part of a stack, for :func:`_saturation_level`."""
+    if values.numel() == 0:
+        top = values.new_full((), -math.inf)
+    else:
+        top = torch.where(torch.isfinite(values), values, -math.inf).amax()
+    count = torch.where(torch.isfinite(top), (values == top).sum(), 0)
+    return top, count
+
+
+def _saturation_level(peaks: list[tuple[Tensor, Tensor]]) -> Tensor:
+    """The clipping level of a stack from the :func:`_peak` of each of its parts (bands of rows in
+    :func:`sample_masks`, single frames in :func:`torchspec.info.inspect_capture`): 0-dim, the
+    largest finite value when at least :data:`CLIP_REPEATS` values share it exactly, else ``inf``
+    (nothing is saturated)."""
+    tops = torch.stack([top for top, _ in peaks])
+    counts = torch.stack([count for _, count in peaks])
+    top = tops.amax()
+    at_top = torch.where(tops == top, counts, 0).sum()
+    return torch.where(at_top >= CLIP_REPEATS, top, torch.full_like(top, math.inf))
 
 
 def grid_layout(l: Tensor, *, tolerance: float = 1e-6) -> tuple[Tensor, Tensor, float, float] | None:

@@ -99,12 +99,16 @@ def render_capture(
     predicted = values.permute(2, 3, 0, 1).contiguous()  # (K, C, H, W)
     if output_dir is not None:
         write_capture(Path(output_dir), capture, predicted.float())
-    observed = capture.read_frames(dtype=torch.float64)
-    per_frame = [psnr(predicted[k], observed[k]) for k in range(predicted.shape[0])]
-    residual = (predicted.double() - observed).pow(2).sum().sqrt() / observed.pow(2).sum().sqrt()
+    # As recorded: sensor noise may dip below 0; NaN or Inf pixels (warned about) are left out of the scores.
+    observed = capture.read_frames(dtype=torch.float64, nonfinite="keep")
+    finite = observed.isfinite()
+    observed = torch.where(finite, observed, torch.zeros_like(observed))
+    scored = torch.where(finite, predicted, torch.zeros_like(predicted))
+    per_frame = [psnr(scored[k], observed[k]) for k in range(scored.shape[0])]
+    residual = (scored.double() - observed).pow(2).sum().sqrt() / observed.pow(2).sum().sqrt()
     return {
         "frames": predicted.shape[0],
-        "psnr_db": psnr(predicted, observed),
+        "psnr_db": psnr(scored, observed),
         "relative_rms": residual.item(),
         "per_frame_psnr_db": per_frame,
         "predicted": predicted,

@@ -4,6 +4,7 @@ JSON form. :mod:`torchspec.io.capture` reads and writes whole captures with it."
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -14,6 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+
+from ..errors import TorchspecError
 
 if TYPE_CHECKING:
     from .capture import Capture
@@ -33,9 +36,11 @@ _UNIT_TOLERANCE = 1e-3
 """A direction whose norm is further than this from 1 is an error."""
 _UNIT_SILENT = 1e-6
 """Within this a direction is kept as written (float32 round-off); beyond, renormalised with a warning."""
+_SAME_DIRECTION = 1e-9
+"""Two frames whose directions differ by at most this in every coordinate are under the same light."""
 
 
-class CaptureError(ValueError):
+class CaptureError(TorchspecError):
     """A capture that does not follow ``capture-format.md``; the message names the file, and the
     key or frame at fault."""
 
@@ -168,7 +173,7 @@ def _light(where: _Where, light: Any, notes: list[str]) -> LightSpec:
     if not isinstance(light, dict):
         raise where.error("light", "be an object", light, 'E.g. {"kernel": "point"}.')
     kernel = light.get("kernel")
-    if kernel not in _LIGHT_KEYS:
+    if not isinstance(kernel, str) or kernel not in _LIGHT_KEYS:
         raise where.error("light.kernel", f"be one of {list(_LIGHT_KEYS)}", kernel)
     keys = _LIGHT_KEYS[kernel]
     for key in keys:
@@ -227,7 +232,30 @@ def _frames(where: _Where, frames: Any, count: int, notes: list[str]) -> tuple[F
             irradiance = (_positive(where, f"{key}.irradiance", irradiance),) * count
         exposure = _positive(where, f"{key}.exposure", raw["exposure"])
         out.append(Frame(file=file, direction=direction, irradiance=irradiance, exposure=exposure))
+    _distinct_directions(where, out)
     return tuple(out)
+
+
+def _distinct_directions(where: _Where, frames: Sequence[Frame]) -> None:
+    """Refuse two frames under the same light (directions within :data:`_SAME_DIRECTION` in every
+    coordinate): a light position is one sample of the layout, and a repeated one is most often a
+    slip in the manifest. Cells of that size in a dict keep this linear in the frame count."""
+    cells: dict[tuple[int, ...], list[int]] = {}
+    for k, frame in enumerate(frames):
+        cell = tuple(math.floor(v / _SAME_DIRECTION) for v in frame.direction)
+        for offset in itertools.product((-1, 0, 1), repeat=3):
+            for j in cells.get(tuple(c + o for c, o in zip(cell, offset, strict=True)), ()):
+                if all(
+                    abs(u - v) <= _SAME_DIRECTION for u, v in zip(frames[j].direction, frame.direction, strict=True)
+                ):
+                    raise where.error(
+                        f"frames[{k}].direction",
+                        f"differ from every other frame's direction (frames[{j}].direction)",
+                        list(frame.direction),
+                        f"frames[{j}] and frames[{k}] are lit from the same direction; list each light position "
+                        "once, or fix the direction.",
+                    )
+        cells.setdefault(cell, []).append(k)
 
 
 def _direction(where: _Where, key: str, value: Any, notes: list[str]) -> tuple[float, float, float]:
@@ -258,7 +286,12 @@ def _unknown(where: _Where, key: str, obj: dict, known: Sequence[str], notes: li
 
 
 def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond float range
+        return False
 
 
 def _positive(where: _Where, key: str, value: Any) -> float:
@@ -274,8 +307,8 @@ def _positive_int(where: _Where, key: str, value: Any) -> int:
 
 
 def _relative_file(where: _Where, key: str, value: Any) -> str:
-    if not isinstance(value, str) or not value:
-        raise where.error(key, "be a file name (a non-empty string)", value)
+    if not isinstance(value, str) or not value or "\0" in value:
+        raise where.error(key, "be a file name (a non-empty string without NUL characters)", value)
     if PurePosixPath(value).is_absolute() or PureWindowsPath(value).is_absolute():
         raise where.error(key, "be a path relative to the capture directory", value, "Make the path relative.")
     return value

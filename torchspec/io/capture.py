@@ -39,6 +39,7 @@ from .svbrdf import Maps, write_svbrdf
 
 __all__ = ["Capture", "CaptureError", "Frame", "LightSpec", "FORMAT", "VERSIONS", "read_capture", "write_capture"]
 
+
 @dataclass(frozen=True)
 class Capture:
     """A capture directory: its manifest, validated, and lazy access to its frames.
@@ -105,9 +106,9 @@ class Capture:
             indices: the frames to read, in this order (negative indices count from the end);
                 all ``K`` by default.
             dtype, device: of the result.
-            nonfinite: ``raise`` (a frame with NaN or Inf pixels is an error) or ``keep`` (they
-                are returned as they are, with a warning naming the frame, for a caller that masks
-                them, as :func:`torchspec.fit.fit` does).
+            nonfinite: ``raise`` (a frame with NaN, Inf or negative pixels is an error) or
+                ``keep`` (they are returned as they are, with a warning naming the frame, for a
+                caller that masks them, as :func:`torchspec.fit.fit` does).
 
         Returns:
             ``(K, C, H, W)`` image stack, frames as the batch (kornia's layout), channels in the
@@ -115,8 +116,9 @@ class Capture:
 
         Raises:
             CaptureError: an index is out of range, or a frame is unreadable, has another size
-                than the manifest's, lacks a channel, or holds NaN or Inf (the message names the
-                frame index, the file and the count of bad pixels).
+                than the manifest's, lacks a channel, or holds NaN, Inf or (with ``raise``)
+                negative values (the message names the frame index, the file and the count of bad
+                pixels, and the most negative value).
 
         Example:
             >>> capture = read_capture("painting-dev")  # doctest: +SKIP
@@ -127,9 +129,12 @@ class Capture:
             raise ValueError(f"nonfinite must be 'raise' or 'keep'; got {nonfinite!r}.")
         count = len(self.frames)
         picked = range(count) if indices is None else [self._index(i) for i in _as_list(indices)]
-        out = torch.empty((len(picked), len(self.channels), self.height, self.width), dtype=dtype, device=device)
+        out = torch.empty((0, len(self.channels), self.height, self.width), dtype=dtype, device=device)
         for j, k in enumerate(picked):
-            out[j] = torch.from_numpy(self._read_frame(k, nonfinite == "keep")).permute(2, 0, 1)
+            image = torch.from_numpy(self._read_frame(k, nonfinite == "keep")).permute(2, 0, 1)
+            if j == 0:  # allocated once a frame has the manifest's size: a wrong one allocates nothing
+                out = torch.empty((len(picked), *image.shape), dtype=dtype, device=device)
+            out[j] = image
         return out
 
     def _index(self, index) -> int:
@@ -142,7 +147,9 @@ class Capture:
             raise CaptureError(f"frame index must be in [0, {count}) ({self.manifest} has {count} frames); got {k}.")
         return k % count
 
-    def _read_frame(self, k: int, keep_nonfinite: bool = False) -> np.ndarray:
+    def _read_frame(self, k: int, keep_bad: bool = False) -> np.ndarray:
+        """Frame ``k`` as ``(H, W, C)``, checked; NaN, Inf and negative values raise unless
+        ``keep_bad``, which warns instead."""
         file = self.root / self.frames[k].file
         try:
             image = read_exr(file, self.channels)
@@ -155,10 +162,12 @@ class Capture:
                 f"frames[{k}] {file} must be {self.height}x{self.width} (height x width, from {self.manifest}); "
                 f"got {image.shape[0]}x{image.shape[1]}. Crop or resample the frame, or fix width and height."
             )
-        bad = int((~np.isfinite(image)).any(axis=2).sum())
-        if bad and keep_nonfinite:
+        finite = np.isfinite(image)
+        bad = int((~finite).any(axis=2).sum())
+        if bad and keep_bad:
             warnings.warn(
-                f"frames[{k}] {file}: {bad} pixel(s) with NaN or Inf (of {self.height * self.width}) are left out.",
+                f"frames[{k}] {file}: {bad} pixel(s) with NaN or Inf (of {self.height * self.width}) "
+                "are returned as they are: mask them.",
                 stacklevel=3,
             )
         elif bad:
@@ -166,6 +175,22 @@ class Capture:
                 f"frames[{k}] {file} must be finite; got {bad} pixel(s) with NaN or Inf (of "
                 f"{self.height * self.width}). Re-export the frame, or replace those pixels with a finite value."
             )
+        below = (image < 0) & finite  # -Inf is counted above
+        negative = int(below.any(axis=2).sum())
+        if negative:
+            lowest = float(image[below].min())
+            if keep_bad:
+                warnings.warn(
+                    f"frames[{k}] {file}: {negative} pixel(s) with a negative value (of {self.height * self.width}; "
+                    f"the most negative {lowest:.3g}) are kept as they are.",
+                    stacklevel=3,
+                )
+            else:
+                raise CaptureError(
+                    f"frames[{k}] {file} must be non-negative (linear radiance); got {negative} pixel(s) with a "
+                    f"negative value (of {self.height * self.width}), the most negative {lowest:.3g}. Re-export the "
+                    "frame without a black-level offset, or read it with nonfinite='keep' and mask them."
+                )
         return image
 
     def read_kernel(self) -> torch.Tensor:
@@ -243,17 +268,29 @@ def read_capture(path: str | Path) -> Capture:
         warnings.warn(note, stacklevel=2)
     for k, frame in enumerate(capture.frames):
         file = capture.root / frame.file
-        if not file.is_file():
+        if not _is_file(file, f"{manifest}: frames[{k}].file"):
             raise CaptureError(
                 f"{manifest}: frames[{k}].file must exist; got {frame.file!r}, but {file} is missing "
                 f"(the first of the missing frames). Restore the frame or remove it from {MANIFEST}."
             )
-    if capture.light.kernel == "tabulated" and not (capture.root / capture.light.file).is_file():
+    kernel = capture.root / capture.light.file if capture.light.kernel == "tabulated" else None
+    if kernel is not None and not _is_file(kernel, f"{manifest}: light.file"):
         raise CaptureError(
-            f"{manifest}: light.file must exist; got {capture.light.file!r}, but {capture.root / capture.light.file} "
+            f"{manifest}: light.file must exist; got {capture.light.file!r}, but {kernel} "
             "is missing. Restore the kernel image."
         )
     return capture
+
+
+def _is_file(path: Path, key: str) -> bool:
+    """``path.is_file()``, with a :class:`CaptureError` naming ``key`` for a path the system
+    refuses (a name too long, a folder without permission)."""
+    try:
+        return path.is_file()
+    except OSError as error:
+        raise CaptureError(
+            f"{key} must be a file the system can look up; got {path}: {error.strerror or error}."
+        ) from error
 
 
 def write_capture(

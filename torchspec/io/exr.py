@@ -24,13 +24,14 @@ import numpy as np
 import OpenEXR
 
 from .._atomic import atomic_path
+from ..errors import TorchspecError
 
 __all__ = ["ExrError", "read_exr", "write_exr"]
 
 _GROUPS = (("R", "G", "B"), ("X", "Y", "Z"))
 
 
-class ExrError(ValueError):
+class ExrError(TorchspecError):
     """An EXR file that cannot be read or written as asked; the message names the file."""
 
 
@@ -49,7 +50,11 @@ def _channel_order(names: Sequence[str]) -> list[str]:
 
 def _open(path: Path) -> OpenEXR.File:
     """Open ``path`` with every channel separate, raising :class:`ExrError` for any failure."""
-    if not path.is_file():
+    try:
+        exists = path.is_file()
+    except OSError as error:  # a name too long, a folder without permission
+        raise ExrError(f"EXR file {path} must be a path the system can look up; got {error}.") from error
+    if not exists:
         raise ExrError(f"EXR file {path} must exist; got no such file. Check the path.")
     # The binding reports a failed pixel read (e.g. a truncated file) by printing on stdout and
     # returning zero parts; keep that line for the error instead of polluting the caller's stdout.

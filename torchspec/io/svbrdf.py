@@ -22,6 +22,7 @@ import torch
 
 from .._atomic import read_json, write_json
 from ..brdf import SVBRDF
+from ..errors import TorchspecError
 from .exr import ExrError, _read, write_exr
 
 __all__ = ["Maps", "SVBRDFError", "read_svbrdf", "write_svbrdf"]
@@ -35,7 +36,7 @@ _KNOWN_EXTRA = ("model",)
 _UNIT_TOLERANCE = 1e-3
 
 
-class SVBRDFError(ValueError):
+class SVBRDFError(TorchspecError):
     """A folder of maps that does not follow ``capture-format.md``; the message names the file
     and the key or map at fault."""
 

@@ -1,0 +1,56 @@
+"""Small captures for the io tests: the shared development data's folder, a tiny capture
+manifest and frames to write, and a way to edit a written manifest."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchspec.io import Capture, Frame, LightSpec
+
+
+def _shared_data() -> Path:
+    beside = Path(__file__).resolve().parents[2] / "shared" / "data"
+    return beside if beside.is_dir() else Path("/work/shared/data")
+
+
+DATA = _shared_data()
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"no shared captures at {DATA}")
+
+H, W = 4, 5
+
+
+def direction(lx, ly):
+    return (lx, ly, math.sqrt(1 - lx * lx - ly * ly))
+
+
+def small_capture(root=".", light=None, count=3, channels=("R", "G", "B"), positions=None) -> Capture:
+    """A ``W x H`` capture of ``count`` frames on a line of the l-plane (or at ``positions``)."""
+    positions = positions or [(0.1 * k, -0.05 * k) for k in range(count)]
+    frames = tuple(Frame(f"frames/{k:04d}.exr", direction(*l), 1.0 + k, 0.5 * (k + 1)) for k, l in enumerate(positions))
+    return Capture(
+        root=Path(root),
+        width=W,
+        height=H,
+        channels=channels,
+        view=(0.0, 0.0, 1.0),
+        light=light or LightSpec("gaussian", domain="projected", sigma=0.05),
+        frames=frames,
+    )
+
+
+def random_frames(count=3, channels=3, seed=0, low=0.0, high=2.0):
+    """``(count, channels, H, W)`` float32 frames, uniform in ``[low, high)``."""
+    rng = np.random.default_rng(seed)
+    return torch.from_numpy(rng.uniform(low, high, (count, channels, H, W)).astype(np.float32))
+
+
+def edit_manifest(root: Path, edit) -> None:
+    """Apply ``edit`` to the JSON of ``root``'s ``capture.json`` and write it back."""
+    path = root / "capture.json"
+    manifest = json.loads(path.read_text())
+    edit(manifest)
+    path.write_text(json.dumps(manifest))

@@ -1,0 +1,299 @@
+"""``torchspec info CAPTURE``: what a capture holds and whether it can be fitted, without fitting.
+
+:func:`inspect_capture` validates a capture as :func:`~torchspec.io.read_capture` and
+:meth:`~torchspec.io.Capture.read_frames` do, reading the frames one at a time (memory bounded by
+one frame), and counts what a fit would have to mask: saturated samples (the clipped plateau that
+:func:`torchspec.photometric.sample_masks` detects), NaN or Inf pixels and negative pixels. It
+never raises for a bad capture: the report's verdict is then ``"unusable"``, with the reason.
+:func:`format_report` renders a report for a terminal.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from .errors import TorchspecError
+from .io import Capture, LightSpec, read_capture
+from .photometric import _peak, _saturation_level, sample_masks
+from .specular import layout_of
+
+__all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
+
+OK = "ok"
+WARNINGS = "usable with warnings"
+"""Problems a fit masks or fixes: saturated or bad pixels, renormalised directions, unknown keys."""
+UNUSABLE = "unusable"
+
+MIN_FRAMES = 4
+"""A fit needs 3 frames for the normal and ``k_d`` and one more for a lobe (:func:`torchspec.fit.fit`)."""
+_LISTED = 10
+"""Frames at fault that :func:`format_report` lists one by one."""
+
+
+def inspect_capture(path: str | Path, *, saturation: float | None = None, progress: bool = False) -> dict[str, Any]:
+    """Validate a capture and summarise it.
+
+    Args:
+        path: the capture directory, or its ``capture.json``.
+        saturation: the sensor's clipping level, as :attr:`torchspec.FitConfig.saturation`;
+            ``None`` detects a clipped plateau over all the frames, as the fit does.
+        progress: show a tqdm bar over the frames.
+
+    Returns:
+        A JSON-ready dict. Always: ``capture`` (the path), ``verdict`` (:data:`OK`,
+        :data:`WARNINGS` or :data:`UNUSABLE`), ``reason`` (why it is unusable, else ``None``) and
+        ``warnings`` (messages). When the manifest is valid, also: ``width``, ``height``,
+        ``channels``, ``frames`` (``K``), ``view``, ``light`` (the manifest's keys), ``kernel``
+        (a description), ``layout`` (``kind`` ``"grid"``, ``"line"`` or ``"scattered"``, as
+        :func:`torchspec.specular.layout_of` sees the frames' ``l``, with ``spacing``, ``radius``
+        (the largest ``|l|``) and the grid's ``rows`` and ``columns``; ``None`` for fewer than 3
+        frames), ``exposure`` and ``irradiance`` (``[min, max]``), ``values`` (``[min, max]`` of
+        the finite pixel values), ``saturation`` (the clipping level, ``None`` when nothing
+        clips), ``counts`` (total ``saturated``, ``nonfinite`` and ``negative`` pixels),
+        ``per_frame`` (one dict per frame: ``index``, ``file``, those three counts, ``min``,
+        ``max`` and ``error``, the message of an unreadable frame) and ``frames_at_fault``.
+
+    Example:
+        >>> report = inspect_capture("../shared/data/painting-dev")  # doctest: +SKIP
+        >>> report["verdict"], report["layout"]["kind"], report["frames"]
+        ('ok', 'grid', 88)
+    """
+    report: dict[str, Any] = {"capture": str(path), "verdict": UNUSABLE, "reason": None, "warnings": []}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            capture = read_capture(path)
+        except TorchspecError as error:
+            report["reason"] = str(error)
+    report["warnings"] = [str(warning.message) for warning in caught]
+    if report["reason"] is not None:
+        return report
+
+    reasons: list[str] = []
+    count = len(capture.frames)
+    irradiance, exposure = capture.irradiance(), capture.exposure()
+    report.update(
+        width=capture.width,
+        height=capture.height,
+        channels=list(capture.channels),
+        frames=count,
+        view=list(capture.view),
+        light={name: value for name, value in vars(capture.light).items() if value is not None},
+        kernel=_describe(capture.light),
+        layout=_layout(capture.directions()) if count >= 3 else None,
+        exposure=[float(exposure.min()), float(exposure.max())],
+        irradiance=[float(irradiance.min()), float(irradiance.max())],
+    )
+    if capture.light.kernel == "tabulated":
+        try:
+            table = capture.read_kernel()
+            report["kernel"] += f", a {table.shape[1]}x{table.shape[0]} image"
+        except TorchspecError as error:
+            reasons.append(str(error))
+    elif capture.light.kernel == "unknown":
+        report["warnings"].append(
+            f"{capture.manifest}: light.kernel is 'unknown': only the specular location can be recovered; "
+            "torchspec fit needs the light's shape (calibrate the light first)."
+        )
+    if count < MIN_FRAMES:
+        reasons.append(f"{capture.manifest}: a fit needs at least {MIN_FRAMES} frames; got {count}.")
+
+    rows, level = _scan(capture, saturation, progress)
+    report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
+    report["saturation"] = level if math.isfinite(level) else None
+    report["counts"] = {name: sum(row[name] for row in rows) for name in ("saturated", "nonfinite", "negative")}
+    report["per_frame"] = rows
+    report["frames_at_fault"] = [
+        row["index"] for row in rows if row["error"] or row["saturated"] or row["nonfinite"] or row["negative"]
+    ]
+    report["warnings"] += _pixel_warnings(rows, level, capture)
+    unreadable = [row for row in rows if row["error"]]
+    if unreadable:
+        reasons.append(
+            f"{len(unreadable)} of {count} frame(s) cannot be read (frames {_indices(unreadable)}); "
+            f"the first: {unreadable[0]['error']}"
+        )
+    report["reason"] = "\n".join(reasons) if reasons else None
+    report["verdict"] = UNUSABLE if reasons else WARNINGS if report["warnings"] else OK
+    return report
+
+
+def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[list[dict[str, Any]], float]:
+    """Read the frames one by one: a row of counts per frame, and the clipping level (``inf``
+    when nothing clips)."""
+    rows, peaks, tops = [], [], []
+    with tqdm(total=len(capture.frames), unit="frame", desc="info", disable=not progress) as bar:
+        for k, frame in enumerate(capture.frames):
+            row = {"index": k, "file": frame.file, "saturated": 0, "nonfinite": 0, "negative": 0}
+            row.update(min=None, max=None, error=None)
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # NaN, Inf and negative values are counted here
+                    image = capture.read_frames([k], nonfinite="keep")  # (1, C, H, W)
+            except TorchspecError as error:
+                row["error"] = str(error)
+                rows.append(row)
+                bar.update()
+                continue
+            finite = torch.isfinite(image)
+            row["nonfinite"] = int((~finite).any(1).sum())
+            row["negative"] = int(((image < 0) & finite).any(1).sum())
+            if finite.any():
+                row["min"], row["max"] = float(image[finite].min()), float(image[finite].max())
+            # The fit detects one level for the whole stack; a frame clips at it only when its own
+            # top is that level, so each frame's count at its own top is kept until the level is known.
+            top, repeats = _peak(image)
+            peaks.append((top, repeats))
+            tops.append((row, float(top)))
+            clip = top if saturation is None else saturation
+            row["saturated"] = int(sample_masks(image, saturation=clip, shadow=0.0).saturated.sum())
+            rows.append(row)
+            bar.update()
+    if saturation is not None:
+        return rows, float(saturation)
+    level = float(_saturation_level(peaks)) if peaks else math.inf
+    for row, top in tops:
+        if top != level:
+            row["saturated"] = 0
+    return rows, level
+
+
+def _pixel_warnings(rows: list[dict[str, Any]], level: float, capture: Capture) -> list[str]:
+    """One message per kind of bad pixel, naming the frames."""
+    notes = []
+    pixels = capture.width * capture.height
+    saturated = [row for row in rows if row["saturated"]]
+    if saturated:
+        total = sum(row["saturated"] for row in saturated)
+        notes.append(
+            f"{total} saturated pixel(s) (clipped at {level:.6g}, grown by a pixel) in {len(saturated)} frame(s) "
+            f"(frames {_indices(saturated)}, of {pixels} pixels each): the fit masks them."
+        )
+    nonfinite = [row for row in rows if row["nonfinite"]]
+    if nonfinite:
+        total = sum(row["nonfinite"] for row in nonfinite)
+        notes.append(
+            f"{total} pixel(s) with NaN or Inf in {len(nonfinite)} frame(s) (frames {_indices(nonfinite)}): the fit "
+            "masks them; Capture.read_frames() refuses them unless nonfinite='keep'."
+        )
+    negative = [row for row in rows if row["negative"]]
+    if negative:
+        total = sum(row["negative"] for row in negative)
+        lowest = min(row["min"] for row in negative)
+        notes.append(
+            f"{total} pixel(s) with a negative value in {len(negative)} frame(s) (frames {_indices(negative)}, the "
+            f"most negative {lowest:.3g}): the fit reads them as they are; Capture.read_frames() refuses them "
+            "unless nonfinite='keep'."
+        )
+    return notes
+
+
+def _layout(directions: torch.Tensor) -> dict[str, Any]:
+    """The light layout as the fit sees it: :func:`torchspec.specular.layout_of` of the frames' ``l``."""
+    l = directions[:, :2].to(torch.float32)  # the fit's default dtype, so the same grid test
+    layout = layout_of(l)
+    out: dict[str, Any] = {"kind": "grid" if layout.grid is not None else "line" if layout.dims == 1 else "scattered"}
+    if layout.grid is not None:
+        out.update(rows=layout.grid[2], columns=layout.grid[3])
+    if layout.dims == 1:
+        out["axis"] = [float(v) for v in layout.axis]
+    out.update(spacing=float(layout.spacing), radius=float(l.norm(dim=-1).max()))
+    return out
+
+
+def _describe(light: LightSpec) -> str:
+    """The light kernel in words."""
+    if light.kernel == "gaussian":
+        unit = "radians" if light.domain == "angular" else "l units"
+        return f"gaussian, {light.domain} domain, sigma {light.sigma:g} {unit}"
+    if light.kernel == "tabulated":
+        return f"tabulated, {light.file}, extent {light.extent:g} l units"
+    if light.kernel == "unknown":
+        return "unknown, symmetric"
+    return light.kernel
+
+
+def _range(lows: list[float | None], highs: list[float | None]) -> list[float] | None:
+    lows, highs = [v for v in lows if v is not None], [v for v in highs if v is not None]
+    return [min(lows), max(highs)] if lows else None
+
+
+def _indices(rows: list[dict[str, Any]]) -> str:
+    """``"0, 4, 7"``, or the first few and how many more."""
+    shown = ", ".join(str(row["index"]) for row in rows[:_LISTED])
+    return shown + (f" and {len(rows) - _LISTED} more" if len(rows) > _LISTED else "")
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """A report of :func:`inspect_capture` as lines of text for a terminal.
+
+    Example:
+        >>> print(format_report(inspect_capture("capture")))  # doctest: +SKIP
+        capture   capture
+        verdict   ok
+        ...
+    """
+    lines = [f"capture   {report['capture']}", f"verdict   {report['verdict']}"]
+    if report["reason"]:
+        lines += _block("reason", report["reason"].splitlines())
+    if "width" in report:
+        layout = report["layout"]
+        if layout is None:
+            where = "too few for a layout"
+        else:
+            where = "layout " + layout["kind"]
+            where += f" {layout['rows']} x {layout['columns']}" if layout["kind"] == "grid" else ""
+            where += f", spacing {layout['spacing']:.3g}, |l| <= {layout['radius']:.3g}"
+        values = report["values"]
+        counts = report["counts"]
+        lines += [
+            f"size      {report['width']} x {report['height']} (W x H), channels {', '.join(report['channels'])}",
+            f"frames    {report['frames']}, {where}",
+            f"light     {report['kernel']}; view {_vector(report['view'])}",
+            f"exposure  {_span(report['exposure'])}; irradiance {_span(report['irradiance'])}",
+            f"values    {_span(values) if values else 'none finite'}"
+            + (f"; clipped at {report['saturation']:.6g}" if report["saturation"] is not None else "; none clipped"),
+            f"pixels    {counts['saturated']} saturated, {counts['nonfinite']} NaN or Inf, {counts['negative']} "
+            f"negative (of {report['width'] * report['height']} per frame)",
+        ]
+        faults = [row for row in report["per_frame"] if row["index"] in set(report["frames_at_fault"])]
+        if faults:
+            described = [_fault(row) for row in faults[:_LISTED]]
+            if len(faults) > _LISTED:
+                described.append(f"... and {len(faults) - _LISTED} more (--json lists every frame)")
+            lines += _block(f"{len(faults)} frame(s) at fault", described, header=True)
+    if report["warnings"]:
+        lines += _block("warnings", report["warnings"], header=True)
+    return "\n".join(lines)
+
+
+def _fault(row: dict[str, Any]) -> str:
+    if row["error"]:
+        return f"frames[{row['index']}] {row['file']}: {row['error']}"
+    found = [
+        f"{row[name]} {label}"
+        for name, label in (("saturated", "saturated"), ("nonfinite", "NaN or Inf"), ("negative", "negative"))
+        if row[name]
+    ]
+    return f"frames[{row['index']}] {row['file']}: {', '.join(found)}"
+
+
+def _block(title: str, items: list[str], *, header: bool = False) -> list[str]:
+    if header:
+        return [f"{title}:"] + [f"  - {item}" for item in items]
+    return [f"{title:<9} {items[0]}"] + [f"          {item}" for item in items[1:]]
+
+
+def _span(values: list[float]) -> str:
+    low, high = values
+    return f"{low:.4g}" if low == high else f"{low:.4g} .. {high:.4g}"
+
+
+def _vector(values: list[float]) -> str:
+    return "(" + ", ".join(f"{v:.4g}" for v in values) + ")"
