@@ -140,6 +140,8 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
     y = stack[:, :, pick].permute(2, 0, 1)  # (n, K, C)
     # The fit's own start (photometric stereo, then the FRI peak), as the fit would make it.
     begun = start(y, torch.isfinite(y).all(-1), lights, view, config=settings.fit)
+    if settings.fit.model == "auto":  # the baseline fits one model; auto picks among several per pixel
+        raise ValueError("bench_fit compares one model with scipy: set fit.model to one of the models, not 'auto'.")
     model = get_model(settings.fit.model)
     channels = capture.channels
     init = begun.svbrdf(channels)

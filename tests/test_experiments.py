@@ -112,7 +112,7 @@ def test_bench_fit_runs(tmp_path):
         "bench_fit",
         tmp_path,
         f"size: 12\ngrid: 8\nextent: 0.6\nkernel_sigma: 0.08\nphotons_per_unit: 100000.0\nseed: 3\nthreads: 2\n"
-        f"scipy_pixels: 2\ncache: {tmp_path / 'cache'}\nfit: {{}}\n",
+        f"scipy_pixels: 2\ncache: {tmp_path / 'cache'}\nfit: {{model: ward-iso}}\n",
     )
     ours, scipy = rows
     assert ours["pixels"] == 144 and ours["pixels_per_second"] > 0 and ours["peak_mb"] > 0

@@ -1,17 +1,18 @@
 import json
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
 import torch
 
 from torchspec.cli import main
-from torchspec.fit import FitConfig, fit, select_frames
+from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig
+from torchspec.synth import PaintingConfig, SensorConfig
 
 
 @pytest.fixture(scope="module")
@@ -116,8 +117,8 @@ def test_select_frames():
 def test_config_is_checked():
     with pytest.raises(ValueError, match="init must be one of"):
         FitConfig(init="magic")
-    with pytest.raises(ValueError, match="model must have a lobe"):
-        FitConfig(model="diffuse")
+    with pytest.raises(ValueError, match="select_z must be >= 0"):
+        FitConfig(model="auto", select_z=-1.0)
     with pytest.raises(ValueError, match="model must be one of"):
         FitConfig(model="phong")
     with pytest.raises(ValueError, match="quadrature must be one of"):
@@ -133,7 +134,9 @@ def test_write_fit_and_cli(painting, tmp_path):
     meta = json.loads((out / "svbrdf.json").read_text())
     assert meta["fit"]["frames"] == list(range(0, len(read_capture(painting).frames), 2))
     assert meta["fit"]["settings"]["lm"]["max_iterations"] == 30
-    assert set(maps.extra) >= {"residual", "quality", "status", "iterations"}
+    assert set(maps.extra) >= {"residual", "quality", "status", "iterations", "model", "criterion"}
+    assert meta["model_codes"] == list(MODEL_CODES)
+    assert sum(meta["fit"]["models"].values()) == maps.svbrdf.shape[0] * maps.svbrdf.shape[1]
     direct = fit(painting, frames="::2", config=FitConfig(lm=FitConfig().lm.__class__(max_iterations=30)))
     err = (maps.svbrdf.normal - direct.svbrdf.normal).abs().max()
     assert err < 1e-6, f"max difference {err:.3g}"
@@ -185,3 +188,43 @@ def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
     plain = fit(painting, frames="::3", config=FitConfig(compile=False))
     torch.testing.assert_close(result.svbrdf.normal, plain.svbrdf.normal)
     torch.testing.assert_close(result.svbrdf.roughness, plain.svbrdf.roughness)
+
+
+@pytest.fixture(scope="module")
+def gilded(tmp_path_factory):
+    """A 24 x 24 painting with its gilded patch (a coloured anisotropic lobe), shot noise."""
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=24, height=24, seed=11)),
+        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
+        layout=LayoutConfig(kind="grid", nx=10, ny=10, extent=0.8, radius=0.8),
+        sensor=SensorConfig(photons_per_unit=1e5, seed=2),
+    )
+    path = tmp_path_factory.mktemp("fit") / "gilded"
+    write_simulation(path, simulate(config))
+    return path
+
+
+def test_auto_models_no_more_than_the_scene_needs(gilded):
+    truth = read_svbrdf(gilded / "truth")
+    regions = truth.extra["regions"].round().long()
+    auto = fit(gilded, config=FitConfig(model="auto"))
+    names = [MODEL_CODES[int(code)] for code in auto.model.flatten()]
+    region = regions.flatten().tolist()
+    matte = [m for m, r in zip(names, region, strict=True) if r == 0]
+    varnish = [m for m, r in zip(names, region, strict=True) if r == 1]
+    gold = [m for m, r in zip(names, region, strict=True) if r == 2]
+    assert matte.count("diffuse") >= 0.95 * len(matte), Counter(matte)
+    # The gilding is coloured and anisotropic: a grey or isotropic lobe does not explain it.
+    assert sum(m in ("ward-iso-colour", "ward-aniso") for m in gold) >= 0.9 * len(gold), Counter(gold)
+    # Shot noise only, and the model the data were made with: the varnish needs no more than ward-iso.
+    assert varnish.count("ward-iso") >= 0.9 * len(varnish), Counter(varnish)
+    assert auto.stats["models"] == dict(Counter(names)) | {n: 0 for n in MODEL_CODES if n not in names}
+    assert torch.equal(auto.lobe, auto.model > 0)
+    # The criterion: the choice beats every model forced on every pixel, and is the lower of the two
+    # wherever it differs from one of them.
+    for name in ("diffuse", "ward-iso", "ward-iso-colour", "ward-aniso"):
+        forced = fit(gilded, config=FitConfig(model=name))
+        assert auto.stats["criterion"] < forced.stats["criterion"], name
+        if name == "diffuse":
+            assert forced.stats["lobe_pixels"] == 0 and float(forced.svbrdf.specular.abs().max()) == 0.0
+    assert auto.stats["models_tried"]["ward-aniso"] < auto.stats["lobe_pixels"]  # not every pixel climbs

@@ -128,7 +128,14 @@ def _cli(capture: Path, output: Path, config: Path, *extra: str) -> subprocess.P
     command = [sys.executable, "-m", "torchspec", "fit", str(capture), "-o", str(output), "--quiet"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.Popen(
-        [*command, "--config", str(config), *extra], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        [*command, "--config", str(config), *extra],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # A shell starts background jobs with SIGINT ignored, and Python then keeps ignoring it:
+        # give the child the default disposition, as a terminal's Ctrl-C finds it.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 

@@ -6,6 +6,7 @@ import argparse
 import shlex
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from ._version import __version__
@@ -43,6 +44,8 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--frames", default=None,
                      help="frames to fit: 'all', a slice like '::2' (every second) or a list like '0,3,10-19'")
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("--model", default=None, choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso"],
+                     help="auto (default): each pixel's model by the BIC; or one forced on every pixel")
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
                           f"{CHECKPOINT})")
@@ -105,6 +108,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         from .fit import FitConfig, FitInterrupted, fit, write_fit
 
         config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
+        if args.model is not None:
+            config = replace(config, model=args.model)
         checkpoint = args.output / CHECKPOINT
         try:
             result = fit(

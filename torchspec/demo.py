@@ -62,12 +62,13 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
     # Every second frame is fitted, the others held out to test the maps' predictions.
     fitted_frames = select_frames("::2", len(capture.frames))
     held = [k for k in range(len(capture.frames)) if k not in set(fitted_frames)]
-    fit_config = FitConfig(model="ward-aniso")
+    fit_config = FitConfig(model="auto")
     result = fit(capture, config=fit_config, frames=fitted_frames, progress=progress)
     write_fit(output / "maps", result)
     fit_seconds = result.stats["seconds"]["total"]
     print(
-        f"  fitted ward-aniso on {len(fitted_frames)} frames in {fit_seconds:.1f} s "
+        f"  fitted on {len(fitted_frames)} frames in {fit_seconds:.1f} s, models chosen per pixel "
+        f"{result.stats['models']} "
         f"({result.stats['pixels_per_second']:.0f} pixels/s): {output / 'maps'}"
     )
 
@@ -86,7 +87,7 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
     write_previews(
         output / "previews",
         result.svbrdf,
-        lobe=result.lobe,
+        model=result.model,
         residual=result.residual,
         quality=result.quality,
         truth=truth,
@@ -102,7 +103,7 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
     ]
     write_report(
         output / "report.png",
-        title=f"torchspec demo: a simulated {size}x{size} painting, fit ward-aniso",
+        title=f"torchspec demo: a simulated {size}x{size} painting, models chosen per pixel",
         fit=result,
         truth=truth,
         regions=regions,

@@ -31,9 +31,10 @@ from ._atomic import atomic_path, read_json, write_json
 from ._version import __version__
 from .brdf import SVBRDF
 from .io import Capture, read_capture, write_svbrdf
+from .jacobian import normal_equations
 from .lights import Lights, diffuse_directions
 from .lm import CONVERGED, DIVERGED, STATUS, LMConfig, bounded, solve
-from .models import get_model
+from .models import MODELS, get_model
 from .photometric import Diffuse, photometric_stereo, sample_masks
 from .relight import lights_of
 from .specular import Start as SpecularStart
@@ -42,6 +43,11 @@ from .specular import grid_search, layout_of, locate_peak, naive_start, specular
 __all__ = ["FitConfig", "Fit", "FitInterrupted", "Start", "fit", "start", "write_fit", "select_frames", "INITS"]
 
 INITS = ("fri", "naive", "grid")
+AUTO = "auto"
+LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso")
+"""The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
+MODEL_CODES = tuple(MODELS)
+"""``model.exr``'s codes: the index of each pixel's model in this tuple."""
 # torch.compile's one-off cost (~70 s; ~30 s from its on-disk cache) against the ~0.7 ms it saves
 # per pixel of a 144-frame fit: it pays from ~100k pixels.
 COMPILE_PIXELS = 1 << 17
@@ -58,8 +64,14 @@ class FitConfig:
     """Settings of :func:`fit` (``configs/fit*.yaml``).
 
     Attributes:
-        model: the lobe model of the pixels that show a peak (:data:`torchspec.models.MODELS`):
-            ``ward-iso`` (grey ``k_s``), ``ward-iso-colour`` or ``ward-aniso``.
+        model: ``auto`` picks each pixel's model by the Bayesian information criterion, trying
+            the larger ones only where the smaller leave a residual above the noise
+            (:data:`LADDER`); or one model forced on every pixel that shows a peak
+            (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``
+            or ``ward-aniso``, or ``diffuse`` on every pixel.
+        select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
+            degrees of freedom by more than ``select_z`` of its standard deviations
+            (``dof + select_z sqrt(2 dof)``): the residual is not noise.
         init: the specular start: ``fri`` (FRI peak location), ``naive`` (photometric-stereo
             normal, ``alpha = naive_alpha``) or ``grid`` (dense search).
         detect: a pixel gets a lobe when its residual peaks above ``detect`` times its noise
@@ -89,7 +101,8 @@ class FitConfig:
         lm: the solver's settings.
     """
 
-    model: str = "ward-iso"
+    model: str = "auto"
+    select_z: float = 3.0
     init: str = "fri"
     detect: float = 5.0
     noise_floor: float = 0.002
@@ -111,9 +124,10 @@ class FitConfig:
     lm: LMConfig = field(default_factory=LMConfig)
 
     def __post_init__(self):
-        get_model(self.model)
-        if not get_model(self.model).lobe:
-            raise ValueError(f"FitConfig.model must have a lobe; got {self.model!r} (use detect: .inf for matte only).")
+        if self.model != AUTO:
+            get_model(self.model)
+        if not self.select_z >= 0:
+            raise ValueError(f"FitConfig.select_z must be >= 0; got {self.select_z!r}.")
         if self.init not in INITS:
             raise ValueError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
         if self.quadrature not in QUADRATURES:
@@ -141,6 +155,9 @@ class Fit:
         status: ``(H, W)`` int8 solver status (:data:`torchspec.lm.STATUS`).
         iterations: ``(H, W)`` solver steps taken.
         lobe: ``(H, W)`` bool, the pixels fitted with a lobe.
+        model: ``(H, W)`` int8, each pixel's model: an index into :data:`MODEL_CODES`.
+        criterion: ``(H, W)`` the Bayesian information criterion of each pixel's fit,
+            ``chi^2 + P ln(n)`` with the pixel's noise level (``inf`` where no sample was valid).
         stats: settings, timings and per-stage statistics (JSON-ready).
     """
 
@@ -150,6 +167,8 @@ class Fit:
     status: Tensor
     iterations: Tensor
     lobe: Tensor
+    model: Tensor
+    criterion: Tensor
     stats: dict
 
 
@@ -209,7 +228,7 @@ def _tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, res
     (the stack and its masks) and :data:`RUNTIME_BYTES`."""
     if config.tile:
         return config.tile
-    model = get_model(config.model)
+    model = get_model(LADDER[-1] if config.model == AUTO else config.model)
     p = model.size(channels)
     # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
     # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
@@ -334,43 +353,84 @@ def start(
 def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, config: FitConfig, ctx: dict) -> dict:
     """All stages for one tile: ``y (n, K, C)`` recorded values, ``valid (n, K)``."""
     begun = start(y, valid, lights, view, config=config, context=ctx)
-    ps, lobe, level, times = begun.diffuse, begun.lobe, begun.level, dict(begun.times)
+    ps, level, times = begun.diffuse, begun.level, dict(begun.times)
+    lobe = begun.lobe if config.model != "diffuse" else torch.zeros_like(begun.lobe)
     count = valid.sum(-1).clamp(min=1).to(y.dtype)
     t0 = time.perf_counter()
-    model = get_model(config.model)
+    ladder = LADDER if config.model == AUTO else (() if config.model == "diffuse" else (config.model,))
     n, c = y.shape[0], y.shape[-1]
-    weight = valid.to(y.dtype) / torch.where(level > 0, level, torch.ones_like(level))[:, None]
+    safe_level = torch.where(level > 0, level, torch.ones_like(level))
+    weight = valid.to(y.dtype) / safe_level[:, None]
     observed = torch.where(valid[..., None], y, torch.zeros_like(y))
-    # Diffuse pixels: normal and k_d only.
-    plain = get_model("diffuse")
-    zero = y.new_zeros((n, 1))
-    ps_svbrdf = SVBRDF(ps.normal, ps.diffuse, zero, zero.expand(-1, 2), None, channels)
+    # The noise of a weighted residual, for the criterion: the photometric-stereo noise (floored
+    # as the lobe test floors it) times the frames' mean scale, over the pixel's level; that noise
+    # is of the channels' mean, so sqrt(C) times it is a channel's (for independent channels; for
+    # correlated ones it overstates the noise, and the criterion then prefers the smaller model).
+    # A sample's noise grows with its value past the pixel's level as shot noise does (for noise that
+    # does not, this overstates it at the peak, and the criterion prefers the smaller model).
+    grey_noise = torch.maximum(ps.noise, config.noise_floor * level) * math.sqrt(c)
+    scale = lights.scale.to(y.dtype)[None]  # (1, K, C or 1)
+    shot = (observed / (scale * safe_level[:, None, None])).clamp(min=1.0)
+    sigma = grey_noise[:, None, None] * scale * shot.sqrt()
+    chi_weight = valid[..., None].to(y.dtype) / sigma.clamp(min=torch.finfo(y.dtype).tiny)  # (n, K, C)
+    samples = valid.sum(-1).to(y.dtype) * c
+    quadrature = QUADRATURES[config.quadrature]
+
+    grey = len(ladder) == 1 and get_model(ladder[0]).grey
     normal, diffuse = ps.normal.clone(), ps.diffuse.clone()
-    specular = y.new_zeros((n, 1 if model.grey else c))
+    specular = y.new_zeros((n, 1 if grey else c))
     roughness = y.new_zeros((n, 2))
-    rotation = y.new_zeros(n) if model.anisotropic else None
+    rotation = y.new_zeros(n) if any(get_model(name).anisotropic for name in ladder) else None
     status = torch.zeros(n, dtype=torch.int8, device=y.device)
     iterations = torch.zeros(n, dtype=torch.int32, device=y.device)
     cost = y.new_zeros(n)
+    code = torch.zeros(n, dtype=torch.int8, device=y.device)
+    criterion = torch.full((n,), math.inf, dtype=y.dtype, device=y.device)
     found_quality = torch.ones_like(level)
-    for kind, pick in (("diffuse", ~lobe), ("lobe", lobe)):
-        index = pick.nonzero()[:, 0]
+    tried: dict[str, int] = {}
+
+    def keep(name, index, fitted, result) -> Tensor:
+        """Take the fit of model ``name`` where its criterion is the lowest so far; returns the
+        pixels (of ``index``) whose residual it leaves above the noise."""
+        model = get_model(name)
+        chi2 = _chi2(fitted, observed[index], chi_weight[index], lights, view, config.path, quadrature)
+        dof = (samples[index] - model.size(c)).clamp(min=1.0)
+        bic = chi2 + model.size(c) * torch.log(samples[index].clamp(min=1.0))
+        bic = torch.where(result.status == DIVERGED, torch.full_like(bic, math.inf), bic)
+        better = bic < criterion[index]
+        pick = index[better]
+        fit = fitted[better]
+        normal[pick], diffuse[pick] = fit.normal, fit.diffuse
+        specular[pick] = fit.specular.expand(-1, specular.shape[-1])
+        roughness[pick] = fit.roughness
+        if rotation is not None:
+            rotation[pick] = fit.rotation if fit.rotation is not None else torch.zeros_like(fit.roughness[:, 0])
+        status[pick], iterations[pick] = result.status[better], result.iterations[better]
+        cost[pick], criterion[pick] = result.cost[better], bic[better]
+        code[pick] = MODEL_CODES.index(name)
+        tried[name] = tried.get(name, 0) + index.numel()
+        return chi2 > dof + config.select_z * (2.0 * dof).sqrt()
+
+    # Pixels without a peak: normal and k_d only.
+    plain = get_model("diffuse")
+    index = (~lobe).nonzero()[:, 0]
+    if index.numel():
+        zero = y.new_zeros((n, 1))
+        ps_svbrdf = SVBRDF(ps.normal, ps.diffuse, zero, zero.expand(-1, 2), None, channels)[index]
+        fitted, result = _lm_stage(plain, ps_svbrdf, observed[index], weight[index], lights, view, channels, config)
+        keep("diffuse", index, fitted, result)
+    # Pixels with a peak: the models of the ladder from the specular start, each larger one from
+    # the previous one's solution, on the pixels it leaves unexplained.
+    index = lobe.nonzero()[:, 0]
+    init = begun.svbrdf(channels)[index]
+    found_quality[index] = begun.specular.quality[index]
+    for name in ladder:
         if index.numel() == 0:
-            continue
-        if kind == "diffuse":
-            fitted, result = _lm_stage(
-                plain, ps_svbrdf[index], observed[index], weight[index], lights, view, channels, config
-            )
-        else:
-            init = begun.svbrdf(channels)[index]
-            fitted, result = _lm_stage(model, init, observed[index], weight[index], lights, view, channels, config)
-            specular[index] = fitted.specular
-            roughness[index] = fitted.roughness
-            if rotation is not None:
-                rotation[index] = fitted.rotation
-            found_quality[index] = begun.specular.quality[index]
-        normal[index], diffuse[index] = fitted.normal, fitted.diffuse
-        status[index], iterations[index], cost[index] = result.status, result.iterations, result.cost
+            break
+        model = get_model(name)
+        fitted, result = _lm_stage(model, init, observed[index], weight[index], lights, view, channels, config)
+        unexplained = keep(name, index, fitted, result)
+        index, init = index[unexplained], fitted[unexplained]
     times["lm"] = time.perf_counter() - t0
 
     rms = (2.0 * cost / (count * c)).sqrt()
@@ -384,8 +444,26 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         "status": status,
         "iterations": iterations,
         "lobe": lobe,
+        "model": code,
+        "criterion": criterion,
+        "tried": tried,
         "times": times,
     }
+
+
+def _chi2(svbrdf: SVBRDF, observed: Tensor, weight: Tensor, lights: Lights, view: Tensor, path, quadrature) -> Tensor:
+    """``sum ((render - observed) weight)^2`` per pixel ``(n,)`` on the fit's own quadrature."""
+    if svbrdf.diffuse.shape[0] == 0:
+        return weight.new_zeros(0)
+    select = torch.zeros(5 + 2 * svbrdf.diffuse.shape[-1], 1, dtype=weight.dtype, device=weight.device)
+    lobe = svbrdf if svbrdf.specular.shape[-1] == svbrdf.diffuse.shape[-1] else _coloured(svbrdf)
+    cost, _, _ = normal_equations(lobe, lights, view, observed, weight, select, path=path, **quadrature)
+    return 2.0 * cost
+
+
+def _coloured(svbrdf: SVBRDF) -> SVBRDF:
+    ks = svbrdf.specular.expand_as(svbrdf.diffuse).contiguous()
+    return SVBRDF(svbrdf.normal, svbrdf.diffuse, ks, svbrdf.roughness, svbrdf.rotation, svbrdf.channels)
 
 
 class FitInterrupted(KeyboardInterrupt):
@@ -556,6 +634,7 @@ def fit(
     firsts = range(0, pixels, tile)
     parts = []
     times: dict[str, float] = {}
+    tried: dict[str, int] = {}
     with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
         try:
             for first in firsts:
@@ -570,6 +649,8 @@ def fit(
                         _save_tile(folder, first, out)
                 for name, seconds in out["times"].items():
                     times[name] = times.get(name, 0.0) + seconds
+                for name, pixels_tried in out["tried"].items():
+                    tried[name] = tried.get(name, 0) + pixels_tried
                 parts.append(out)
                 bar.update(stop - first)
         except KeyboardInterrupt as interrupt:
@@ -591,6 +672,7 @@ def fit(
         capture.channels,
     )
     status, iterations, lobe = join("status"), join("iterations"), join("lobe")
+    model, criterion = join("model"), join("criterion")
     total = time.perf_counter() - clock + read_seconds + mask_seconds
     stats = {
         "capture": str(capture.root),
@@ -604,6 +686,9 @@ def fit(
         "pixels_per_second": pixels / total if total > 0 else None,
         "masked_samples": masks.counts(),
         "lobe_pixels": int(lobe.sum()),
+        "models": {name: int((model == code).sum()) for code, name in enumerate(MODEL_CODES)},
+        "models_tried": tried,
+        "criterion": float(criterion[criterion.isfinite()].double().sum()),
         "status": {name: int((status == code).sum()) for code, name in enumerate(STATUS)},
         "iterations": {
             "mean": float(iterations.float().mean()),
@@ -613,17 +698,20 @@ def fit(
         },
         "median_residual": float(join("residual").median()),
     }
-    return Fit(svbrdf, join("residual"), join("quality"), status, iterations, lobe, stats)
+    return Fit(svbrdf, join("residual"), join("quality"), status, iterations, lobe, model, criterion, stats)
 
 
 def write_fit(path: str | Path, result: Fit) -> None:
     """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
-    ``status.exr`` and ``svbrdf.json`` (model, settings, timings, statistics)."""
-    meta = {"model": "ward", "fit": result.stats, "status_codes": list(STATUS)}
+    ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
+    ``criterion.exr`` and ``svbrdf.json`` (model, settings, timings, statistics)."""
+    meta = {"model": "ward", "fit": result.stats, "status_codes": list(STATUS), "model_codes": list(MODEL_CODES)}
     extra = {
         "residual": result.residual.float(),
         "quality": result.quality.float(),
         "status": result.status.float(),
         "iterations": result.iterations.float(),
+        "model": result.model.float(),
+        "criterion": result.criterion.float(),
     }
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra)

@@ -114,14 +114,15 @@ def write_previews(
     folder: str | Path,
     svbrdf: SVBRDF,
     *,
-    lobe: Tensor | None = None,
+    model: Tensor | None = None,
     residual: Tensor | None = None,
     quality: Tensor | None = None,
     truth: SVBRDF | None = None,
 ) -> list[Path]:
     """PNG previews of fitted maps (leading dims ``(H, W)``) in ``folder``: ``normal.png``
     (``RGB = (n + 1) / 2``), ``diffuse.png`` (sRGB-encoded), ``specular.png`` and
-    ``roughness.png`` (false colour), and where given ``model.png`` (lobe or none),
+    ``roughness.png`` (false colour), and where given ``model.png`` (the model codes of
+    :data:`torchspec.fit.MODEL_CODES`, 0 diffuse to 3 ward-aniso),
     ``residual.png``, ``quality.png`` and, against ``truth``, ``normal_error.png`` (degrees) and
     ``diffuse_error.png`` (relative). Returns the paths written."""
     folder = Path(folder)
@@ -138,8 +139,8 @@ def write_previews(
     ks = s.specular.mean(-1).numpy()
     save("specular.png", ks, "magma", 0.0, max(float(ks.max()), 1e-6))
     save("roughness.png", s.roughness.mean(-1).numpy(), "viridis", 0.0, max(float(s.roughness.max()), 1e-6))
-    if lobe is not None:
-        save("model.png", lobe.cpu().numpy().astype(np.float64), "cividis", 0.0, 1.0)
+    if model is not None:
+        save("model.png", model.cpu().numpy().astype(np.float64), "viridis", 0.0, 3.0)
     if residual is not None:
         r = residual.cpu().double().numpy()
         save("residual.png", np.log10(np.clip(r, 1e-6, None)), "inferno", -6.0, 0.0)
@@ -181,7 +182,12 @@ def write_report(
         ("k_d", _rgb(display(s.diffuse.numpy(), 1.0)), None, None),
         ("k_s (mean of channels)", s.specular.mean(-1).numpy(), "magma", None),
         ("alpha (mean of axes)", s.roughness.mean(-1).numpy(), "viridis", None),
-        ("model (yellow: lobe, blue: none)", fit.lobe.cpu().double().numpy(), "cividis", (0, 1)),
+        (
+            "model: 0 diffuse, 1 ward-iso, 2 ward-iso-colour, 3 ward-aniso",
+            fit.model.cpu().double().numpy(),
+            "viridis",
+            (0, 3),
+        ),
         (
             "log10 relative residual",
             np.log10(np.clip(fit.residual.cpu().double().numpy(), 1e-6, None)),
