@@ -228,3 +228,42 @@ def test_auto_models_no_more_than_the_scene_needs(gilded):
         if name == "diffuse":
             assert forced.stats["lobe_pixels"] == 0 and float(forced.svbrdf.specular.abs().max()) == 0.0
     assert auto.stats["models_tried"]["ward-aniso"] < auto.stats["lobe_pixels"]  # not every pixel climbs
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="not met yet (issue 6): measured 89 % (k_d), 88 % (k_s), 84 % (alpha), 72 % (normal) within the "
+    "bound; the deviations are too small (noise model or the fit quadrature's bias)",
+)
+def test_standard_deviations_cover_the_truth(gilded):
+    """The Fisher information at the solution, with the estimated noise, gives standard
+    deviations within which the truth lies as often as for a Gaussian estimate: 95 % of the pixels
+    within 2 of them (90-98 % asserted), per parameter, on the pixels of the model the data
+    were made with (varnish fitted ward-iso, shot noise)."""
+    truth = read_svbrdf(gilded / "truth").svbrdf.flatten()
+    regions = read_svbrdf(gilded / "truth").extra["regions"].round().long().flatten()
+    result = fit(gilded, config=FitConfig(model="auto"))
+    s, std = result.svbrdf.flatten(), {k: v.flatten(0, 1) for k, v in result.std.items()}
+    pick = (regions == 1) & (result.model.flatten() == MODEL_CODES.index("ward-iso"))
+    assert int(pick.sum()) > 200
+    z = {
+        "k_d": ((s.diffuse - truth.diffuse) / std["diffuse"])[pick].flatten(),
+        "k_s": ((s.specular[:, 0] - truth.specular.mean(-1)) / std["specular"][:, 0])[pick],
+        "alpha": ((s.roughness[:, 0] - truth.roughness[:, 0]) / std["roughness"][:, 0])[pick],
+    }
+    for name, values in z.items():
+        covered = float((values.abs() <= 2.0).double().mean())
+        assert 0.90 <= covered <= 0.98, f"{name}: {covered:.3f} within 2 std"
+    # The normal's angle error is 2D: with per-tilt deviations s, its std is sqrt(2) s, and an
+    # isotropic Gaussian has 95 % of its mass within sqrt(2 ln 20) s = sqrt(ln 20) std.
+    error = angle(s.normal.double(), truth.normal.double())[pick]
+    covered = float((error <= math.sqrt(math.log(20)) * std["normal"][pick]).double().mean())
+    assert 0.90 <= covered <= 0.98, f"normal: {covered:.3f}"
+
+
+def test_standard_deviations_are_finite_for_the_models_parameters_only(gilded):
+    result = fit(gilded, config=FitConfig(model="auto"))
+    std = {k: v.flatten(0, 1) for k, v in result.std.items()}
+    lobe = result.model.flatten() > 0
+    assert bool(std["roughness"][lobe].isfinite().all()) and bool(std["roughness"][~lobe].isnan().all())
+    assert bool(std["diffuse"].isfinite().all()) and bool(std["normal"].isfinite().all())

@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 from ._atomic import atomic_path, read_json, write_json
 from ._version import __version__
 from .brdf import SVBRDF
+from .geometry import angles_from_normal, normal_from_angles
 from .io import Capture, read_capture, write_svbrdf
 from .jacobian import normal_equations
 from .lights import Lights, diffuse_directions
@@ -69,6 +70,9 @@ class FitConfig:
             (:data:`LADDER`); or one model forced on every pixel that shows a peak
             (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``
             or ``ward-aniso``, or ``diffuse`` on every pixel.
+        uncertainty: compute each pixel's criterion and standard deviations (one more evaluation
+            of the model per pixel, at the solution). ``auto`` needs them; a forced model without
+            them leaves ``criterion`` and ``std`` NaN.
         select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
             degrees of freedom by more than ``select_z`` of its standard deviations
             (``dof + select_z sqrt(2 dof)``): the residual is not noise.
@@ -103,6 +107,7 @@ class FitConfig:
 
     model: str = "auto"
     select_z: float = 3.0
+    uncertainty: bool = True
     init: str = "fri"
     detect: float = 5.0
     noise_floor: float = 0.002
@@ -158,6 +163,11 @@ class Fit:
         model: ``(H, W)`` int8, each pixel's model: an index into :data:`MODEL_CODES`.
         criterion: ``(H, W)`` the Bayesian information criterion of each pixel's fit,
             ``chi^2 + P ln(n)`` with the pixel's noise level (``inf`` where no sample was valid).
+        std: standard deviations of the fitted parameters from the Fisher information at the
+            solution with the estimated noise (the Cramer-Rao bound at the estimate):
+            ``normal (H, W)`` (the angle, radians), ``diffuse (H, W, C)``, ``specular (H, W, C_s)``,
+            ``roughness (H, W, 2)``; NaN for a parameter the pixel's model does not have, ``inf``
+            where the data leave it undetermined.
         stats: settings, timings and per-stage statistics (JSON-ready).
     """
 
@@ -169,6 +179,7 @@ class Fit:
     lobe: Tensor
     model: Tensor
     criterion: Tensor
+    std: dict[str, Tensor]
     stats: dict
 
 
@@ -370,9 +381,13 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     # does not, this overstates it at the peak, and the criterion prefers the smaller model).
     grey_noise = torch.maximum(ps.noise, config.noise_floor * level) * math.sqrt(c)
     scale = lights.scale.to(y.dtype)[None]  # (1, K, C or 1)
-    shot = (observed / (scale * safe_level[:, None, None])).clamp(min=1.0)
-    sigma = grey_noise[:, None, None] * scale * shot.sqrt()
-    chi_weight = valid[..., None].to(y.dtype) / sigma.clamp(min=torch.finfo(y.dtype).tiny)  # (n, K, C)
+
+    def chi_weight(index: Tensor) -> Tensor:
+        """One over each sample's noise ``(m, K, C)`` (0 for invalid samples)."""
+        shot = (observed[index] / (scale * safe_level[index, None, None])).clamp(min=1.0)
+        sigma = (grey_noise[index, None, None] * scale * shot.sqrt()).clamp(min=torch.finfo(y.dtype).tiny)
+        return valid[index, :, None].to(y.dtype) / sigma
+
     samples = valid.sum(-1).to(y.dtype) * c
     quadrature = QUADRATURES[config.quadrature]
 
@@ -388,16 +403,28 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     criterion = torch.full((n,), math.inf, dtype=y.dtype, device=y.device)
     found_quality = torch.ones_like(level)
     tried: dict[str, int] = {}
+    deviation = {
+        "normal": y.new_full((n,), math.nan),
+        "diffuse": y.new_full((n, c), math.nan),
+        "specular": y.new_full((n, specular.shape[-1]), math.nan),
+        "roughness": y.new_full((n, 2), math.nan),
+    }
 
     def keep(name, index, fitted, result) -> Tensor:
         """Take the fit of model ``name`` where its criterion is the lowest so far; returns the
         pixels (of ``index``) whose residual it leaves above the noise."""
         model = get_model(name)
-        chi2 = _chi2(fitted, observed[index], chi_weight[index], lights, view, config.path, quadrature)
+        if config.uncertainty or config.model == AUTO:
+            chi2, std = _uncertainty(
+                model, fitted, observed[index], chi_weight(index), lights, view, config.path, quadrature, config.compile
+            )
+        else:  # one model, nothing to compare: keep it, with neither criterion nor deviations
+            chi2, std = torch.full_like(result.cost, -math.inf), {}
         dof = (samples[index] - model.size(c)).clamp(min=1.0)
         bic = chi2 + model.size(c) * torch.log(samples[index].clamp(min=1.0))
         bic = torch.where(result.status == DIVERGED, torch.full_like(bic, math.inf), bic)
-        better = bic < criterion[index]
+        better = (bic < criterion[index]) | (chi2 == -math.inf)
+        bic = torch.where(chi2 == -math.inf, torch.full_like(bic, math.nan), bic)
         pick = index[better]
         fit = fitted[better]
         normal[pick], diffuse[pick] = fit.normal, fit.diffuse
@@ -408,6 +435,9 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         status[pick], iterations[pick] = result.status[better], result.iterations[better]
         cost[pick], criterion[pick] = result.cost[better], bic[better]
         code[pick] = MODEL_CODES.index(name)
+        for key, value in std.items():
+            chosen = value[better]
+            deviation[key][pick] = chosen.expand(-1, deviation[key].shape[-1]) if chosen.dim() > 1 else chosen
         tried[name] = tried.get(name, 0) + index.numel()
         return chi2 > dof + config.select_z * (2.0 * dof).sqrt()
 
@@ -446,24 +476,61 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         "lobe": lobe,
         "model": code,
         "criterion": criterion,
+        "std": deviation,
         "tried": tried,
         "times": times,
     }
 
 
-def _chi2(svbrdf: SVBRDF, observed: Tensor, weight: Tensor, lights: Lights, view: Tensor, path, quadrature) -> Tensor:
-    """``sum ((render - observed) weight)^2`` per pixel ``(n,)`` on the fit's own quadrature."""
-    if svbrdf.diffuse.shape[0] == 0:
-        return weight.new_zeros(0)
-    select = torch.zeros(5 + 2 * svbrdf.diffuse.shape[-1], 1, dtype=weight.dtype, device=weight.device)
-    lobe = svbrdf if svbrdf.specular.shape[-1] == svbrdf.diffuse.shape[-1] else _coloured(svbrdf)
-    cost, _, _ = normal_equations(lobe, lights, view, observed, weight, select, path=path, **quadrature)
-    return 2.0 * cost
+def _uncertainty(
+    model, svbrdf: SVBRDF, observed: Tensor, weight: Tensor, lights: Lights, view: Tensor, path, quadrature, compile
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """The fit's ``chi^2 = sum ((render - observed) weight)^2`` per pixel ``(n,)``, ``weight``
+    being one over each sample's noise, and the standard deviations of its parameters from the
+    Fisher information ``J^T J`` there (the Cramer-Rao bound at the estimate): ``normal`` (radians,
+    the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``; NaN for the
+    parameters the model does not have, ``inf`` for those the data leave undetermined."""
+    n, c = svbrdf.diffuse.shape
+    like = dict(dtype=weight.dtype, device=weight.device)
+    select = model.selection(c, weight)
+    if n == 0:
+        return weight.new_zeros(0), {}
+    def run(fused: bool):
+        return normal_equations(svbrdf, lights, view, observed, weight, select, path=path, compile=fused, **quadrature)
 
-
-def _coloured(svbrdf: SVBRDF) -> SVBRDF:
-    ks = svbrdf.specular.expand_as(svbrdf.diffuse).contiguous()
-    return SVBRDF(svbrdf.normal, svbrdf.diffuse, ks, svbrdf.roughness, svbrdf.rotation, svbrdf.channels)
+    if compile and not _COMPILE_FAILED:
+        try:
+            cost, fisher, _ = run(True)
+        except Exception as error:  # as in _lm_stage: the same evaluation without torch.compile
+            _COMPILE_FAILED.append(error)
+            warnings.warn(f"torch.compile failed ({type(error).__name__}: {error}); fitting without it.", stacklevel=2)
+            cost, fisher, _ = run(False)
+    else:
+        cost, fisher, _ = run(False)
+    inverse, info = torch.linalg.inv_ex(fisher)
+    variance = inverse.diagonal(dim1=-2, dim2=-1)
+    solvable = (info == 0)[:, None] & (variance >= 0) & variance.isfinite()
+    std = torch.where(solvable, variance.clamp(min=0.0).sqrt(), torch.full_like(variance, math.inf))
+    # The normal's angle: the covariance of the two tilt angles mapped to n (its trace, n being unit).
+    angles = angles_from_normal(svbrdf.normal)
+    with torch.enable_grad():
+        a = angles.detach().requires_grad_(True)
+        dn = torch.stack(
+            [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
+        )
+    block = inverse[:, :2, :2]
+    cov_angles = torch.where((info == 0)[:, None, None], block, torch.full_like(block, math.inf))
+    normal = torch.einsum("nij,njk,nik->n", dn, cov_angles, dn).clamp(min=0.0).sqrt()
+    nan = math.nan
+    out = {"normal": normal, "diffuse": std[:, 2 : 2 + c]}
+    if model.lobe:
+        at = 2 + c + (1 if model.grey else c)
+        out["specular"] = std[:, 2 + c : at]
+        out["roughness"] = std[:, at : at + 2] if model.anisotropic else std[:, at : at + 1].expand(-1, 2)
+    else:
+        out["specular"] = torch.full((n, 1), nan, **like)
+        out["roughness"] = torch.full((n, 2), nan, **like)
+    return 2.0 * cost, out
 
 
 class FitInterrupted(KeyboardInterrupt):
@@ -673,6 +740,11 @@ def fit(
     )
     status, iterations, lobe = join("status"), join("iterations"), join("lobe")
     model, criterion = join("model"), join("criterion")
+    finite = criterion.isfinite()
+    std = {
+        name: torch.cat([p["std"][name] for p in parts]).reshape(h, w, *parts[0]["std"][name].shape[1:])
+        for name in parts[0]["std"]
+    }
     total = time.perf_counter() - clock + read_seconds + mask_seconds
     stats = {
         "capture": str(capture.root),
@@ -688,7 +760,7 @@ def fit(
         "lobe_pixels": int(lobe.sum()),
         "models": {name: int((model == code).sum()) for code, name in enumerate(MODEL_CODES)},
         "models_tried": tried,
-        "criterion": float(criterion[criterion.isfinite()].double().sum()),
+        "criterion": float(criterion[finite].double().sum()) if bool(finite.any()) else None,
         "status": {name: int((status == code).sum()) for code, name in enumerate(STATUS)},
         "iterations": {
             "mean": float(iterations.float().mean()),
@@ -698,13 +770,15 @@ def fit(
         },
         "median_residual": float(join("residual").median()),
     }
-    return Fit(svbrdf, join("residual"), join("quality"), status, iterations, lobe, model, criterion, stats)
+    return Fit(svbrdf, join("residual"), join("quality"), status, iterations, lobe, model, criterion, std, stats)
 
 
 def write_fit(path: str | Path, result: Fit) -> None:
     """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
     ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
-    ``criterion.exr`` and ``svbrdf.json`` (model, settings, timings, statistics)."""
+    ``criterion.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
+    ``std_specular.exr``, ``std_roughness.exr`` and ``svbrdf.json`` (model, settings, timings,
+    statistics)."""
     meta = {"model": "ward", "fit": result.stats, "status_codes": list(STATUS), "model_codes": list(MODEL_CODES)}
     extra = {
         "residual": result.residual.float(),
@@ -713,5 +787,9 @@ def write_fit(path: str | Path, result: Fit) -> None:
         "iterations": result.iterations.float(),
         "model": result.model.float(),
         "criterion": result.criterion.float(),
+        "std_normal_deg": torch.rad2deg(result.std["normal"]).float(),
+        "std_diffuse": result.std["diffuse"].float(),
+        "std_specular": result.std["specular"].float(),
+        "std_roughness": result.std["roughness"].float(),
     }
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra)

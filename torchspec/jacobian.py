@@ -312,11 +312,12 @@ def _parts(
                 ly.detach(),
                 area.detach(),
             )
-            fallback = _fallback(kernel, centre, pixels, reaches, orders["reference"]) if chosen == "auto" else None
+            auto = chosen == "auto"
+            fallback = _fallback(kernel, centre, pixels, reaches, orders["reference"], compiled) if auto else None
         if fallback is not None:
-            # Eager: a few pairs, broadcast unlike the main call (compiled, they cost a second compilation).
+            # Broadcast unlike the main call: compiled apart (a second compilation, once).
             p, k, rule = fallback
-            value, d_value_n, d_value_shape = _integrate_gradients(
+            value, d_value_n, d_value_shape = _fused(_integrate_fallback, compiled, p.shape[0])(
                 kernel,
                 centre[k][:, None],
                 _pick(pixels, p),
@@ -415,6 +416,8 @@ def normal_equations(
         if tuple(value.shape) != expected:
             raise ValueError(f"{name} must have shape {expected}; got {tuple(value.shape)}.")
     chunk = _chunk(k, order)
+    # One memory layout for the compiled code whatever the caller's (a weight broadcast over channels, ...).
+    observed, weight = observed.contiguous(), weight.contiguous()
     out = []
     for start in range(0, max(n, 1), chunk):
         part = svbrdf[start : start + chunk]
@@ -423,6 +426,11 @@ def normal_equations(
         cost, hess, grad = normal(parts, observed[start : start + chunk], weight[start : start + chunk])
         out.append((cost, select.T @ hess @ select, grad @ select))
     return tuple(torch.cat(column) for column in zip(*out, strict=True))
+
+
+def _integrate_fallback(*args):
+    """:func:`_integrate_gradients` of the fallback pairs ``(M, 1, Q')``: its own compiled code."""
+    return _integrate_gradients(*args)
 
 
 def _integrate_gradients(kernel, centre, pixels, frame_ds, frame_dt, alpha, lx, ly, area):

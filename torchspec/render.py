@@ -471,14 +471,15 @@ def _rules(kernel: Kernel, centre: Tensor, p: _Pixels, path: str, orders: dict):
     return (lx, ly, area), _fallback(kernel, centre, p, reaches, orders["reference"])
 
 
-def _fallback(kernel: Kernel, centre: Tensor, p: _Pixels, reaches: Tensor, order: int):
+def _fallback(kernel: Kernel, centre: Tensor, p: _Pixels, reaches: Tensor, order: int, compiled: bool = False):
     """The pairs ``(pixel, frame)`` of ``reaches (N, F)`` with their reference nodes ``(M, 1, Q')``
-    (x, y, area), or ``None`` when there are none."""
+    (x, y, area), or ``None`` when there are none; ``compiled``: the rule fused by torch.compile."""
     cut = reaches.nonzero()
     if not cut.shape[0]:
         return None
     pixel, frame = cut[:, 0], cut[:, 1]
-    return pixel, frame, _reference_rule(kernel, centre[frame][:, None], _pick(p, pixel), order)
+    rule = _fused(_reference_rule, compiled, cut.shape[0])
+    return pixel, frame, rule(kernel, centre[frame][:, None], _pick(p, pixel), order)
 
 
 def _integrate(kernel, centre, pixels, lx, ly, area) -> Tensor:
