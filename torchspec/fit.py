@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 from ._atomic import atomic_path, read_json, write_json
 from ._version import __version__
 from .brdf import SVBRDF
-from .geometry import angles_from_normal, normal_from_angles
+from .geometry import normal_derivative
 from .io import Capture, read_capture, write_svbrdf
 from .jacobian import normal_equations
 from .lights import Lights, diffuse_directions
@@ -512,12 +512,7 @@ def _uncertainty(
     solvable = (info == 0)[:, None] & (variance >= 0) & variance.isfinite()
     std = torch.where(solvable, variance.clamp(min=0.0).sqrt(), torch.full_like(variance, math.inf))
     # The normal's angle: the covariance of the two tilt angles mapped to n (its trace, n being unit).
-    angles = angles_from_normal(svbrdf.normal)
-    with torch.enable_grad():
-        a = angles.detach().requires_grad_(True)
-        dn = torch.stack(
-            [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
-        )
+    dn = normal_derivative(svbrdf.normal)
     block = inverse[:, :2, :2]
     cov_angles = torch.where((info == 0)[:, None, None], block, torch.full_like(block, math.inf))
     normal = torch.einsum("nij,njk,nik->n", dn, cov_angles, dn).clamp(min=0.0).sqrt()

@@ -22,6 +22,7 @@ __all__ = [
     "tangent_frame",
     "normal_from_angles",
     "angles_from_normal",
+    "normal_derivative",
 ]
 
 
@@ -94,6 +95,17 @@ def normal_from_angles(angles: Tensor) -> Tensor:
     """
     v = torch.stack([torch.tan(angles[..., 0]), torch.tan(angles[..., 1]), torch.ones_like(angles[..., 0])], -1)
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+
+
+def normal_derivative(n: Tensor) -> Tensor:
+    """``dn / d(a, b)`` ``(N, 3, 2)`` of :func:`normal_from_angles` at the angles of unit normals
+    ``n (N, 3)`` (by automatic differentiation, also under ``torch.no_grad``)."""
+    angles = angles_from_normal(n)
+    with torch.enable_grad():
+        a = angles.detach().requires_grad_(True)
+        return torch.stack(
+            [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
+        )
 
 
 def angles_from_normal(n: Tensor) -> Tensor:

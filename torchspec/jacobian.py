@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
-from .geometry import angles_from_normal, normal_from_angles
+from .geometry import angles_from_normal, normal_derivative, normal_from_angles
 from .lights import Lights, diffuse_directions
 from .render import (
     BUDGET,
@@ -259,12 +259,7 @@ def _parts(
     rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[:, 0])
     n = svbrdf.normal
     # dn / d(a, b) (N, 3, 2) of n ~ (tan a, tan b, 1).
-    angles = angles_from_normal(n)
-    with torch.enable_grad():
-        a = angles.detach().requires_grad_(True)
-        dn = torch.stack(
-            [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
-        )
+    dn = normal_derivative(n)
 
     # Diffuse: <n, d_k> and its gradient d_k; where the clamp acts, the kernel's direction over
     # the part in front of the normal's horizon.
