@@ -5,7 +5,7 @@ import torch
 
 from torchspec.brdf import SVBRDF
 from torchspec.geometry import normal_from_angles
-from torchspec.jacobian import _svbrdf, jacobian, normal_equations, parameters
+from torchspec.jacobian import _svbrdf, jacobian, normal_equations, parameters, sandwich_terms
 from torchspec.lights import Kernel, Lights
 from torchspec.render import render
 
@@ -174,8 +174,8 @@ def test_the_fits_quadrature_is_close_to_the_renderers(kernel):
 
 def test_compiled_is_eager():
     """``compile=True`` (torch.compile of the node integrations and of the normal equations' pass
-    over the frames, as a large fit uses) gives the eager values, derivatives and normal
-    equations, to the rounding of sums taken in another order."""
+    over the frames, as a large fit uses) gives the eager values, derivatives, normal equations and
+    sandwich terms, to the rounding of sums taken in another order."""
     maps, lights = _problem(False, Kernel("gaussian", "projected", 0.08), seed=4)
     maps = maps.to(torch.float32)
     lights = lights.to(dtype=torch.float32)
@@ -198,3 +198,7 @@ def test_compiled_is_eager():
         torch.testing.assert_close(
             normal_equations(*args, order=3, clamp="fast", compile=True), plain, rtol=1e-4, atol=1e-7
         )
+        args = (batch, lights, VIEW.float(), observed, weight / (0.1 + observed), weight, select)
+        plain = sandwich_terms(*args, order=3, clamp="fast")
+        fused = sandwich_terms(*args, order=3, clamp="fast", compile=True)
+        torch.testing.assert_close(fused, plain, rtol=1e-4, atol=1e-7)

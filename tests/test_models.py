@@ -105,6 +105,41 @@ def test_normal_equations_are_those_of_the_residuals(name, grey_weight):
     torch.testing.assert_close(ne.grad, (jac.transpose(1, 2) @ r[..., None])[..., 0], rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.parametrize("name", ["diffuse", "ward-iso", "ward-aniso"])
+def test_sandwich_terms_are_those_of_the_jacobian(name):
+    """``sandwich_terms``: ``0.5 chi^2``, ``A = J^T W^2 J`` and ``B = J^T W^2 S W^2 J`` of the dense
+    Jacobian (brute force, float64), with noise weights per sample and channel (some 0) and fit
+    weights per pixel; with ``W`` the noise weights, ``A = B``: the Fisher information."""
+    from torchspec.jacobian import sandwich_terms
+
+    model = get_model(name)
+    lights = _lights()
+    svbrdf = _svbrdf(count=4, seed=5)
+    k = lights.directions.shape[0]
+    g = torch.Generator().manual_seed(6)
+    observed = torch.rand(4, k, 3, generator=g, dtype=torch.float64)
+    noise = torch.rand(4, k, 3, generator=g, dtype=torch.float64) + 0.5
+    noise[:, 1] = 0.0
+    fit = (torch.rand(4, 1, 1, generator=g, dtype=torch.float64) + 0.5).expand(-1, k, 3) * (noise > 0)
+    params = model.pack(svbrdf)
+    r, jac = model.residuals(observed, torch.ones(4, k), lights, VIEW, ("R", "G", "B"))(params, torch.arange(4))
+    jac = jac.reshape(4, k, 3, -1)
+    variance = torch.where(noise > 0, 1.0 / noise.clamp(min=1e-300) ** 2, torch.zeros_like(noise))
+    half_chi2 = 0.5 * ((r.reshape(4, k, 3) * noise) ** 2).sum((1, 2))
+    a = torch.einsum("nkcp,nkc,nkcq->npq", jac, fit**2, jac)
+    b = torch.einsum("nkcp,nkc,nkcq->npq", jac, fit**4 * variance, jac)
+    select = model.selection(3, observed)
+    args = (model.unpack(params, ("R", "G", "B")), lights, VIEW, observed)
+    cost, bread, meat = sandwich_terms(*args, noise, fit.contiguous(), select, diffuse_only=not model.lobe)
+    torch.testing.assert_close(cost, half_chi2, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(bread, a, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(meat, b, rtol=1e-12, atol=1e-15)
+    _, bread, meat = sandwich_terms(*args, noise, noise, select, diffuse_only=not model.lobe)
+    torch.testing.assert_close(bread, meat, rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match=rf"fit_weight must have shape \(4, {k}, 3\)"):
+        sandwich_terms(*args, noise, fit[..., 0], select)
+
+
 def test_normal_equations_check_their_inputs():
     from torchspec.jacobian import normal_equations
 

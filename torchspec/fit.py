@@ -32,10 +32,11 @@ from ._version import __version__
 from .brdf import SVBRDF
 from .geometry import normal_derivative
 from .io import Capture, read_capture, write_svbrdf
-from .jacobian import normal_equations
+from .jacobian import sandwich_terms
 from .lights import Lights, diffuse_directions
 from .lm import CONVERGED, DIVERGED, STATUS, LMConfig, bounded, solve
 from .models import MODELS, get_model
+from .noise import affine_noise
 from .photometric import Diffuse, photometric_stereo, sample_masks
 from .relight import lights_of
 from .specular import Start as SpecularStart
@@ -71,7 +72,10 @@ class FitConfig:
             (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``
             or ``ward-aniso``, or ``diffuse`` on every pixel.
         uncertainty: compute each pixel's criterion and standard deviations (one more evaluation
-            of the model per pixel, at the solution). ``auto`` needs them; a forced model without
+            of the model per pixel, at the solution), with each sample's noise from the sensor's
+            ``a y + b`` fitted to the residuals of the pixels without a peak
+            (:func:`torchspec.noise.affine_noise`; ``stats["sensor_noise"]``), floored at
+            ``noise_floor`` times the pixel's level. ``auto`` needs them; a forced model without
             them leaves ``criterion`` and ``std`` NaN.
         select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
             degrees of freedom by more than ``select_z`` of its standard deviations
@@ -81,7 +85,9 @@ class FitConfig:
         detect: a pixel gets a lobe when its residual peaks above ``detect`` times its noise
             level (the larger of the photometric-stereo noise and ``noise_floor`` times the
             pixel's mean value).
-        noise_floor: see ``detect``.
+        noise_floor: see ``detect``; also the smallest noise of a sample, relative to its
+            pixel's level, in the criterion and the deviations (the model's own error: the
+            quadrature, a lobe shape the data's material does not follow).
         naive_alpha: the roughness of the naive start.
         saturation: the sensor's clipping level; ``None`` detects a clipped plateau.
         grow: saturated regions are grown by this many pixels.
@@ -373,19 +379,17 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     safe_level = torch.where(level > 0, level, torch.ones_like(level))
     weight = valid.to(y.dtype) / safe_level[:, None]
     observed = torch.where(valid[..., None], y, torch.zeros_like(y))
-    # The noise of a weighted residual, for the criterion: the photometric-stereo noise (floored
-    # as the lobe test floors it) times the frames' mean scale, over the pixel's level; that noise
-    # is of the channels' mean, so sqrt(C) times it is a channel's (for independent channels; for
-    # correlated ones it overstates the noise, and the criterion then prefers the smaller model).
-    # A sample's noise grows with its value past the pixel's level as shot noise does (for noise that
-    # does not, this overstates it at the peak, and the criterion prefers the smaller model).
-    grey_noise = torch.maximum(ps.noise, config.noise_floor * level) * math.sqrt(c)
     scale = lights.scale.to(y.dtype)[None]  # (1, K, C or 1)
+    # The noise of each sample, for the criterion and the deviations: the sensor's variance
+    # a y + b (noise.affine_noise, fitted below to the first models' residuals), floored at
+    # noise_floor times the pixel's level (model error: the quadrature, a lobe's shape).
+    sensor = y.new_zeros(2)
 
     def chi_weight(index: Tensor) -> Tensor:
         """One over each sample's noise ``(m, K, C)`` (0 for invalid samples)."""
-        shot = (observed[index] / (scale * safe_level[index, None, None])).clamp(min=1.0)
-        sigma = (grey_noise[index, None, None] * scale * shot.sqrt()).clamp(min=torch.finfo(y.dtype).tiny)
+        variance = sensor[0] * observed[index].clamp(min=0.0) + sensor[1]
+        floor = config.noise_floor * safe_level[index, None, None] * scale
+        sigma = torch.maximum(variance.sqrt(), floor).clamp(min=torch.finfo(y.dtype).tiny)
         return valid[index, :, None].to(y.dtype) / sigma
 
     samples = valid.sum(-1).to(y.dtype) * c
@@ -416,7 +420,16 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         model = get_model(name)
         if config.uncertainty or config.model == AUTO:
             chi2, std = _uncertainty(
-                model, fitted, observed[index], chi_weight(index), lights, view, config.path, quadrature, config.compile
+                model,
+                fitted,
+                observed[index],
+                chi_weight(index),
+                weight[index, :, None].expand(-1, -1, c),
+                lights,
+                view,
+                config.path,
+                quadrature,
+                config.compile,
             )
         else:  # one model, nothing to compare: keep it, with neither criterion nor deviations
             chi2, std = torch.full_like(result.cost, -math.inf), {}
@@ -441,20 +454,43 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         tried[name] = tried.get(name, 0) + index.numel()
         return chi2 > dof + config.select_z * (2.0 * dof).sqrt()
 
-    # Pixels without a peak: normal and k_d only.
-    plain = get_model("diffuse")
+    # Pixels without a peak: normal and k_d only; pixels with a peak: the first model of the ladder
+    # from the specular start. Their residuals give the sensor's noise, then the criterion of each.
+    first = []
     index = (~lobe).nonzero()[:, 0]
     if index.numel():
         zero = y.new_zeros((n, 1))
         ps_svbrdf = SVBRDF(ps.normal, ps.diffuse, zero, zero.expand(-1, 2), None, channels)[index]
-        fitted, result = _lm_stage(plain, ps_svbrdf, observed[index], weight[index], lights, view, channels, config)
-        keep("diffuse", index, fitted, result)
-    # Pixels with a peak: the models of the ladder from the specular start, each larger one from
-    # the previous one's solution, on the pixels it leaves unexplained.
+        first.append(
+            (
+                "diffuse",
+                index,
+                *_lm_stage(
+                    get_model("diffuse"), ps_svbrdf, observed[index], weight[index], lights, view, channels, config
+                ),
+            )
+        )
     index = lobe.nonzero()[:, 0]
-    init = begun.svbrdf(channels)[index]
     found_quality[index] = begun.specular.quality[index]
-    for name in ladder:
+    if index.numel() and ladder:
+        init = begun.svbrdf(channels)[index]
+        first.append(
+            (
+                ladder[0],
+                index,
+                *_lm_stage(get_model(ladder[0]), init, observed[index], weight[index], lights, view, channels, config),
+            )
+        )
+    if first and (config.uncertainty or config.model == AUTO):
+        sensor = torch.stack(_sensor_noise(first, begun.lobe, observed, valid, safe_level, c))
+    index = y.new_zeros(0, dtype=torch.long)
+    for name, at, fitted, result in first:
+        unexplained = keep(name, at, fitted, result)
+        if name != "diffuse":
+            index, init = at[unexplained], fitted[unexplained]
+    # The larger models of the ladder, each from the previous one's solution, on the pixels it
+    # leaves unexplained.
+    for name in ladder[1:]:
         if index.numel() == 0:
             break
         model = get_model(name)
@@ -478,36 +514,96 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         "criterion": criterion,
         "std": deviation,
         "tried": tried,
+        "noise": sensor,
         "times": times,
     }
 
 
+NOISE_PIXELS = 64
+"""The fewest pixels without a lobe that set the sensor's noise on their own (:func:`_sensor_noise`)."""
+
+
+def _sensor_noise(
+    first: list, peaked: Tensor, observed: Tensor, valid: Tensor, level: Tensor, channels: int
+) -> tuple[Tensor, Tensor]:
+    """The sensor's ``(a, b)`` (:func:`torchspec.noise.affine_noise`) from the first fitted models'
+    costs ``0.5 sum (r / level)^2`` over each pixel's valid samples (diverged fits left out).
+
+    The pixels without a peak (``peaked (n,)`` false), fitted without a lobe, are used when there
+    are ``NOISE_PIXELS`` of them: an unweighted fit of a lobe absorbs more than its share of the
+    noise at the peak, where the shot noise is largest (its samples' leverage), and its residual
+    understates the noise by ~5 %; a lobe forced away (``--model diffuse``) leaves a misfit. So the
+    noise, and the criterion with it, is the same whichever model is fitted or forced."""
+    parts = []
+    for name, index, _, result in first:
+        keep = result.status != DIVERGED
+        parts.append((name, index[keep], result.cost[keep], ~peaked[index[keep]]))
+    plain = [(name, at[m], cost[m]) for name, at, cost, m in parts if name == "diffuse"]
+    if sum(at.numel() for _, at, _ in plain) < NOISE_PIXELS:
+        plain = [(name, at, cost) for name, at, cost, _ in parts]
+    squares, values, counts, params = [], [], [], []
+    for name, at, cost in plain:
+        squares.append(2.0 * cost * level[at] ** 2)
+        values.append((observed[at].clamp(min=0.0) * valid[at, :, None]).sum((1, 2)))
+        counts.append(valid[at].sum(-1) * channels)
+        params.append(torch.full_like(squares[-1], get_model(name).size(channels)))
+    return affine_noise(torch.cat(squares), torch.cat(values), torch.cat(counts), torch.cat(params))
+
+
 def _uncertainty(
-    model, svbrdf: SVBRDF, observed: Tensor, weight: Tensor, lights: Lights, view: Tensor, path, quadrature, compile
+    model,
+    svbrdf: SVBRDF,
+    observed: Tensor,
+    weight: Tensor,
+    fit_weight: Tensor,
+    lights: Lights,
+    view: Tensor,
+    path,
+    quadrature,
+    compile,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """The fit's ``chi^2 = sum ((render - observed) weight)^2`` per pixel ``(n,)``, ``weight``
-    being one over each sample's noise, and the standard deviations of its parameters from the
-    Fisher information ``J^T J`` there (the Cramer-Rao bound at the estimate): ``normal`` (radians,
-    the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``; NaN for the
-    parameters the model does not have, ``inf`` for those the data leave undetermined."""
+    being one over each sample's noise, and the standard deviations of its parameters there:
+    ``normal`` (radians, the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``;
+    NaN for the parameters the model does not have, ``inf`` for those the data leave undetermined.
+
+    The estimate minimised ``|fit_weight (render - observed)|^2``, not the noise-weighted residual
+    (it is fitted before the noise is known): its covariance is the sandwich ``A^-1 B A^-1``
+    (:func:`torchspec.jacobian.sandwich_terms`), larger than the inverse Fisher information
+    ``J^T S^-1 J`` (the Cramer-Rao bound) wherever the samples' noise differs within a pixel (shot
+    noise at a specular peak)."""
     n, c = svbrdf.diffuse.shape
     like = dict(dtype=weight.dtype, device=weight.device)
     select = model.selection(c, weight)
     if n == 0:
         return weight.new_zeros(0), {}
+
     def run(fused: bool):
-        return normal_equations(svbrdf, lights, view, observed, weight, select, path=path, compile=fused, **quadrature)
+        return sandwich_terms(
+            svbrdf,
+            lights,
+            view,
+            observed,
+            weight,
+            fit_weight,
+            select,
+            path=path,
+            diffuse_only=not model.lobe,
+            compile=fused,
+            **quadrature,
+        )
 
     if compile and not _COMPILE_FAILED:
         try:
-            cost, fisher, _ = run(True)
+            cost, bread, meat = run(True)
         except Exception as error:  # as in _lm_stage: the same evaluation without torch.compile
             _COMPILE_FAILED.append(error)
             warnings.warn(f"torch.compile failed ({type(error).__name__}: {error}); fitting without it.", stacklevel=2)
-            cost, fisher, _ = run(False)
+            cost, bread, meat = run(False)
     else:
-        cost, fisher, _ = run(False)
-    inverse, info = torch.linalg.inv_ex(fisher)
+        cost, bread, meat = run(False)
+    outer, info = torch.linalg.inv_ex(bread)
+    inverse = outer @ meat @ outer
     variance = inverse.diagonal(dim1=-2, dim2=-1)
     solvable = (info == 0)[:, None] & (variance >= 0) & variance.isfinite()
     std = torch.where(solvable, variance.clamp(min=0.0).sqrt(), torch.full_like(variance, math.inf))
@@ -756,6 +852,8 @@ def fit(
         "models": {name: int((model == code).sum()) for code, name in enumerate(MODEL_CODES)},
         "models_tried": tried,
         "criterion": float(criterion[finite].double().sum()) if bool(finite.any()) else None,
+        # The sensor's noise variance a y + b per tile (y in recorded units; 0 when not estimated).
+        "sensor_noise": {key: [float(p["noise"][i]) for p in parts] for i, key in enumerate("ab")},
         "status": {name: int((status == code).sum()) for code, name in enumerate(STATUS)},
         "iterations": {
             "mean": float(iterations.float().mean()),

@@ -50,7 +50,7 @@ from .render import (
     render,
 )
 
-__all__ = ["jacobian", "normal_equations", "parameters", "MODES"]
+__all__ = ["jacobian", "normal_equations", "sandwich_terms", "parameters", "MODES"]
 
 MODES = ("analytic", "forward")
 
@@ -403,24 +403,84 @@ def normal_equations(
     Returns:
         ``(cost (N,), J^T J (N, P, P), J^T r (N, P))``, ``cost = 0.5 |r|^2``.
     """
+    options = dict(path=path, orders=(order, reference_order), diffuse_only=diffuse_only, clamp=clamp, compile=compile)
+    return _contract(_normal, svbrdf, lights, view, observed, (weight,), select, **options)
+
+
+def _contract(function, svbrdf, lights, view, observed, weights, select, *, path, orders, diffuse_only, clamp, compile):
+    """``function(parts, observed, *weights) -> (cost, matrix, matrix or vector)`` over chunks of
+    pixels, the matrices and vectors taken to the model's columns ``select``."""
     if clamp not in CLAMPS:
         raise ValueError(f"clamp must be one of {sorted(CLAMPS)}; got {clamp!r}.")
     n, k = svbrdf.diffuse.shape[0], lights.directions.shape[0]
     expected = (n, k, svbrdf.diffuse.shape[-1])
-    for name, value in (("observed", observed), ("weight", weight)):
+    names = ("weight",) if len(weights) == 1 else ("noise_weight", "fit_weight")
+    for name, value in zip(("observed", *names), (observed, *weights), strict=True):
         if tuple(value.shape) != expected:
             raise ValueError(f"{name} must have shape {expected}; got {tuple(value.shape)}.")
-    chunk = _chunk(k, order)
+    chunk = _chunk(k, orders[0])
     # One memory layout for the compiled code whatever the caller's (a weight broadcast over channels, ...).
-    observed, weight = observed.contiguous(), weight.contiguous()
+    observed, weights = observed.contiguous(), [w.contiguous() for w in weights]
     out = []
     for start in range(0, max(n, 1), chunk):
         part = svbrdf[start : start + chunk]
-        parts = _parts(part, lights, view, path, diffuse_only, (order, reference_order), clamp, compile)
-        normal = _fused(_normal, compile, part.diffuse.shape[0])
-        cost, hess, grad = normal(parts, observed[start : start + chunk], weight[start : start + chunk])
-        out.append((cost, select.T @ hess @ select, grad @ select))
+        parts = _parts(part, lights, view, path, diffuse_only, orders, clamp, compile)
+        fused = _fused(function, compile, part.diffuse.shape[0])
+        rows = slice(start, start + chunk)
+        cost, first, second = fused(parts, observed[rows], *[w[rows] for w in weights])
+        second = second @ select if second.dim() == 2 else select.T @ second @ select
+        out.append((cost, select.T @ first @ select, second))
     return tuple(torch.cat(column) for column in zip(*out, strict=True))
+
+
+def _sandwich(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``0.5 chi^2 (N,)`` with ``noise`` (one over each sample's noise), then ``J^T W^2 J`` and
+    ``J^T W^2 S W^2 J`` with ``W`` the fit's weights and ``S`` the samples' variances (in one pass)."""
+    value, jac = _assemble(*parts)
+    r = (value - observed) * noise
+    sigma = torch.where(noise > 0, 1.0 / torch.where(noise > 0, noise, torch.ones_like(noise)), torch.zeros_like(noise))
+    bread = jac * fit[..., None]
+    meat = bread * (fit * sigma)[..., None]
+    return (
+        0.5 * (r * r).sum((1, 2)),
+        torch.einsum("nkcp,nkcq->npq", bread, bread),
+        torch.einsum("nkcp,nkcq->npq", meat, meat),
+    )
+
+
+def sandwich_terms(
+    svbrdf: SVBRDF,
+    lights: Lights,
+    view: Tensor,
+    observed: Tensor,
+    noise_weight: Tensor,
+    fit_weight: Tensor,
+    select: Tensor,
+    *,
+    path: str = "auto",
+    order: int | None = None,
+    reference_order: int | None = None,
+    diffuse_only: bool = False,
+    clamp: str = "exact",
+    compile: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """What the covariance of a weighted least-squares estimate needs, in one pass over the frames:
+    the estimate minimised ``|W (render - observed)|^2`` (``W = fit_weight``) while each sample has
+    the variance ``1 / noise_weight^2``; its covariance is ``A^-1 B A^-1`` (the sandwich; the
+    inverse Fisher information when ``W`` is ``noise_weight``).
+
+    Args:
+        svbrdf, lights, view, observed, select, path, order, reference_order, diffuse_only, clamp,
+            compile: as for :func:`normal_equations`.
+        noise_weight: ``(N, K, C)`` one over each sample's noise (0 drops a sample).
+        fit_weight: ``(N, K, C)`` the weights the estimate was fitted with.
+
+    Returns:
+        ``(0.5 chi^2 (N,), A = J^T W^2 J (N, P, P), B = J^T W^2 S W^2 J (N, P, P))`` with ``chi^2``
+        the residual in units of the noise and ``S`` the samples' variances.
+    """
+    options = dict(path=path, orders=(order, reference_order), diffuse_only=diffuse_only, clamp=clamp, compile=compile)
+    return _contract(_sandwich, svbrdf, lights, view, observed, (noise_weight, fit_weight), select, **options)
 
 
 def _integrate_fallback(*args):
