@@ -72,6 +72,38 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("capture", type=Path, help="the capture folder (with capture.json)")
     info.add_argument("--json", action="store_true", help="print the report as JSON instead of a summary")
     info.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    emulator = commands.add_parser(
+        "dome-emulator", help="a virtual light dome on a pseudo-terminal: prints its port, serves until Ctrl-C"
+    )
+    emulator.add_argument("--speed", type=float, default=30.0, metavar="DEG_PER_S",
+                          help="angular speed of the light, degrees per second (default: 30)")
+    emulator.add_argument("--arm-speed", type=float, default=0.25, help="arm extension per second (default: 0.25)")
+    emulator.add_argument("--fault", action="extend", nargs="+", default=[], metavar="KIND[:COUNT[:COMMAND]]",
+                          help="inject faults: drop, garble, corrupt, stall, disconnect or motor, e.g. drop:3 "
+                               "or garble:1:MOVE (repeatable; docs/dome-protocol.md)")
+    emulator.add_argument("--stall-seconds", type=float, default=1.0, help="how long a stall lasts (default: 1)")
+    emulator.add_argument("--unhomed", action="store_true", help="start with the position unknown (HOME first)")
+
+    acquire = commands.add_parser("acquire", help="acquire a capture with the light dome (resumable)")
+    acquire.add_argument("--port", required=True, help="the dome's serial port (or the path dome-emulator prints)")
+    acquire.add_argument("--layout", default="grid:12x12",
+                         help="light positions: grid:NXxNY over |l| <= radius, or line:N along x (default: grid:12x12)")
+    acquire.add_argument("--radius", type=float, default=0.8, help="the largest |l| of a light, < 1 (default: 0.8)")
+    acquire.add_argument("--light", type=Path, required=True,
+                         help="light config (YAML/JSON): the format's light block; intensity, irradiance, exposure")
+    acquire.add_argument("--camera", required=True,
+                         help="sim:CONFIG (a simulated camera, YAML) or folder:DIR (a tethered camera saving into DIR)")
+    acquire.add_argument("--trigger", default=None, help="folder camera: a shutter command, run for each frame")
+    acquire.add_argument("--pattern", default="*.exr", help="folder camera: the frame files' glob (default: *.exr)")
+    acquire.add_argument("--channels", default="R,G,B", help="folder camera: the channels to read (default: R,G,B)")
+    acquire.add_argument("--frame-timeout", type=float, default=60.0,
+                         help="folder camera: seconds to wait for each frame (default: 60)")
+    acquire.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for each dome reply (default: 2)")
+    acquire.add_argument("--move-timeout", type=float, default=60.0, help="seconds a motion may take (default: 60)")
+    acquire.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
+    acquire.add_argument("--resume", action="store_true", help="continue an interrupted acquisition in OUTPUT")
+    acquire.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -153,6 +185,30 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
         print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
         return 2 if report["verdict"] == UNUSABLE else 0
+    elif args.command == "dome-emulator":
+        import math
+
+        from .dome.emulator import serve
+
+        return serve(speed=math.radians(args.speed), arm_speed=args.arm_speed, faults=args.fault,
+                     stall_seconds=args.stall_seconds, homed=not args.unhomed)
+    elif args.command == "acquire":
+        from .dome.acquire import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
+        from .dome.client import DomeClient
+
+        light = load_light(args.light)
+        camera = open_camera(args.camera, light, channels=args.channels.split(","), pattern=args.pattern,
+                             timeout=args.frame_timeout, trigger=args.trigger)
+        try:
+            with DomeClient(args.port, timeout=args.timeout, move_timeout=args.move_timeout) as client:
+                capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
+                                  resume=args.resume, progress=not args.quiet)
+        except (AcquisitionStopped, AcquisitionInterrupted) as stop:
+            again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
+            print(f"torchspec acquire: {stop} Continue with: torchspec {again} --resume", file=sys.stderr)
+            return 130 if isinstance(stop, AcquisitionInterrupted) else 1
+        print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
+              f"{''.join(capture.channels)}")
     return 0
 
 

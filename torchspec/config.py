@@ -12,7 +12,7 @@ import yaml
 
 from .errors import TorchspecError
 
-__all__ = ["ConfigError", "load_config", "from_mapping"]
+__all__ = ["ConfigError", "load_config", "from_mapping", "read_yaml"]
 
 
 class ConfigError(TorchspecError):
@@ -76,10 +76,17 @@ def load_config(path: str | Path, cls):
             has the wrong type; the message names the file and the key.
     """
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"cannot read config {path}: {exc.strerror or exc}.") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config {path} is not valid YAML: {exc}.") from None
+    data = read_yaml(path)
     return from_mapping({} if data is None else data, cls, where=str(path))
+
+
+def read_yaml(path: str | Path, *, what: str = "config", error: type[Exception] = ConfigError):
+    """The YAML (or JSON) document in ``path``; ``error`` names the file (``what``) when it cannot
+    be read or parsed."""
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise error(f"cannot read {what} {path}: {exc.strerror or exc}.") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{what} {path} is not valid YAML: {exc}.") from None

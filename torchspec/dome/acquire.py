@@ -1,0 +1,487 @@
+"""Acquisition with the light dome: for each planned light position, move the light, take the
+frame, and add it to the capture, so that a stop at any moment leaves a valid capture of the
+frames done, and ``resume`` continues it to the capture an uninterrupted run would have made.
+
+A capture being acquired is a capture directory (``capture-format.md``) plus ``acquire.json``,
+the plan: the layout, the light, the camera's channels and exposure, the dome's identity and
+every planned frame (file, direction, dome angles). Frame ``k`` goes to ``frames/kkkk.exr``
+(written atomically), then ``capture.json`` is rewritten (atomically) listing frames ``0..k``:
+the manifest lists exactly the frames on disk, always in the plan's order. A frame file written
+but not yet listed (a stop between the two writes) is adopted when it reads completely, and
+taken again otherwise; it is never listed twice. Readers ignore ``acquire.json``.
+
+Layouts: :func:`torchspec.dome.plan.plan_directions`. Frames are taken in the layout's order
+(rows from the top).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from .._atomic import read_json, write_json
+from .._version import __version__
+from ..errors import TorchspecError
+from ..io import Capture, ExrError, Frame, LightSpec, read_capture, read_exr, write_exr
+from ..io._manifest import MANIFEST, _parse, _to_manifest
+from .camera import Camera, FolderCamera, SimulatedCamera, SimulatedCameraConfig, command_trigger
+from .client import DomeDisconnected, DomeTimeout
+from .plan import (
+    _KERNEL_FILE,
+    AcquisitionError,
+    LightSettings,
+    _as_tuple,
+    _direction,
+    dome_angles,
+    load_light,
+    parse_layout,
+    plan_directions,
+)
+
+__all__ = [
+    "PLAN",
+    "AcquisitionError",
+    "AcquisitionStopped",
+    "AcquisitionInterrupted",
+    "LightSettings",
+    "load_light",
+    "parse_layout",
+    "plan_directions",
+    "dome_angles",
+    "open_camera",
+    "acquire",
+]
+
+PLAN = "acquire.json"
+"""The plan of an acquisition, beside its ``capture.json``."""
+_PLAN_FORMAT = "torchspec.acquire"
+_TEMPORARY = re.compile(r"\..+\.part(\.[^.]+)?$")
+"""The names :func:`torchspec._atomic.atomic_path` writes to before its rename."""
+
+
+class AcquisitionStopped(OSError):
+    """An acquisition stopped by the dome, the camera or the disk. The frames done are saved as a
+    valid capture and ``acquire(..., resume=True)`` continues it.
+
+    Attributes:
+        done, total: frames saved and planned.
+        output: the capture folder.
+        frame: the frame being taken when it stopped.
+    """
+
+    def __init__(self, message: str, *, done: int, total: int, output: Path, frame: int):
+        super().__init__(message)
+        self.done, self.total, self.output, self.frame = done, total, output, frame
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
+class AcquisitionInterrupted(KeyboardInterrupt):
+    """An acquisition stopped by Ctrl-C; the frames done are saved, as for :class:`AcquisitionStopped`."""
+
+    def __init__(self, done: int, total: int, output: Path):
+        super().__init__(f"the acquisition was interrupted after {done} of {total} frames; they are saved in {output}.")
+        self.done, self.total, self.output = done, total, output
+
+
+def _job(spec: str, radius: float, directions: Tensor, light: LightSettings, camera: Camera) -> dict:
+    """The plan without the dome's identity: what a resumed acquisition must match."""
+    channels = list(camera.channels)
+    exposure = _exposure(light, camera)
+    angles = dome_angles(directions)
+    digits = max(4, len(str(directions.shape[0] - 1)))
+    block = {"kernel": light.light.kernel}
+    for key in ("domain", "sigma", "file", "extent", "symmetric"):
+        if getattr(light.light, key) is not None:
+            block[key] = getattr(light.light, key)
+    if light.table is not None:
+        block["table_sum"] = float(light.table.double().sum())  # a changed kernel image is another job
+        block["table_shape"] = list(light.table.shape)
+    job = {
+        "format": _PLAN_FORMAT,
+        "version": 1,
+        "layout": str(spec),
+        "radius": float(radius),
+        "light": block,
+        "intensity": float(light.intensity),
+        "irradiance": list(light.irradiance_for(channels)),
+        "exposure": exposure,
+        "channels": channels,
+        "view": [float(v) for v in getattr(camera, "view", (0.0, 0.0, 1.0))],
+        "frames": [
+            {"file": f"frames/{k:0{digits}d}.exr", "direction": d, "theta": a[0], "phi": a[1]}
+            for k, (d, a) in enumerate(zip(directions.tolist(), angles.tolist(), strict=True))
+        ],
+    }
+    return json.loads(json.dumps(job))  # as it reads back: lists, floats
+
+
+def _exposure(light: LightSettings, camera: Camera) -> float:
+    own = getattr(camera, "exposure", None)
+    if light.exposure is not None and own is not None and float(own) != float(light.exposure):
+        raise AcquisitionError(
+            f"exposure must be the camera's ({own:g}) when the light config gives one; got {light.exposure:g}. "
+            "Drop exposure from the light config, or set the camera's."
+        )
+    chosen = light.exposure if light.exposure is not None else own
+    return 1.0 if chosen is None else float(chosen)
+
+
+# --- the output folder --------------------------------------------------------------------------
+
+
+def _differences(saved: dict, job: dict) -> list[str]:
+    out = []
+    for key, value in job.items():
+        if saved.get(key) == value:
+            continue
+        if key == "frames":
+            out.append(f"frames (the planned directions or files: {len(saved.get(key) or [])} saved, {len(value)} now)")
+        else:
+            out.append(f"{key} ({_show(saved.get(key))} saved, {_show(value)} now)")
+    return out
+
+
+def _show(value) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _open_output(output: Path, job: dict, resume: bool) -> dict | None:
+    """Check the output folder; the saved plan when resuming one (``None`` to start afresh)."""
+    if output.exists() and not output.is_dir():
+        raise AcquisitionError(f"the output {output} must be a folder; got a file. Choose another path.")
+    # Temporary files of atomic writes that a kill left (``.NAME.*.part*``) are not content.
+    entries = sorted(p.name for p in output.iterdir() if not _TEMPORARY.match(p.name)) if output.is_dir() else []
+    plan = output / PLAN
+    if not resume:
+        if entries:
+            raise AcquisitionError(
+                f"the output {output} must be empty or absent to start an acquisition; got {len(entries)} "
+                f"entr{'y' if len(entries) == 1 else 'ies'} ({', '.join(entries[:5])}{', ...' * (len(entries) > 5)})."
+                + (" Add --resume (resume=True) to continue the acquisition there," if PLAN in entries else "")
+                + " Choose another folder, or empty it."
+            )
+        return None
+    if not plan.is_file():
+        if entries:
+            raise AcquisitionError(
+                f"the output {output} holds no {PLAN}, so it is not an acquisition to resume; got "
+                f"{', '.join(entries[:5])}. Choose another folder."
+            )
+        return None
+    saved = read_json(plan, AcquisitionError, "")
+    if not isinstance(saved, dict) or saved.get("format") != _PLAN_FORMAT or saved.get("version") != 1:
+        raise AcquisitionError(
+            f"{plan} must be a plan of torchspec acquire (format {_PLAN_FORMAT!r}, version 1); got another file."
+        )
+    differ = _differences(saved, job)
+    if differ:
+        raise AcquisitionError(
+            f"{plan} records another acquisition: its {'; '.join(differ)}. Resuming would mix two jobs: run the "
+            "same command as before (layout, radius, light config, camera), or acquire into another folder."
+        )
+    return saved
+
+
+def _remove_temporaries(output: Path) -> None:
+    """Remove the temporary files of atomic writes that a killed process left (``.NAME.*.part*``)."""
+    for folder in (output, output / "frames"):
+        if folder.is_dir():
+            for path in folder.iterdir():
+                if _TEMPORARY.match(path.name) and path.is_file():
+                    path.unlink(missing_ok=True)
+
+
+def _frames_done(output: Path, job: dict) -> tuple[int, tuple[int, int] | None]:
+    """Frames the manifest lists (a prefix of the plan, checked) and the capture's ``(H, W)``."""
+    if not (output / MANIFEST).is_file():
+        return 0, None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        capture = read_capture(output)
+    planned = job["frames"]
+    if list(capture.channels) != job["channels"]:
+        raise AcquisitionError(
+            f"{capture.manifest}: channels must be the plan's {job['channels']}; got {list(capture.channels)}."
+        )
+    for k, frame in enumerate(capture.frames):
+        if k >= len(planned) or frame.file != planned[k]["file"] or list(frame.direction) != planned[k]["direction"]:
+            want = planned[k]["file"] if k < len(planned) else "nothing (the plan has fewer frames)"
+            raise AcquisitionError(
+                f"{capture.manifest}: frames[{k}] must be the planned frame {want}; got {frame.file} at "
+                f"{list(frame.direction)}. The capture no longer follows {PLAN}: acquire into another folder."
+            )
+    return len(capture.frames), (capture.height, capture.width)
+
+
+def _write_manifest(output: Path, job: dict, frames: list[Frame], size: tuple[int, int], generator: dict) -> None:
+    """Rewrite ``capture.json`` atomically, validated as :func:`~torchspec.io.read_capture` does."""
+    block = {key: value for key, value in job["light"].items() if not key.startswith("table_")}
+    capture = Capture(
+        root=output,
+        width=size[1],
+        height=size[0],
+        channels=tuple(job["channels"]),
+        view=tuple(job["view"]),
+        light=LightSpec(**block),
+        frames=tuple(frames),
+        extra={"generator": generator},
+    )
+    path = output / MANIFEST
+    data = _to_manifest(capture, path)
+    _parse(data, path, [], extra_known=True)
+    write_json(path, data)
+
+
+def _frame(job: dict, k: int) -> Frame:
+    planned = job["frames"][k]
+    return Frame(planned["file"], tuple(planned["direction"]), tuple(job["irradiance"]), job["exposure"])
+
+
+def _checked(image, k: int, job: dict, size: tuple[int, int] | None) -> Tensor:
+    """The camera's frame ``k`` as ``(C, H, W)`` float32, checked against the capture."""
+    image = torch.as_tensor(image)
+    count = len(job["channels"])
+    if image.dim() != 3 or image.shape[0] != count or (size is not None and tuple(image.shape[1:]) != size):
+        want = f"({count}, {size[0]}, {size[1]})" if size is not None else f"({count}, H, W)"
+        raise AcquisitionError(
+            f"frame {k} from the camera must have shape {want} (channels {job['channels']}, the capture's size); "
+            f"got {tuple(image.shape)}."
+        )
+    bad = int((~torch.isfinite(image)).any(0).sum())
+    if bad:
+        raise AcquisitionError(f"frame {k} from the camera must be finite; got {bad} pixel(s) with NaN or Inf.")
+    return image.detach().to(device="cpu", dtype=torch.float32)
+
+
+def _adoptable(output: Path, job: dict, k: int, size: tuple[int, int] | None) -> Tensor | None:
+    """Frame ``k``'s file when it was written but not listed (a stop between the two writes) and
+    reads completely; ``None`` when it must be taken (again)."""
+    file = output / job["frames"][k]["file"]
+    if not file.is_file():
+        return None
+    try:
+        return _checked(torch.from_numpy(read_exr(file, job["channels"])).permute(2, 0, 1), k, job, size)
+    except (ExrError, AcquisitionError):
+        return None
+
+
+# --- the loop -----------------------------------------------------------------------------------
+
+
+def acquire(
+    client,
+    camera: Camera,
+    output: str | Path,
+    *,
+    light: LightSettings,
+    layout: str = "grid:12x12",
+    radius: float = 0.8,
+    resume: bool = False,
+    progress: bool = True,
+    tolerance: float | None = 1e-3,
+) -> Capture:
+    """Acquire a capture: home the dome, switch the light on, and for each planned direction move
+    the light there, take the frame and save it.
+
+    Args:
+        client: an open :class:`~torchspec.dome.DomeClient` (or any object with its
+            ``identify``, ``home``, ``move``, ``light`` and ``status`` methods).
+        camera: a :class:`~torchspec.dome.camera.Camera`.
+        output: the capture folder; it must be empty or absent unless ``resume``.
+        light: the light (recorded kernel, intensity, irradiance, exposure).
+        layout, radius: the light positions (:func:`plan_directions`).
+        resume: continue the acquisition in ``output`` from its first missing frame; it must be
+            the same job (plan, light, channels, exposure, dome model and firmware). With
+            nothing in ``output``, start.
+        progress: show a tqdm bar (on stderr).
+        tolerance: after each move, ``client.status()`` must place the light within this angle
+            (radians) of the planned direction, at rest, with the light on and no fault;
+            ``None`` skips the check (one exchange less per frame).
+
+    Returns:
+        The capture, as :func:`~torchspec.io.read_capture` reads it.
+
+    Raises:
+        AcquisitionError: before anything moves: a bad layout or light, an output folder that
+            is not empty (without ``resume``) or that holds another job.
+        AcquisitionStopped: the dome, the camera or the disk failed; the message names the
+            frame, the step and the cause, and says how many frames are saved.
+        AcquisitionInterrupted: Ctrl-C; the frames done are saved.
+
+    Example:
+        >>> with DomeClient("/dev/ttyUSB0") as dome:  # doctest: +SKIP
+        ...     acquire(dome, camera, "capture", light=load_light("light.yaml"), layout="grid:12x12")
+    """
+    output = Path(output)
+    directions = plan_directions(layout, radius)
+    job = _job(layout, radius, directions, light, camera)
+    saved = _open_output(output, job, resume)
+    if saved is not None:
+        _remove_temporaries(output)
+    done, size = _frames_done(output, job) if saved is not None else (0, None)
+    total = len(job["frames"])
+    frames = [_frame(job, k) for k in range(done)]
+    if camera.size is not None:
+        if size is not None and tuple(camera.size) != size:
+            raise AcquisitionError(
+                f"the camera's frames must be {size[0]}x{size[1]} (height x width) like the {done} saved in "
+                f"{output}; got a {camera.size[0]}x{camera.size[1]} camera. Resume with the same camera settings."
+            )
+        size = tuple(camera.size)
+    generator = {
+        "name": "torchspec acquire",
+        "torchspec": __version__,
+        "layout": job["layout"],
+        "radius": job["radius"],
+        "intensity": job["intensity"],
+        "planned": total,
+    }
+    step, k = "identify", done
+    bar = tqdm(total=total, initial=done, desc="acquire", unit="frame", disable=not progress, leave=False)
+    try:
+        identity = client.identify()
+        dome = {"model": identity.model, "firmware": identity.firmware, "protocol": identity.protocol}
+        if saved is not None and saved.get("dome") != dome:
+            raise AcquisitionError(
+                f"{output / PLAN} was acquired with the dome {saved.get('dome')}; got {dome}. Resume with the same "
+                "dome (model and firmware), or acquire into another folder."
+            )
+        generator["dome"] = dome
+        if saved is None:
+            output.mkdir(parents=True, exist_ok=True)
+            write_json(output / PLAN, {**job, "dome": dome})
+        if light.table is not None and not (output / _KERNEL_FILE).is_file():
+            write_exr(output / _KERNEL_FILE, light.table, ["Y"])
+        adopted = _adoptable(output, job, k, size) if k < total else None
+        if adopted is not None:
+            size = tuple(adopted.shape[1:])
+            _write_manifest(output, job, [*frames, _frame(job, k)], size, generator)
+            frames.append(_frame(job, k))  # counted once listed
+            k += 1
+            bar.update()
+        if k < total:
+            step = "home"
+            client.home()
+            step = "light on"
+            client.light(True, job["intensity"])
+        while k < total:
+            planned = job["frames"][k]
+            step = f"move to theta={planned['theta']:.6f}, phi={planned['phi']:.6f} rad"
+            client.move(planned["theta"], planned["phi"])
+            if tolerance is not None:
+                step = "status after the move"
+                _check_position(client, k, planned, tolerance)
+            step = "capture"
+            image = _checked(camera.capture(directions[k], index=k), k, job, size)
+            size = tuple(image.shape[1:])
+            step = f"write {planned['file']}"
+            write_exr(output / planned["file"], image.permute(1, 2, 0), job["channels"])
+            _write_manifest(output, job, [*frames, _frame(job, k)], size, generator)
+            frames.append(_frame(job, k))  # counted once listed
+            k += 1
+            bar.update()
+    except KeyboardInterrupt as error:
+        _switch_off(client, None)
+        raise AcquisitionInterrupted(len(frames), total, output) from error
+    except (OSError, TorchspecError) as error:
+        if isinstance(error, AcquisitionError) and step == "identify":
+            raise  # refused before anything moved
+        note = _switch_off(client, error) if step not in ("identify", "home") else ""
+        where = job["frames"][k]["file"] if k < total else "the end"
+        saved_note = (
+            f"{len(frames)} of {total} frames are saved in {output} (a valid capture)"
+            if frames
+            else f"no frame is saved yet in {output}"
+        )
+        raise AcquisitionStopped(
+            f"the acquisition stopped at frame {k} ({where}) of {total}, at {step}: {type(error).__name__}: "
+            f"{str(error).rstrip('.')}. "
+            f"{saved_note}.{note}",
+            done=len(frames),
+            total=total,
+            output=output,
+            frame=k,
+        ) from error
+    finally:
+        bar.close()
+    note = _switch_off(client, None)
+    if note:
+        warnings.warn(note.strip(), stacklevel=2)
+    return read_capture(output)
+
+
+def _check_position(client, k: int, planned: dict, tolerance: float) -> None:
+    status = client.status()
+    want = _direction(planned["theta"], planned["phi"])
+    got = _direction(status.theta, status.phi)
+    cosine = max(-1.0, min(1.0, sum(a * b for a, b in zip(want, got, strict=True))))
+    off = math.acos(cosine)
+    problems = []
+    if status.fault:
+        problems.append(f"fault {status.fault!r}")
+    if status.moving:
+        problems.append("still moving")
+    if off > tolerance:
+        problems.append(f"at theta={status.theta:.6f}, phi={status.phi:.6f} ({math.degrees(off):.3g} deg away)")
+    if not status.light:
+        problems.append("the light off")
+    if problems:
+        raise _PositionError(
+            f"the dome must be at rest at frame {k}'s position (theta={planned['theta']:.6f}, "
+            f"phi={planned['phi']:.6f}, within {tolerance:g} rad) with the light on; its status says: "
+            f"{', '.join(problems)}"
+        )
+
+
+class _PositionError(OSError):
+    """The dome's status after a move disagrees with the plan."""
+
+
+def _switch_off(client, error: BaseException | None) -> str:
+    """Switch the light off, best effort; a note for the message when it could not be."""
+    if isinstance(error, (DomeTimeout, DomeDisconnected)):
+        return " The light may still be on: switch it off at the dome."
+    try:
+        client.light(False)
+    except (OSError, TorchspecError) as failure:
+        return f" The light could not be switched off ({failure}): switch it off at the dome."
+    return ""
+
+
+# --- the command line's camera --------------------------------------------------------------------
+
+
+def open_camera(
+    spec: str,
+    light: LightSettings,
+    *,
+    channels: Sequence[str] = ("R", "G", "B"),
+    pattern: str = "*.exr",
+    timeout: float = 60.0,
+    trigger: str | None = None,
+) -> Camera:
+    """The camera of ``torchspec acquire --camera``: ``sim:CONFIG`` (a
+    :class:`~torchspec.dome.camera.SimulatedCameraConfig` YAML, rendering ``light``) or
+    ``folder:DIR`` (a :class:`~torchspec.dome.camera.FolderCamera` on ``DIR`` with the
+    ``channels``, ``pattern``, ``timeout`` and shell ``trigger`` command)."""
+    from ..config import load_config
+
+    kind, _, where = spec.partition(":")
+    if kind == "sim" and where:
+        config = load_config(where, SimulatedCameraConfig)
+        return SimulatedCamera.from_config(config, light.kernel(), irradiance=_as_tuple(light.irradiance))
+    if kind == "folder" and where:
+        fire = command_trigger(trigger) if trigger else None
+        return FolderCamera(where, channels=channels, pattern=pattern, timeout=timeout, trigger=fire)
+    raise AcquisitionError(f"camera must be 'sim:CONFIG' or 'folder:DIR'; got {spec!r}.")
