@@ -73,6 +73,21 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print the report as JSON instead of a summary")
     info.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    calibrate = commands.add_parser("calibrate", help="the light's kernel, tabulated, from a mirror captured under it")
+    calibrate.add_argument("capture", type=Path, help="the mirror capture folder (its light may be 'unknown')")
+    calibrate.add_argument("-o", "--output", type=Path, required=True,
+                           help="the kernel EXR to write (channel Y; its light entry and statistics go beside, .json)")
+    calibrate.add_argument("--size", type=int, default=32, help="table pixels per side, 8..64 (default: 32)")
+    calibrate.add_argument("--extent", type=float, default=None,
+                           help="the table's half-width in l units (default: from the data)")
+    calibrate.add_argument("--normal", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
+                           help="the mirror's normal, if known (default: each pixel's reflection from its response)")
+    calibrate.add_argument("--symmetry", default="auto", choices=["auto", "none", "radial"],
+                           help="radial: a radially symmetric kernel (auto: for a line of frames)")
+    calibrate.add_argument("--mirror-alpha", type=float, default=0.0,
+                           help="the mirror's roughness (Ward alpha), deconvolved (default: 0, a perfect mirror)")
+    calibrate.add_argument("--frames", default=None, help="frames to use, as for fit (default: all)")
+
     emulator = commands.add_parser(
         "dome-emulator", help="a virtual light dome on a pseudo-terminal: prints its port, serves until Ctrl-C"
     )
@@ -185,6 +200,17 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
         print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
         return 2 if report["verdict"] == UNUSABLE else 0
+    elif args.command == "calibrate":
+        import json
+
+        from .calibrate import calibrate, write_kernel
+
+        result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
+                           symmetry=args.symmetry, mirror_alpha=args.mirror_alpha)
+        light = write_kernel(args.output, result)
+        print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
+        print(result.summary())
+        print(f"capture manifest light entry (kernel file beside capture.json): {json.dumps(light)}")
     elif args.command == "dome-emulator":
         import math
 
