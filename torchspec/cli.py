@@ -49,6 +49,13 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
                           f"{CHECKPOINT})")
+    cluster = fit.add_mutually_exclusive_group()
+    cluster.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                         help="fit the tiles on the Dask cluster of this scheduler, e.g. tcp://10.0.0.5:8786 (CAPTURE "
+                              "and OUTPUT on a filesystem every worker sees; docs/scale.md)")
+    cluster.add_argument("--workers", type=int, default=None, metavar="N",
+                         help="fit the tiles on a local Dask cluster of N worker processes (needs the dask extra: "
+                              "pip install 'torchspec[dask]')")
 
     render = commands.add_parser("render", help="predict a capture's frames from SVBRDF maps")
     render.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
@@ -135,6 +142,19 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
+    """``torchspec fit --scheduler/--workers``: the same fit, its tiles on a Dask cluster."""
+    from .distributed import ClusterError, connect
+    from .distributed import fit as fit_on
+
+    try:
+        with connect(args.scheduler, workers=args.workers) as client:
+            return fit_on(args.capture, client, checkpoint=checkpoint, config=config, frames=args.frames,
+                          progress=not args.quiet, resume=args.resume)
+    except ClusterError as error:  # printed by main like an unreadable file: the message names the address or tile
+        raise OSError(str(error)) from error
+
+
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "demo":
         if not 8 <= args.size <= 4096:
@@ -158,15 +178,20 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         if args.model is not None:
             config = replace(config, model=args.model)
         checkpoint = args.output / CHECKPOINT
+        if args.workers is not None and args.workers < 1:
+            parser.error(f"--workers must be >= 1; got {args.workers}")
         try:
-            result = fit(
-                args.capture,
-                config=config,
-                frames=args.frames,
-                progress=not args.quiet,
-                checkpoint=checkpoint,
-                resume=args.resume,
-            )
+            if args.scheduler is None and args.workers is None:
+                result = fit(
+                    args.capture,
+                    config=config,
+                    frames=args.frames,
+                    progress=not args.quiet,
+                    checkpoint=checkpoint,
+                    resume=args.resume,
+                )
+            else:
+                result = _fit_on_cluster(args, config, checkpoint)
         except FitInterrupted as stop:
             again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
             print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "

@@ -717,6 +717,67 @@ def _load_tile(tile: dict, device: torch.device) -> dict:
     return {name: move(value) for name, value in tile.items() if name != "first"}
 
 
+def _setup(
+    capture: Capture | str | Path, config: FitConfig | None, frames: str | list[int] | None
+) -> tuple[FitConfig, Capture, list[int], Lights, Tensor]:
+    """What every engine of a fit starts from: the settings, the capture (its manifest read), the
+    frames picked, their lights and the view (on the settings' device and dtype)."""
+    config = config or FitConfig()
+    capture = capture if isinstance(capture, Capture) else read_capture(capture)
+    picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
+    if len(picked) < 4:
+        raise ValueError(
+            f"a fit needs at least 4 frames (3 for the normal and k_d, one more for a lobe); got {len(picked)}."
+        )
+    dtype = getattr(torch, config.dtype)
+    device = _device(config.device)
+    everything = lights_of(capture, dtype=dtype)
+    index = torch.tensor(picked)
+    lights = Lights(
+        everything.directions[index], everything.kernel, everything.irradiance[index], everything.exposure[index]
+    ).to(device=device)
+    view = torch.tensor(capture.view, dtype=dtype, device=device)
+    return config, capture, picked, lights, view
+
+
+def _plan(config: FitConfig, k: int, c: int, h: int, w: int, itemsize: int) -> tuple[FitConfig, int]:
+    """The settings with ``compile`` decided and the pixels per tile of a fit of a ``(K, C, H, W)``
+    stack: from the capture's size and the settings only, so that every engine tiles a fit alike
+    (the same maps, and either resumes the other's checkpoint)."""
+    if config.compile is None:
+        config = replace(config, compile=h * w >= COMPILE_PIXELS)
+    reserved = (k * c * itemsize + 3 * k) * h * w  # the stack, three bool masks
+    return config, _tile_size(config, k, c, itemsize, reserved)
+
+
+MASK_KINDS = ("nonfinite", "saturated", "shadowed")
+"""The masks of :class:`torchspec.photometric.Masks` that :func:`_fit_tile` takes and counts."""
+
+
+def _fit_tile(
+    first: int,
+    values: Tensor,
+    masks: list[Tensor],
+    lights: Lights,
+    view: Tensor,
+    channels: tuple[str, ...],
+    config: FitConfig,
+    ctx: dict,
+    folder: Path | None,
+) -> dict:
+    """One tile, as every engine fits it (in-process, :mod:`torchspec.distributed`): the pixels
+    ``first .. first + n - 1`` of the image from their values ``(K, C, n)`` and their masks of
+    :data:`MASK_KINDS` (each ``(K, n)``); saved in ``folder`` when given. Returns :func:`_tile`'s
+    output with the count of masked samples of each kind."""
+    y = values.permute(2, 0, 1)  # (n, K, C)
+    valid = ~(masks[0] | masks[1] | masks[2]).T
+    out = _tile(y, valid, lights, view, channels, config, ctx)
+    out["masked"] = {name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)}
+    if folder is not None:
+        _save_tile(folder, first, out)
+    return out
+
+
 def fit(
     capture: Capture | str | Path,
     *,
@@ -754,45 +815,27 @@ def fit(
         >>> result = fit("painting-dev", frames="::2")  # doctest: +SKIP
         >>> write_fit("maps", result)  # doctest: +SKIP
     """
-    config = config or FitConfig()
-    capture = capture if isinstance(capture, Capture) else read_capture(capture)
-    picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
-    if len(picked) < 4:
-        raise ValueError(
-            f"a fit needs at least 4 frames (3 for the normal and k_d, one more for a lobe); got {len(picked)}."
-        )
-    dtype = getattr(torch, config.dtype)
-    device = _device(config.device)
     clock = time.perf_counter()
-    everything = lights_of(capture, dtype=dtype)
-    index = torch.tensor(picked)
-    lights = Lights(
-        everything.directions[index], everything.kernel, everything.irradiance[index], everything.exposure[index]
-    ).to(device=device)
-    view = torch.tensor(capture.view, dtype=dtype, device=device)
+    config, capture, picked, lights, view = _setup(capture, config, frames)
+    dtype, device = view.dtype, view.device
     # NaN or Inf pixels (a failed HDR merge) are masked like saturated ones, with a warning per frame.
     stack = capture.read_frames(picked, dtype=dtype, device=device, nonfinite="keep")  # (K, C, H, W)
     read_seconds = time.perf_counter() - clock
 
     clock = time.perf_counter()
     masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
-    invalid = masks.invalid.flatten(1)  # (K, H W)
+    kinds = [m.flatten(1) for m in (masks.nonfinite, masks.saturated, masks.shadowed)]  # (K, H W) views
     ctx = _context(lights)
     mask_seconds = time.perf_counter() - clock
 
     k, c, h, w = stack.shape
     pixels = h * w
-    if config.compile is None:
-        config = replace(config, compile=pixels >= COMPILE_PIXELS)
-    reserved = stack.numel() * stack.element_size() + 3 * masks.nonfinite.numel()  # the stack, three bool masks
-    tile = _tile_size(config, k, c, stack.element_size(), reserved)
+    config, tile = _plan(config, k, c, h, w, stack.element_size())
     flat = stack.flatten(2)  # (K, C, H W), a view
     folder = Path(checkpoint) if checkpoint is not None else None
     done = _checkpoint(folder, _job(capture, picked, config, tile, pixels), resume) if folder is not None else {}
     firsts = range(0, pixels, tile)
     parts = []
-    times: dict[str, float] = {}
-    tried: dict[str, int] = {}
     with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
         try:
             for first in firsts:
@@ -800,21 +843,40 @@ def fit(
                 if first in done:  # resumed: the tile as it was computed (its times are that run's)
                     out = _load_tile(done[first], device)
                 else:
-                    y = flat[:, :, first:stop].permute(2, 0, 1)  # (n, K, C)
-                    valid = ~invalid[:, first:stop].T
-                    out = _tile(y, valid, lights, view, capture.channels, config, ctx)
-                    if folder is not None:
-                        _save_tile(folder, first, out)
-                for name, seconds in out["times"].items():
-                    times[name] = times.get(name, 0.0) + seconds
-                for name, pixels_tried in out["tried"].items():
-                    tried[name] = tried.get(name, 0) + pixels_tried
+                    at = slice(first, stop)
+                    values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
+                    out = _fit_tile(first, values, tile_masks, lights, view, capture.channels, config, ctx, folder)
                 parts.append(out)
                 bar.update(stop - first)
         except KeyboardInterrupt as interrupt:
             if folder is None:
                 raise
             raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
+    stats = {
+        "capture": str(capture.root),
+        "frames": picked,
+        "settings": asdict(config),
+        "device": str(device),
+        "pixels": pixels,
+        "tile_pixels": tile,
+        "resumed_tiles": len(done),
+        "seconds": {"read": read_seconds, "masks": mask_seconds},
+        "masked_samples": masks.counts(),
+    }
+    return _result(parts, h, w, capture.channels, stats, started=clock - read_seconds - mask_seconds)
+
+
+def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats: dict, started: float) -> Fit:
+    """The :class:`Fit` of an image from its tiles' outputs (in pixel order), ``stats`` completed
+    with the tiles' statistics and the time since ``started`` (``time.perf_counter``)."""
+    times: dict[str, float] = {}
+    tried: dict[str, int] = {}
+    for out in parts:
+        for name, seconds in out["times"].items():
+            times[name] = times.get(name, 0.0) + seconds
+        for name, pixels_tried in out["tried"].items():
+            tried[name] = tried.get(name, 0) + pixels_tried
+    c, pixels = len(channels), h * w
 
     def join(name):
         return torch.cat([p[name] for p in parts]).reshape(h, w, *parts[0][name].shape[1:])
@@ -827,7 +889,7 @@ def fit(
         torch.cat([p.specular for p in pieces]).reshape(h, w, -1),
         torch.cat([p.roughness for p in pieces]).reshape(h, w, 2),
         rotation,
-        capture.channels,
+        channels,
     )
     status, iterations, lobe = join("status"), join("iterations"), join("lobe")
     model, criterion = join("model"), join("criterion")
@@ -836,18 +898,11 @@ def fit(
         name: torch.cat([p["std"][name] for p in parts]).reshape(h, w, *parts[0]["std"][name].shape[1:])
         for name in parts[0]["std"]
     }
-    total = time.perf_counter() - clock + read_seconds + mask_seconds
+    total = time.perf_counter() - started
     stats = {
-        "capture": str(capture.root),
-        "frames": picked,
-        "settings": asdict(config),
-        "device": str(device),
-        "pixels": pixels,
-        "tile_pixels": tile,
-        "resumed_tiles": len(done),
-        "seconds": {"read": read_seconds, "masks": mask_seconds, **times, "total": total},
+        **stats,
+        "seconds": {**stats["seconds"], **times, "total": total},
         "pixels_per_second": pixels / total if total > 0 else None,
-        "masked_samples": masks.counts(),
         "lobe_pixels": int(lobe.sum()),
         "models": {name: int((model == code).sum()) for code, name in enumerate(MODEL_CODES)},
         "models_tried": tried,

@@ -34,7 +34,7 @@ from ._manifest import (
     _parse,
     _to_manifest,
 )
-from .exr import ExrError, read_exr, write_exr
+from .exr import ExrError, _read_rows, read_exr, write_exr
 from .svbrdf import Maps, write_svbrdf
 
 __all__ = ["Capture", "CaptureError", "Frame", "LightSpec", "FORMAT", "VERSIONS", "read_capture", "write_capture"]
@@ -96,6 +96,7 @@ class Capture:
         self,
         indices: Sequence[int] | None = None,
         *,
+        rows: tuple[int, int] | None = None,
         dtype: torch.dtype = torch.float32,
         device=None,
         nonfinite: str = "raise",
@@ -105,14 +106,18 @@ class Capture:
         Args:
             indices: the frames to read, in this order (negative indices count from the end);
                 all ``K`` by default.
+            rows: ``(start, stop)``: only these rows of every frame, reading only the blocks of
+                each file that hold them (:func:`~torchspec.io.exr.read_exr`); all by default.
             dtype, device: of the result.
-            nonfinite: ``raise`` (a frame with NaN, Inf or negative pixels is an error) or
+            nonfinite: ``raise`` (a frame with NaN, Inf or negative pixels is an error),
                 ``keep`` (they are returned as they are, with a warning naming the frame, for a
-                caller that masks them, as :func:`torchspec.fit.fit` does).
+                caller that masks them, as :func:`torchspec.fit.fit` does) or ``ignore`` (the same
+                without the warning, for a caller that counts and reports them itself).
 
         Returns:
-            ``(K, C, H, W)`` image stack, frames as the batch (kornia's layout), channels in the
-            order of :attr:`channels`, row 0 at the top of the image.
+            ``(K, C, H, W)`` image stack (``H = stop - start`` with ``rows``), frames as the batch
+            (kornia's layout), channels in the order of :attr:`channels`, row 0 at the top of the
+            image.
 
         Raises:
             CaptureError: an index is out of range, or a frame is unreadable, has another size
@@ -125,13 +130,13 @@ class Capture:
             >>> capture.read_frames([0, 5]).shape
             torch.Size([2, 3, 48, 48])
         """
-        if nonfinite not in ("raise", "keep"):
-            raise ValueError(f"nonfinite must be 'raise' or 'keep'; got {nonfinite!r}.")
+        if nonfinite not in ("raise", "keep", "ignore"):
+            raise ValueError(f"nonfinite must be 'raise', 'keep' or 'ignore'; got {nonfinite!r}.")
         count = len(self.frames)
         picked = range(count) if indices is None else [self._index(i) for i in _as_list(indices)]
         out = torch.empty((0, len(self.channels), self.height, self.width), dtype=dtype, device=device)
         for j, k in enumerate(picked):
-            image = torch.from_numpy(self._read_frame(k, nonfinite == "keep")).permute(2, 0, 1)
+            image = torch.from_numpy(self._read_frame(k, nonfinite, rows)).permute(2, 0, 1)
             if j == 0:  # allocated once a frame has the manifest's size: a wrong one allocates nothing
                 out = torch.empty((len(picked), *image.shape), dtype=dtype, device=device)
             out[j] = image
@@ -147,49 +152,54 @@ class Capture:
             raise CaptureError(f"frame index must be in [0, {count}) ({self.manifest} has {count} frames); got {k}.")
         return k % count
 
-    def _read_frame(self, k: int, keep_bad: bool = False) -> np.ndarray:
-        """Frame ``k`` as ``(H, W, C)``, checked; NaN, Inf and negative values raise unless
-        ``keep_bad``, which warns instead."""
+    def _read_frame(self, k: int, nonfinite: str = "raise", rows: tuple[int, int] | None = None) -> np.ndarray:
+        """Frame ``k`` (its ``rows``) as ``(H, W, C)``, checked; NaN, Inf and negative values
+        raise unless ``nonfinite`` is ``keep``, which warns instead, or ``ignore``."""
         file = self.root / self.frames[k].file
+        keep_bad, warn = nonfinite != "raise", nonfinite == "keep"
         try:
-            image = read_exr(file, self.channels)
+            if rows is None:
+                image = read_exr(file, self.channels)
+                size = image.shape[:2]
+            else:
+                image, size = _read_rows(file, self.channels, rows)
         except ExrError as error:
             raise CaptureError(
                 f"{self.manifest}: frames[{k}] must be a readable EXR with channels {list(self.channels)}; got: {error}"
             ) from error
-        if image.shape[:2] != (self.height, self.width):
+        if size != (self.height, self.width):
             raise CaptureError(
                 f"frames[{k}] {file} must be {self.height}x{self.width} (height x width, from {self.manifest}); "
-                f"got {image.shape[0]}x{image.shape[1]}. Crop or resample the frame, or fix width and height."
+                f"got {size[0]}x{size[1]}. Crop or resample the frame, or fix width and height."
             )
         finite = np.isfinite(image)
         bad = int((~finite).any(axis=2).sum())
-        if bad and keep_bad:
-            warnings.warn(
-                f"frames[{k}] {file}: {bad} pixel(s) with NaN or Inf (of {self.height * self.width}) "
-                "are returned as they are: mask them.",
-                stacklevel=3,
-            )
-        elif bad:
+        read = image.shape[0] * image.shape[1]  # the pixels read: the frame's, or its rows'
+        if bad and not keep_bad:
             raise CaptureError(
                 f"frames[{k}] {file} must be finite; got {bad} pixel(s) with NaN or Inf (of "
-                f"{self.height * self.width}). Re-export the frame, or replace those pixels with a finite value."
+                f"{read}). Re-export the frame, or replace those pixels with a finite value."
+            )
+        if bad and warn:
+            warnings.warn(
+                f"frames[{k}] {file}: {bad} pixel(s) with NaN or Inf (of {read}) are returned as they are: mask them.",
+                stacklevel=3,
             )
         below = (image < 0) & finite  # -Inf is counted above
         negative = int(below.any(axis=2).sum())
         if negative:
             lowest = float(image[below].min())
-            if keep_bad:
-                warnings.warn(
-                    f"frames[{k}] {file}: {negative} pixel(s) with a negative value (of {self.height * self.width}; "
-                    f"the most negative {lowest:.3g}) are kept as they are.",
-                    stacklevel=3,
-                )
-            else:
+            if not keep_bad:
                 raise CaptureError(
                     f"frames[{k}] {file} must be non-negative (linear radiance); got {negative} pixel(s) with a "
-                    f"negative value (of {self.height * self.width}), the most negative {lowest:.3g}. Re-export the "
+                    f"negative value (of {read}), the most negative {lowest:.3g}. Re-export the "
                     "frame without a black-level offset, or read it with nonfinite='keep' and mask them."
+                )
+            if warn:
+                warnings.warn(
+                    f"frames[{k}] {file}: {negative} pixel(s) with a negative value (of {read}; "
+                    f"the most negative {lowest:.3g}) are kept as they are.",
+                    stacklevel=3,
                 )
         return image
 

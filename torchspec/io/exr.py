@@ -48,8 +48,9 @@ def _channel_order(names: Sequence[str]) -> list[str]:
     return grouped + sorted(set(names) - set(grouped))
 
 
-def _open(path: Path) -> OpenEXR.File:
-    """Open ``path`` with every channel separate, raising :class:`ExrError` for any failure."""
+def _open(path: Path, header_only: bool = False) -> OpenEXR.File:
+    """Open ``path`` with every channel separate (or its header only), raising :class:`ExrError`
+    for any failure."""
     try:
         exists = path.is_file()
     except OSError as error:  # a name too long, a folder without permission
@@ -61,7 +62,7 @@ def _open(path: Path) -> OpenEXR.File:
     printed = io.StringIO()
     try:
         with contextlib.redirect_stdout(printed):
-            file = OpenEXR.File(str(path), separate_channels=True)
+            file = OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except Exception as error:
         raise ExrError(f"{path} must be a readable OpenEXR file; got {type(error).__name__}: {error}.") from error
     notes = printed.getvalue().strip()
@@ -77,7 +78,9 @@ def _open(path: Path) -> OpenEXR.File:
     return file
 
 
-def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndarray:
+def read_exr(
+    path: str | Path, channels: Sequence[str] | None = None, *, rows: tuple[int, int] | None = None
+) -> np.ndarray:
     """Read channels of an EXR file.
 
     Args:
@@ -85,22 +88,30 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndar
         channels: the channel names to read, in this order; a single string is one name. By
             default every channel of the file: ``R, G, B`` in that order when present, then
             ``X, Y, Z`` likewise, then the others sorted.
+        rows: ``(start, stop)``: only rows ``start`` to ``stop - 1`` (``0 <= start < stop <= H``).
+            Only the file's blocks that hold them are read and decoded (a block is 1 to 256 rows,
+            by compression: 16 for ZIP), so a band of a large image costs about its share of the
+            file; the rest of the file is not checked.
 
     Returns:
-        ``(H, W, C)`` C-contiguous float32 array, row 0 at the top of the image (half, float and
-        uint channels are converted).
+        ``(H, W, C)`` (``H = stop - start`` with ``rows``) C-contiguous float32 array, row 0 at
+        the top of the image (half, float and uint channels are converted).
 
     Raises:
         ExrError: the file is missing, unreadable, truncated, multi-part, lacks a requested
-            channel (the message lists those it has), or holds channels that are not 2D images of
-            one size.
+            channel (the message lists those it has), holds channels that are not 2D images of
+            one size, or ``rows`` are not rows of the image.
 
     Example:
         >>> rgb = read_exr("capture/frames/0000.exr", ["R", "G", "B"])  # doctest: +SKIP
         >>> rgb.shape
         (48, 48, 3)
+        >>> read_exr("capture/frames/0000.exr", ["R", "G", "B"], rows=(8, 24)).shape  # doctest: +SKIP
+        (16, 48, 3)
     """
-    return _read(Path(path), channels)[1]
+    if rows is None:
+        return _read(Path(path), channels)[1]
+    return _read_rows(Path(path), channels, rows)[0]
 
 
 def _read(path: Path, channels: Sequence[str] | None) -> tuple[list[str], np.ndarray]:
@@ -133,6 +144,55 @@ def _read(path: Path, channels: Sequence[str] | None) -> tuple[list[str], np.nda
         )
     image = np.stack([np.asarray(found[name], dtype=np.float32) for name in names], axis=-1)
     return names, np.ascontiguousarray(image)
+
+
+def _read_rows(path: Path, channels: Sequence[str] | None, rows: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
+    """:func:`read_exr` of a band of rows: the band ``(stop - start, W, C)`` and the image's
+    ``(H, W)``. Reads the header, then the band through the binding's scanline interface
+    (``InputFile``; deprecated in OpenEXR 3.3, so a binding without it reads the whole image)."""
+    file = _open(path, header_only=True)
+    header = file.header()
+    low, high = header["dataWindow"]
+    size = (int(high[1] - low[1] + 1), int(high[0] - low[0] + 1))
+    found = {channel.name: channel for channel in header["channels"]}
+    if isinstance(channels, str):
+        channels = [channels]
+    names = _channel_order(list(found)) if channels is None else list(channels)
+    missing = [name for name in names if name not in found]
+    if missing or not names:
+        raise ExrError(
+            f"{path} must have channel(s) {missing or names}; it has {_channel_order(list(found))}. "
+            "Ask for channels the file has, or rewrite it with these channel names."
+        )
+    sampled = {name: (found[name].xSampling, found[name].ySampling) for name in names}
+    if any(sampling != (1, 1) for sampling in sampled.values()):
+        raise ExrError(f"{path}: channels must all have one size (no subsampling); got {sampled}. Resample them.")
+    start, stop = (int(row) for row in rows)
+    if not 0 <= start < stop <= size[0]:
+        raise ExrError(
+            f"rows of {path} must satisfy 0 <= start < stop <= {size[0]} (the image is {size[0]}x{size[1]}); "
+            f"got {start}:{stop}."
+        )
+    if not hasattr(OpenEXR, "InputFile"):
+        return np.ascontiguousarray(_read(path, names)[1][start:stop]), size
+    import Imath  # shipped with the binding, beside the InputFile it describes
+
+    try:
+        legacy = OpenEXR.InputFile(str(path))
+        try:
+            first = int(low[1]) + start  # the binding's scanlines count from the data window's top
+            data = legacy.channels(names, Imath.PixelType(Imath.PixelType.FLOAT), first, first + stop - start - 1)
+        finally:
+            legacy.close()
+    except Exception as error:
+        raise ExrError(
+            f"{path} must be a readable OpenEXR file; rows {start}:{stop} could not be read ({type(error).__name__}: "
+            f"{error}): the file is truncated or corrupt. Write it again."
+        ) from error
+    band = np.empty((stop - start, size[1], len(names)), dtype=np.float32)
+    for c, buffer in enumerate(data):
+        band[:, :, c] = np.frombuffer(buffer, dtype=np.float32).reshape(stop - start, size[1])
+    return band, size
 
 
 def _to_numpy(image) -> np.ndarray:
