@@ -73,3 +73,17 @@ def test_variance_scales_with_the_residuals(k, seed):
     # The same pixels at k times the level with k times a: the same variances.
     va, vb = affine_noise(squares, k * values, count, 7)
     torch.testing.assert_close(torch.stack([va * k, vb]), torch.stack([a, b]), rtol=1e-5, atol=1e-12)
+
+
+def test_pixels_without_any_residual_say_nothing_of_the_noise():
+    """All-zero pixels (a black border, padding) are fitted exactly: kept, they would pin the line to
+    the origin and the read noise to 0."""
+    generator = torch.Generator().manual_seed(0)
+    n, k, variance = 96, 100, 1.88e-3
+    x = torch.linspace(0.06, 0.25, n, dtype=torch.float64)
+    squares = (torch.randn(n, k, generator=generator, dtype=torch.float64) ** 2).sum(-1) * variance
+    zeros = torch.zeros(12, dtype=torch.float64)
+    a, b = affine_noise(torch.cat([squares, zeros]), torch.cat([x * k, zeros]), torch.full((n + 12,), k), 3)
+    clean = affine_noise(squares, x * k, torch.full((n,), k), 3)
+    torch.testing.assert_close((a, b), clean)
+    assert abs(float(a * 0.15 + b) / variance - 1) < 0.1

@@ -99,6 +99,8 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
         f"simulated in {simulate_seconds:.1f} s; fitted in {fit_seconds:.1f} s on {torch.get_num_threads()} threads",
         f"pixels with a lobe: {result.stats['lobe_pixels']} of {result.stats['pixels']}",
         f"solver: {result.stats['status']}",
+        f"untrusted pixels (flags.exr): {result.stats['untrusted']}; "
+        + ", ".join(f"{name} {count}" for name, count in result.stats["flags"].items() if count),
         f"held-out frames: {len(held)} (fitted on {len(fitted_frames)})",
     ]
     write_report(
@@ -127,6 +129,7 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
         f"varnish k_s {100 * scores['varnished_ks']:.1f} %, alpha {100 * scores['varnished_alpha']:.1f} %; "
         f"matte pixels without a lobe {100 * scores['matte_share_ks0']:.1f} %"
     )
+    print(f"  untrusted pixels (flags.exr): {result.stats['untrusted']} of {result.stats['pixels']}")
     print(
         f"  held-out frames predicted at {scores['heldout_psnr_db']:.1f} dB PSNR "
         f"(the true maps: {scores['truth_heldout_psnr_db']:.1f} dB)"

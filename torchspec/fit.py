@@ -11,8 +11,9 @@ Stages, per tile of pixels (all frames of a tile at once, so memory is bounded b
 4. batched Levenberg-Marquardt (:func:`torchspec.lm.solve`) of every parameter jointly on every
    valid sample: the lobed pixels with the configured Ward model, the others diffuse only.
 
-The result holds the maps, a per-pixel relative RMS residual and quality, the solver's status
-and iteration counts, and statistics per stage; :func:`write_fit` writes them as an SVBRDF folder.
+The result holds the maps, a per-pixel relative RMS residual, quality and flags
+(:mod:`torchspec.flags`: which pixels not to trust, and why), the solver's status and iteration
+counts, and statistics per stage; :func:`write_fit` writes them as an SVBRDF folder.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from tqdm.auto import tqdm
 from ._atomic import atomic_path, read_json, write_json
 from ._version import __version__
 from .brdf import SVBRDF
+from .flags import FLAGS, UNTRUSTED, WEAK_LOBE_SNR, bit, describe, peak_checks, untrusted
 from .geometry import normal_derivative
 from .io import Capture, read_capture, write_svbrdf
 from .jacobian import sandwich_terms
@@ -77,6 +79,10 @@ class FitConfig:
             (:func:`torchspec.noise.affine_noise`; ``stats["sensor_noise"]``), floored at
             ``noise_floor`` times the pixel's level. ``auto`` needs them; a forced model without
             them leaves ``criterion`` and ``std`` NaN.
+        flag_peak_misfit, flag_astray, flag_reach: the thresholds of the ``peak_misfit`` and
+            ``astray`` flags and the neighbourhood of the peak (:mod:`torchspec.flags`; they need
+            the noise: ``uncertainty`` or ``auto``). Set by the stability study: they catch most
+            peaks placed more than 10 Cramer-Rao deviations away while flagging few good ones.
         select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
             degrees of freedom by more than ``select_z`` of its standard deviations
             (``dof + select_z sqrt(2 dof)``): the residual is not noise.
@@ -114,6 +120,9 @@ class FitConfig:
     model: str = "auto"
     select_z: float = 3.0
     uncertainty: bool = True
+    flag_peak_misfit: float = 3.0
+    flag_astray: float = 2.0
+    flag_reach: float = 1.5
     init: str = "fri"
     detect: float = 5.0
     noise_floor: float = 0.002
@@ -145,7 +154,15 @@ class FitConfig:
             raise ValueError(f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}.")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"FitConfig.dtype must be 'float32' or 'float64'; got {self.dtype!r}.")
-        for name in ("detect", "noise_floor", "naive_alpha", "memory_gib"):
+        for name in (
+            "detect",
+            "noise_floor",
+            "naive_alpha",
+            "memory_gib",
+            "flag_peak_misfit",
+            "flag_astray",
+            "flag_reach",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"FitConfig.{name} must be > 0; got {getattr(self, name)!r}.")
         if self.tile < 0:
@@ -161,8 +178,9 @@ class Fit:
         residual: ``(H, W)`` RMS of the fit's residual over the valid samples, relative to the
             pixel's mean value.
         quality: ``(H, W)`` in ``[0, 1]``: photometric-stereo quality, times the peak location's
-            quality for lobed pixels, halved where the solver did not converge; 0 where it diverged
-            or no sample was valid.
+            quality for lobed pixels, halved where the solver did not converge; 0 where ``flags``
+            holds a flag of :data:`torchspec.flags.UNTRUSTED` (diverged, fewer than 3 valid
+            samples, an undetermined normal, a misfit around the peak, a peak astray).
         status: ``(H, W)`` int8 solver status (:data:`torchspec.lm.STATUS`).
         iterations: ``(H, W)`` solver steps taken.
         lobe: ``(H, W)`` bool, the pixels fitted with a lobe.
@@ -175,6 +193,12 @@ class Fit:
             ``roughness (H, W, 2)``; NaN for a parameter the pixel's model does not have, ``inf``
             where the data leave it undetermined.
         stats: settings, timings and per-stage statistics (JSON-ready).
+        flags: ``(H, W)`` int16 bits of :data:`torchspec.flags.FLAGS`: why not to trust a pixel
+            (the :data:`torchspec.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
+            of it (its solver stopped early, its model leaves a residual above the noise).
+        checks: ``peak_misfit`` and ``astray`` ``(H, W)``: the values behind those flags
+            (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, or no noise
+            estimate with a forced model and ``uncertainty`` off).
     """
 
     svbrdf: SVBRDF
@@ -187,6 +211,8 @@ class Fit:
     criterion: Tensor
     std: dict[str, Tensor]
     stats: dict
+    flags: Tensor
+    checks: dict[str, Tensor]
 
 
 def select_frames(spec: str | None, count: int) -> list[int]:
@@ -406,6 +432,10 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     code = torch.zeros(n, dtype=torch.int8, device=y.device)
     criterion = torch.full((n,), math.inf, dtype=y.dtype, device=y.device)
     found_quality = torch.ones_like(level)
+    misfit = torch.zeros(n, dtype=torch.bool, device=y.device)
+    # At each pixel's chosen fit, for the flags (torchspec.flags): per sample, the squared residual in
+    # noise units and the samples less the diffuse part; per pixel, the lobe's signal-to-noise ratio.
+    z2, excess, lobe_snr = y.new_zeros((n, y.shape[1])), y.new_zeros((n, y.shape[1])), y.new_zeros(n)
     tried: dict[str, int] = {}
     deviation = {
         "normal": y.new_full((n,), math.nan),
@@ -419,7 +449,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         pixels (of ``index``) whose residual it leaves above the noise."""
         model = get_model(name)
         if config.uncertainty or config.model == AUTO:
-            chi2, std = _uncertainty(
+            chi2, std, samples_at = _uncertainty(
                 model,
                 fitted,
                 observed[index],
@@ -432,7 +462,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
                 config.compile,
             )
         else:  # one model, nothing to compare: keep it, with neither criterion nor deviations
-            chi2, std = torch.full_like(result.cost, -math.inf), {}
+            chi2, std, samples_at = torch.full_like(result.cost, -math.inf), {}, None
         dof = (samples[index] - model.size(c)).clamp(min=1.0)
         bic = chi2 + model.size(c) * torch.log(samples[index].clamp(min=1.0))
         bic = torch.where(result.status == DIVERGED, torch.full_like(bic, math.inf), bic)
@@ -452,7 +482,11 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
             chosen = value[better]
             deviation[key][pick] = chosen.expand(-1, deviation[key].shape[-1]) if chosen.dim() > 1 else chosen
         tried[name] = tried.get(name, 0) + index.numel()
-        return chi2 > dof + config.select_z * (2.0 * dof).sqrt()
+        unexplained = chi2 > dof + config.select_z * (2.0 * dof).sqrt()
+        misfit[pick] = unexplained[better]
+        if samples_at is not None:
+            z2[pick], excess[pick], lobe_snr[pick] = (value[better] for value in samples_at)
+        return unexplained
 
     # Pixels without a peak: normal and k_d only; pixels with a peak: the first model of the ladder
     # from the specular start. Their residuals give the sensor's noise, then the criterion of each.
@@ -499,12 +533,45 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         index, init = index[unexplained], fitted[unexplained]
     times["lm"] = time.perf_counter() - t0
 
+    t0 = time.perf_counter()
+    svbrdf = SVBRDF(normal, diffuse, specular, roughness, rotation, channels)
+    checked = config.uncertainty or config.model == AUTO  # the checks need the sensor's noise
+    checks = {name: y.new_full((n,), math.nan) for name in ("peak_misfit", "astray")}
+    flags = torch.zeros(n, dtype=torch.int16, device=y.device)
+    few = valid.sum(-1) < 3
+    for name, where in (
+        ("diverged", status == DIVERGED),
+        ("few_samples", few),
+        ("not_converged", (status != CONVERGED) & (status != DIVERGED)),
+    ):
+        flags = flags | torch.where(where, bit(name), 0).to(torch.int16)
+    if checked:
+        lobed = torch.tensor([get_model(name).lobe for name in MODEL_CODES], device=y.device)[code.long()]
+        weak = lobed & (lobe_snr < WEAK_LOBE_SNR)
+        flags = flags | torch.where(weak, bit("weak_lobe"), 0).to(torch.int16)
+        index = (lobed & ~few & ~weak).nonzero()[:, 0]
+        if index.numel():
+            local, astray = peak_checks(
+                svbrdf[index], z2[index], excess[index], valid[index], lights, view, reach=config.flag_reach
+            )
+            checks["peak_misfit"][index], checks["astray"][index] = local, astray
+        for name, where in (
+            ("undetermined", ~deviation["normal"].isfinite() & ~few & ~weak),
+            ("peak_misfit", checks["peak_misfit"] > config.flag_peak_misfit),
+            ("astray", checks["astray"] > config.flag_astray),
+            ("misfit", misfit),
+        ):
+            flags = flags | torch.where(where, bit(name), 0).to(torch.int16)
+    times["checks"] = time.perf_counter() - t0
+
     rms = (2.0 * cost / (count * c)).sqrt()
     quality = ps.quality * found_quality
     quality = torch.where(status == CONVERGED, quality, 0.5 * quality)
-    quality = torch.where((status == DIVERGED) | (valid.sum(-1) < 3), torch.zeros_like(quality), quality)
+    quality = torch.where(untrusted(flags), torch.zeros_like(quality), quality)
     return {
-        "svbrdf": SVBRDF(normal, diffuse, specular, roughness, rotation, channels),
+        "svbrdf": svbrdf,
+        "flags": flags,
+        **{f"check_{name}": value for name, value in checks.items()},
         "residual": torch.nan_to_num(rms, nan=math.inf),
         "quality": quality,
         "status": status,
@@ -561,9 +628,10 @@ def _uncertainty(
     path,
     quadrature,
     compile,
-) -> tuple[Tensor, dict[str, Tensor]]:
+) -> tuple[Tensor, dict[str, Tensor], tuple[Tensor, Tensor]]:
     """The fit's ``chi^2 = sum ((render - observed) weight)^2`` per pixel ``(n,)``, ``weight``
-    being one over each sample's noise, and the standard deviations of its parameters there:
+    being one over each sample's noise, the samples :func:`torchspec.flags.peak_checks` takes
+    (``z2``, ``excess``, each ``(n, K)``, and ``lobe_snr (n,)``), and the standard deviations of its parameters there:
     ``normal`` (radians, the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``;
     NaN for the parameters the model does not have, ``inf`` for those the data leave undetermined.
 
@@ -576,7 +644,8 @@ def _uncertainty(
     like = dict(dtype=weight.dtype, device=weight.device)
     select = model.selection(c, weight)
     if n == 0:
-        return weight.new_zeros(0), {}
+        empty = weight.new_zeros(0, weight.shape[1])
+        return weight.new_zeros(0), {}, (empty, empty, weight.new_zeros(0))
 
     def run(fused: bool):
         return sandwich_terms(
@@ -590,18 +659,19 @@ def _uncertainty(
             path=path,
             diffuse_only=not model.lobe,
             compile=fused,
+            samples=True,
             **quadrature,
         )
 
     if compile and not _COMPILE_FAILED:
         try:
-            cost, bread, meat = run(True)
+            cost, bread, meat, z2, excess, lobe_snr = run(True)
         except Exception as error:  # as in _lm_stage: the same evaluation without torch.compile
             _COMPILE_FAILED.append(error)
             warnings.warn(f"torch.compile failed ({type(error).__name__}: {error}); fitting without it.", stacklevel=2)
-            cost, bread, meat = run(False)
+            cost, bread, meat, z2, excess, lobe_snr = run(False)
     else:
-        cost, bread, meat = run(False)
+        cost, bread, meat, z2, excess, lobe_snr = run(False)
     outer, info = torch.linalg.inv_ex(bread)
     inverse = outer @ meat @ outer
     variance = inverse.diagonal(dim1=-2, dim2=-1)
@@ -621,7 +691,7 @@ def _uncertainty(
     else:
         out["specular"] = torch.full((n, 1), nan, **like)
         out["roughness"] = torch.full((n, 2), nan, **like)
-    return 2.0 * cost, out
+    return 2.0 * cost, out, (z2, excess, lobe_snr)
 
 
 class FitInterrupted(KeyboardInterrupt):
@@ -863,7 +933,7 @@ def fit(
         "seconds": {"read": read_seconds, "masks": mask_seconds},
         "masked_samples": masks.counts(),
     }
-    return _result(parts, h, w, capture.channels, stats, started=clock - read_seconds - mask_seconds)
+    return _result(parts, h, w, capture.channels, stats, started=clock - read_seconds)  # clock: the masks began
 
 
 def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats: dict, started: float) -> Fit:
@@ -892,7 +962,7 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
         channels,
     )
     status, iterations, lobe = join("status"), join("iterations"), join("lobe")
-    model, criterion = join("model"), join("criterion")
+    model, criterion, flags = join("model"), join("criterion"), join("flags")
     finite = criterion.isfinite()
     std = {
         name: torch.cat([p["std"][name] for p in parts]).reshape(h, w, *parts[0]["std"][name].shape[1:])
@@ -917,17 +987,30 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
             "mean_lobe": float(iterations[lobe].float().mean()) if bool(lobe.any()) else None,
         },
         "median_residual": float(join("residual").median()),
+        "flags": describe(flags),
+        "untrusted": int(untrusted(flags).sum()),
     }
-    return Fit(svbrdf, join("residual"), join("quality"), status, iterations, lobe, model, criterion, std, stats)
+    checks = {name: join(f"check_{name}") for name in ("peak_misfit", "astray")}
+    return Fit(
+        svbrdf, join("residual"), join("quality"), status, iterations, lobe, model, criterion, std, stats, flags, checks
+    )
 
 
 def write_fit(path: str | Path, result: Fit) -> None:
     """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
     ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
-    ``criterion.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
+    ``criterion.exr``, ``flags.exr`` (bits of ``flag_bits``), ``check_peak_misfit.exr``,
+    ``check_astray.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
     ``std_specular.exr``, ``std_roughness.exr`` and ``svbrdf.json`` (model, settings, timings,
     statistics)."""
-    meta = {"model": "ward", "fit": result.stats, "status_codes": list(STATUS), "model_codes": list(MODEL_CODES)}
+    meta = {
+        "model": "ward",
+        "fit": result.stats,
+        "status_codes": list(STATUS),
+        "model_codes": list(MODEL_CODES),
+        "flag_bits": {name: bit(name) for name in FLAGS},
+        "untrusted_flags": list(UNTRUSTED),
+    }
     extra = {
         "residual": result.residual.float(),
         "quality": result.quality.float(),
@@ -935,6 +1018,9 @@ def write_fit(path: str | Path, result: Fit) -> None:
         "iterations": result.iterations.float(),
         "model": result.model.float(),
         "criterion": result.criterion.float(),
+        "flags": result.flags.float(),
+        "check_peak_misfit": result.checks["peak_misfit"].float(),
+        "check_astray": result.checks["astray"].float(),
         "std_normal_deg": torch.rad2deg(result.std["normal"]).float(),
         "std_diffuse": result.std["diffuse"].float(),
         "std_specular": result.std["specular"].float(),

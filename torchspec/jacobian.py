@@ -427,16 +427,20 @@ def _contract(function, svbrdf, lights, view, observed, weights, select, *, path
         parts = _parts(part, lights, view, path, diffuse_only, orders, clamp, compile)
         fused = _fused(function, compile, part.diffuse.shape[0])
         rows = slice(start, start + chunk)
-        cost, first, second = fused(parts, observed[rows], *[w[rows] for w in weights])
+        cost, first, second, *rest = fused(parts, observed[rows], *[w[rows] for w in weights])
         second = second @ select if second.dim() == 2 else select.T @ second @ select
-        out.append((cost, select.T @ first @ select, second))
+        out.append((cost, select.T @ first @ select, second, *rest))
     return tuple(torch.cat(column) for column in zip(*out, strict=True))
 
 
 def _sandwich(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``0.5 chi^2 (N,)`` with ``noise`` (one over each sample's noise), then ``J^T W^2 J`` and
     ``J^T W^2 S W^2 J`` with ``W`` the fit's weights and ``S`` the samples' variances (in one pass)."""
-    value, jac = _assemble(*parts)
+    return _sandwich_sums(*_assemble(*parts), observed, noise, fit)[:3]
+
+
+def _sandwich_sums(value: Tensor, jac: Tensor, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple:
+    """:func:`_sandwich`'s sums from the values and the Jacobian, and the noise-weighted residual."""
     r = (value - observed) * noise
     sigma = torch.where(noise > 0, 1.0 / torch.where(noise > 0, noise, torch.ones_like(noise)), torch.zeros_like(noise))
     bread = jac * fit[..., None]
@@ -445,7 +449,23 @@ def _sandwich(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tup
         0.5 * (r * r).sum((1, 2)),
         torch.einsum("nkcp,nkcq->npq", bread, bread),
         torch.einsum("nkcp,nkcq->npq", meat, meat),
+        r,
     )
+
+
+def _sandwich_samples(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple:
+    """:func:`_sandwich`, and per sample ``(N, K)``: the squared residual in units of the noise summed
+    over channels, and the mean over the valid channels of the samples less the diffuse part; then
+    the lobe's signal-to-noise ratio ``(N,)``, the norm of its part of the values in noise units."""
+    value, jac = _assemble(*parts)
+    cost, bread, meat, r = _sandwich_sums(value, jac, observed, noise, fit)
+    diffuse, _, _, _, _, _, scale, k_d, _ = parts
+    valid = (noise > 0).to(observed.dtype)
+    lambertian = k_d[:, None, :] / math.pi * diffuse[..., None] * scale
+    excess = ((observed - lambertian) * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
+    _, _, spec, _, _, _, _, _, k_s = parts
+    lobe = k_s[:, None, :] * spec[..., None] * scale * noise  # the lobe's part, in units of the noise
+    return cost, bread, meat, (r * r).sum(-1), excess, (lobe * lobe).sum((1, 2)).sqrt()
 
 
 def sandwich_terms(
@@ -463,7 +483,8 @@ def sandwich_terms(
     diffuse_only: bool = False,
     clamp: str = "exact",
     compile: bool = False,
-) -> tuple[Tensor, Tensor, Tensor]:
+    samples: bool = False,
+) -> tuple[Tensor, ...]:
     """What the covariance of a weighted least-squares estimate needs, in one pass over the frames:
     the estimate minimised ``|W (render - observed)|^2`` (``W = fit_weight``) while each sample has
     the variance ``1 / noise_weight^2``; its covariance is ``A^-1 B A^-1`` (the sandwich; the
@@ -474,13 +495,20 @@ def sandwich_terms(
             compile: as for :func:`normal_equations`.
         noise_weight: ``(N, K, C)`` one over each sample's noise (0 drops a sample).
         fit_weight: ``(N, K, C)`` the weights the estimate was fitted with.
+        samples: also return, per sample ``(N, K)``, the squared residual in units of the noise
+            (summed over channels) and the samples less the model's diffuse part (mean over the
+            valid channels), and per pixel the lobe's signal-to-noise ratio (the norm of the lobe's
+            part of the values in units of the noise): what :mod:`torchspec.flags` needs, from the
+            same pass.
 
     Returns:
         ``(0.5 chi^2 (N,), A = J^T W^2 J (N, P, P), B = J^T W^2 S W^2 J (N, P, P))`` with ``chi^2``
-        the residual in units of the noise and ``S`` the samples' variances.
+        the residual in units of the noise and ``S`` the samples' variances; with ``samples``,
+        then ``z2 (N, K)``, ``excess (N, K)`` and ``lobe_snr (N,)``.
     """
     options = dict(path=path, orders=(order, reference_order), diffuse_only=diffuse_only, clamp=clamp, compile=compile)
-    return _contract(_sandwich, svbrdf, lights, view, observed, (noise_weight, fit_weight), select, **options)
+    function = _sandwich_samples if samples else _sandwich
+    return _contract(function, svbrdf, lights, view, observed, (noise_weight, fit_weight), select, **options)
 
 
 def _integrate_fallback(*args):

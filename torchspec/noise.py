@@ -35,8 +35,8 @@ def affine_noise(
     unexplained, ``s / (a x + b) > 1 + 4 sqrt(2 / dof)``, stay out of the mean.
 
     Args:
-        sum_squares, sum_values, count: ``(N,)``; pixels with ``count <= params`` or non-finite
-            values are left out.
+        sum_squares, sum_values, count: ``(N,)``; pixels with ``count <= params``, non-finite
+            values or no residual at all (``sum_squares == 0``) are left out.
         params: ``(N,)`` or one number.
         iterations: reweighting passes.
 
@@ -52,7 +52,10 @@ def affine_noise(
     dtype, device = sum_squares.dtype, sum_squares.device
     params = torch.as_tensor(params, dtype=dtype, device=device)
     dof = count.to(dtype) - params
-    usable = (dof > 0) & sum_squares.isfinite() & sum_values.isfinite() & (count > 0)
+    # A pixel left without any residual (all its samples 0, a black border or padding, fitted
+    # exactly) says nothing of the noise: a real sensor's never vanishes. Kept, such pixels would pin
+    # the line to the origin (0 read noise).
+    usable = (dof > 0) & sum_squares.isfinite() & sum_values.isfinite() & (count > 0) & (sum_squares > 0)
     s = (sum_squares / dof.clamp(min=1.0))[usable]
     x = (sum_values / count.to(dtype).clamp(min=1.0))[usable].clamp(min=0.0)
     zero = s.new_zeros(())
