@@ -23,24 +23,21 @@ Writes ``bench_scale.json`` and ``bench_scale.png`` (seconds against workers).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
 import sys
 import tempfile
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 from _common import parse_args
+from bench_fit import _capture  # the same simulated painting, cached by its settings
 
 from torchspec._atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.fit import FitConfig
-from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig, SensorConfig
 
 
 @dataclass(frozen=True)
@@ -57,28 +54,6 @@ class Settings:
     noop_tasks: int = 2000
     malloc: bool = True  # the MALLOC_TRIM_THRESHOLD_ rows
     fit: FitConfig = field(default_factory=FitConfig)
-
-
-def _capture(settings: Settings) -> Path:
-    keys = ("size", "grid", "extent", "kernel_sigma", "photons_per_unit", "seed")
-    key = json.dumps({k: v for k, v in asdict(settings).items() if k in keys}, sort_keys=True)
-    digest = hashlib.sha1(key.encode()).hexdigest()[:8]
-    folder = Path(settings.cache).expanduser() / f"painting-{settings.size}-{digest}"
-    if (folder / "capture.json").exists():
-        return folder
-    config = SimulationConfig(
-        name="bench-scale",
-        scene=SceneConfig(
-            kind="painting", painting=PaintingConfig(width=settings.size, height=settings.size, seed=settings.seed)
-        ),
-        light=LightConfig(kernel="gaussian", domain="projected", sigma=settings.kernel_sigma),
-        layout=LayoutConfig(kind="grid", nx=settings.grid, ny=settings.grid, extent=settings.extent, radius=2.0),
-        sensor=SensorConfig(photons_per_unit=settings.photons_per_unit, seed=settings.seed),
-    )
-    start = time.perf_counter()
-    write_simulation(folder, simulate(config, root=folder))
-    print(f"simulated {folder} in {time.perf_counter() - start:.0f} s")
-    return folder
 
 
 # One fit in a fresh process: argv = engine, count, config (JSON), capture, maps file (torch.save), checkpoint.
