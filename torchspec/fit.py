@@ -195,10 +195,11 @@ class Fit:
         stats: settings, timings and per-stage statistics (JSON-ready).
         flags: ``(H, W)`` int16 bits of :data:`torchspec.flags.FLAGS`: why not to trust a pixel
             (the :data:`torchspec.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
-            of it (its solver stopped early, its model leaves a residual above the noise).
+            of it (its solver stopped early, its model leaves a residual above the noise, its
+            lobe is too weak to place a peak).
         checks: ``peak_misfit`` and ``astray`` ``(H, W)``: the values behind those flags
-            (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, or no noise
-            estimate with a forced model and ``uncertainty`` off).
+            (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or
+            no noise estimate with a forced model and ``uncertainty`` off).
     """
 
     svbrdf: SVBRDF
@@ -628,10 +629,10 @@ def _uncertainty(
     path,
     quadrature,
     compile,
-) -> tuple[Tensor, dict[str, Tensor], tuple[Tensor, Tensor]]:
+) -> tuple[Tensor, dict[str, Tensor], tuple[Tensor, Tensor, Tensor]]:
     """The fit's ``chi^2 = sum ((render - observed) weight)^2`` per pixel ``(n,)``, ``weight``
-    being one over each sample's noise, the samples :func:`torchspec.flags.peak_checks` takes
-    (``z2``, ``excess``, each ``(n, K)``, and ``lobe_snr (n,)``), and the standard deviations of its parameters there:
+    being one over each sample's noise, what :mod:`torchspec.flags` takes (``z2`` and ``excess``,
+    each ``(n, K)``, and ``lobe_snr (n,)``), and the standard deviations of its parameters there:
     ``normal`` (radians, the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``;
     NaN for the parameters the model does not have, ``inf`` for those the data leave undetermined.
 
