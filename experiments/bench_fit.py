@@ -4,7 +4,7 @@
 A procedural painting of ``size x size`` pixels is rendered under a full ``grid x grid`` layout
 of a projected Gaussian light (144 frames by default), recorded with shot noise, and written as a
 capture (cached between runs). ``torchspec fit`` then runs on it in a fresh process (time from
-reading the frames to the maps; peak memory is that process's peak RSS), with ``threads`` torch
+reading the frames to the maps; peak memory is that process's own peak RSS, VmHWM), with ``threads`` torch
 threads (and, from ``COMPILE_PIXELS`` pixels, torch.compile: its one-off compilation is in the
 time). The baseline fits a random sample of the lobed pixels one by one with
 ``scipy.optimize.least_squares`` (trust region reflective, bounds as in the fit, the analytic
@@ -96,7 +96,13 @@ start = time.perf_counter()
 result = fit(sys.argv[2], config=config)
 seconds = time.perf_counter() - start
 write_fit(sys.argv[3], result)
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+# The process's own peak (VmHWM): ru_maxrss keeps the parent's RSS at the fork across exec, so a
+# parent that had just simulated the capture (~8 GB) would be reported as the fit's peak.
+try:
+    with open("/proc/self/status") as status:
+        peak = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
+except (OSError, StopIteration):  # not Linux: ru_maxrss (KiB on Linux, bytes on macOS)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 print(json.dumps({{"seconds": seconds, "peak_mb": peak / 1024, "stats": result.stats}}, default=str))
 """
 
