@@ -54,3 +54,18 @@ def edit_manifest(root: Path, edit) -> None:
     manifest = json.loads(path.read_text())
     edit(manifest)
     path.write_text(json.dumps(manifest))
+
+
+def write_small_painting(path: Path) -> Path:
+    """A simulated 12 x 12 painting (no gilding) under a 5 x 5 grid of a projected Gaussian light, with
+    truth: 144 pixels, 25 frames; the fit, resume and Dask tests share it."""
+    from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
+    from torchspec.synth import PaintingConfig
+
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=12, height=12, seed=3, gilded=None)),
+        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
+        layout=LayoutConfig(kind="grid", nx=5, ny=5, extent=0.6, radius=1.0),
+    )
+    write_simulation(path, simulate(config))
+    return path

@@ -17,6 +17,7 @@ import torch
 pytest.importorskip("distributed")
 
 import cloudpickle  # noqa: E402 (installed with distributed)
+from capture_cases import write_small_painting  # noqa: E402
 
 from torchspec.cli import CHECKPOINT, main  # noqa: E402
 from torchspec.distributed import ClusterError, connect  # noqa: E402
@@ -24,15 +25,6 @@ from torchspec.distributed import fit as fit_on  # noqa: E402
 from torchspec.fit import FitConfig, FitInterrupted, fit, write_fit  # noqa: E402
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
 from torchspec.io.exr import ExrError, read_exr, write_exr  # noqa: E402
-from torchspec.simulate import (  # noqa: E402
-    LayoutConfig,
-    LightConfig,
-    SceneConfig,
-    SimulationConfig,
-    simulate,
-    write_simulation,
-)
-from torchspec.synth import PaintingConfig  # noqa: E402
 
 FIT = importlib.import_module("torchspec.fit")  # the module (torchspec.fit is also the function)
 MAPS = ("normal", "diffuse", "specular", "roughness")
@@ -43,14 +35,7 @@ cloudpickle.register_pickle_by_value(sys.modules[__name__])  # _fail_on_workers 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
     """A 12 x 12 painting under 25 frames (as tests/test_resume.py's)."""
-    config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=12, height=12, seed=3, gilded=None)),
-        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
-        layout=LayoutConfig(kind="grid", nx=5, ny=5, extent=0.6, radius=1.0),
-    )
-    path = tmp_path_factory.mktemp("distributed") / "capture"
-    write_simulation(path, simulate(config))
-    return path
+    return write_small_painting(tmp_path_factory.mktemp("distributed") / "capture")
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -12,12 +12,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from capture_cases import write_small_painting
 
 from torchspec.cli import CHECKPOINT
 from torchspec.fit import FitConfig, FitInterrupted, fit
 from torchspec.io import read_svbrdf
-from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig
 
 FIT = importlib.import_module("torchspec.fit")  # the module (torchspec.fit is also the function)
 MAPS = ("normal", "diffuse", "specular", "roughness")
@@ -26,14 +25,7 @@ MAPS = ("normal", "diffuse", "specular", "roughness")
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
     """A 12 x 12 painting under 25 frames: 144 pixels, tiles of 36 (4 tiles)."""
-    config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=12, height=12, seed=3, gilded=None)),
-        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
-        layout=LayoutConfig(kind="grid", nx=5, ny=5, extent=0.6, radius=1.0),
-    )
-    path = tmp_path_factory.mktemp("resume") / "capture"
-    write_simulation(path, simulate(config))
-    return path
+    return write_small_painting(tmp_path_factory.mktemp("resume") / "capture")
 
 
 CONFIG = FitConfig(tile=36)
