@@ -5,8 +5,10 @@ A procedural painting of ``size x size`` pixels is rendered under a full ``grid 
 of a projected Gaussian light (144 frames by default), recorded with shot noise, and written as a
 capture (cached between runs). ``torchspec fit`` then runs on it in a fresh process (time from
 reading the frames to the maps; peak memory is that process's own peak RSS, VmHWM), with ``threads`` torch
-threads (and, from ``COMPILE_PIXELS`` pixels, torch.compile: its one-off compilation is in the
-time). The baseline fits a random sample of the lobed pixels one by one with
+threads (and, from ``COMPILE_PIXELS`` pixels, torch.compile: its compilation is in the time, and
+the graphs it found in its on-disk cache are counted; a first run on a machine compiles them all,
+~50 s more). Run with ``TORCHINDUCTOR_CACHE_DIR`` set to an empty folder for a first run's time.
+The baseline fits a random sample of the lobed pixels one by one with
 ``scipy.optimize.least_squares`` (trust region reflective, bounds as in the fit, the analytic
 Jacobian of :func:`torchspec.jacobian.jacobian` with the fit's quadrature), from the same FRI
 start; its time per pixel (the fastest of ``scipy_repeats`` timings of the same loop) is scaled
@@ -103,7 +105,12 @@ try:
         peak = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
 except (OSError, StopIteration):  # not Linux: ru_maxrss (KiB on Linux, bytes on macOS)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-print(json.dumps({{"seconds": seconds, "peak_mb": peak / 1024, "stats": result.stats}}, default=str))
+# torch.compile's graphs found in its on-disk cache (hits) or compiled (misses): a first run on a
+# machine compiles them all, which the time includes.
+from torch._dynamo.utils import counters
+cache = {{k: int(counters["inductor"].get("fxgraph_cache_" + k, 0)) for k in ("hit", "miss")}}
+out = {{"seconds": seconds, "peak_mb": peak / 1024, "stats": result.stats, "compile_cache": cache}}
+print(json.dumps(out, default=str))
 """
 
 
@@ -221,6 +228,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             "sampled_pixels": _scores(maps[pick], truth[pick]),
             "lm_iterations_mean_lobe": ours["stats"]["iterations"]["mean_lobe"],
             "stage_seconds": ours["stats"]["seconds"],
+            "compile_cache": ours["compile_cache"],
         },
         {
             "method": f"scipy least_squares, per pixel (best of {max(1, settings.scipy_repeats)})",
@@ -250,6 +258,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print(
         f"scipy for all {pixels} pixels: {per_pixel * pixels:.0f} s (extrapolated): torchspec is {speedup:.1f}x faster"
     )
+    cache = ours["compile_cache"]
+    print(f"torch.compile graphs: {cache['hit']} from its cache, {cache['miss']} compiled (their time is in the fit's)")
     write_json(
         args.output / f"{Path(args.config).stem}.json",
         {"settings": asdict(settings), "torch": torch.__version__, "rows": rows, "speedup": speedup},

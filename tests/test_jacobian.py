@@ -7,6 +7,7 @@ from torchspec.brdf import SVBRDF
 from torchspec.geometry import normal_from_angles
 from torchspec.jacobian import _svbrdf, jacobian, normal_equations, parameters, sandwich_terms
 from torchspec.lights import Kernel, Lights
+from torchspec.models import MODELS
 from torchspec.render import render
 
 F64 = torch.float64
@@ -175,7 +176,7 @@ def test_the_fits_quadrature_is_close_to_the_renderers(kernel):
 def test_compiled_is_eager():
     """``compile=True`` (torch.compile of the node integrations and of the normal equations' pass
     over the frames, as a large fit uses) gives the eager values, derivatives, normal equations and
-    sandwich terms, to the rounding of sums taken in another order."""
+    sandwich terms, to the rounding of sums taken in another order; so does the renderer's."""
     maps, lights = _problem(False, Kernel("gaussian", "projected", 0.08), seed=4)
     maps = maps.to(torch.float32)
     lights = lights.to(dtype=torch.float32)
@@ -187,6 +188,8 @@ def test_compiled_is_eager():
         maps.rotation,
     )
     for batch in (maps, tilted):  # the second reaches behind its horizon: the clamp's integral too
+        plain = render(batch, lights, VIEW.float())
+        torch.testing.assert_close(render(batch, lights, VIEW.float(), compile=True), plain, rtol=1e-4, atol=1e-6)
         eager = jacobian(batch, lights, VIEW.float(), order=3, clamp="fast")
         fused = jacobian(batch, lights, VIEW.float(), order=3, clamp="fast", compile=True)
         torch.testing.assert_close(fused, eager, rtol=1e-4, atol=1e-6)
@@ -202,3 +205,33 @@ def test_compiled_is_eager():
         plain = sandwich_terms(*args, order=3, clamp="fast")
         fused = sandwich_terms(*args, order=3, clamp="fast", compile=True)
         torch.testing.assert_close(fused, plain, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_every_models_compiled_normal_equations(name):
+    """Each model's normal equations as the solver gets them (:meth:`Model.residuals`), compiled
+    (the Gram-matrix pass, in the model's own columns) and eager (the Jacobian, then its columns
+    picked): equal to float rounding, on pixels that also reach behind their horizon, under
+    coloured irradiance, with some samples dropped."""
+    model = MODELS[name]
+    maps, lights = _problem(model.grey, Kernel("gaussian", "projected", 0.08), seed=6)
+    maps, lights = maps.to(torch.float32), lights.to(dtype=torch.float32)
+    maps = SVBRDF(
+        torch.cat([maps.normal, normal_from_angles(torch.tensor([[0.9, 0.2], [-0.7, 0.5]]))]),
+        torch.cat([maps.diffuse, maps.diffuse[:2]]),
+        torch.cat([maps.specular, maps.specular[:2]]),
+        torch.cat([maps.roughness, maps.roughness[1:3]]),
+        torch.cat([maps.rotation, maps.rotation[:2]]),
+    )
+    params = model.pack(maps)
+    observed = render(model.unpack(params, maps.channels), lights, VIEW.float()) * 1.05 + 0.01
+    g = torch.Generator().manual_seed(2)
+    weight = (torch.rand(observed.shape[:2], generator=g) > 0.2).float() * 3.0  # (N, K): some dropped
+    index = torch.arange(params.shape[0])
+    args = (observed, weight, lights, VIEW.float(), maps.channels)
+    options = dict(order=3, reference_order=8, clamp="fast", normal=True)
+    eager = model.residuals(*args, **options)(params, index)
+    fused = model.residuals(*args, compile=True, **options)(params, index)
+    assert fused.hess.shape == (params.shape[0], params.shape[1], params.shape[1])
+    for got, expected in zip(fused, eager, strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6 * float(expected.abs().max()))

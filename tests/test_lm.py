@@ -562,3 +562,23 @@ def test_normal_equations_give_the_same_solve(dtype):
 
     with pytest.raises(ValueError, match=r"NormalEquations.hess must have shape \(16, 4, 4\)"):
         solve(wrong, start.to(dtype))
+
+
+def test_the_last_step_under_xtol_is_taken_unevaluated():
+    """A problem whose next Gauss-Newton step passes the ``xtol`` test takes it without evaluating
+    the point reached: one evaluation per step, the start's included (every Rosenbrock problem
+    stops so; elsewhere the ``ftol`` test after an evaluated step may stop a problem first). The
+    cost returned, the Gauss-Newton model's there, is the true cost at the returned parameters."""
+    residual_fn = _rosenbrock(torch.linspace(0.5, 2.0, 16, dtype=F64))
+    start = torch.tensor([-1.2, 1.0], dtype=F64).expand(16, 2)
+    evaluations = torch.zeros(start.shape[0], dtype=torch.int64)
+
+    def counted(x, index):
+        evaluations.index_add_(0, index, torch.ones_like(index))
+        return residual_fn(x, index)
+
+    result = solve(counted, start, config=LMConfig(max_iterations=100))
+    assert result.counts()["converged"] == start.shape[0]
+    assert (evaluations == result.iterations.long()).all(), (evaluations, result.iterations)
+    r, _ = residual_fn(result.params, torch.arange(start.shape[0]))
+    torch.testing.assert_close(result.cost, 0.5 * (r * r).sum(-1), rtol=1e-6, atol=1e-24)

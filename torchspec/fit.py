@@ -52,8 +52,8 @@ LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso")
 """The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
 MODEL_CODES = tuple(MODELS)
 """``model.exr``'s codes: the index of each pixel's model in this tuple."""
-# torch.compile's one-off cost (~70 s; ~30 s from its on-disk cache) against the ~0.7 ms it saves
-# per pixel of a 144-frame fit: it pays from ~100k pixels.
+# torch.compile's one-off cost (~50 s; ~10 s from its on-disk cache) against the ~0.2 ms it saves
+# per pixel of a 144-frame fit (0.33 ms with a lobe, 0.07 ms without): it pays from 50k-250k pixels.
 COMPILE_PIXELS = 1 << 17
 QUADRATURES = {
     # name: the lobe's Gauss-Hermite nodes per axis (fast rule) and radii (reference rule), and the
@@ -105,8 +105,8 @@ class FitConfig:
             the reference rule takes over) and the clamp's fast rule
             (:data:`torchspec.render.CLAMPS`): within 1e-3 of a pixel's largest value, 2.7x faster;
             ``render``: the renderer's own rules (1e-6).
-        compile: fuse the model's integrations with ``torch.compile``: 2x faster solver steps
-            on the CPU, after a one-off compilation of ~70 s (~30 s once torch has cached it on
+        compile: fuse the model's integrations with ``torch.compile``: 3-4x faster solver steps
+            on the CPU, after a one-off compilation of ~50 s (~10 s once torch has cached it on
             disk). A failed compilation warns and fits without. ``None``: when the fit has at
             least ``COMPILE_PIXELS`` pixels.
         tile: pixels per tile; 0 sizes tiles to ``memory_gib``.

@@ -32,7 +32,13 @@ Per problem, all state lives in tensors of shape ``(N,)``:
     column of ``J`` is zero, so a zero-residual start or an identically zero Jacobian is
     ``CONVERGED`` at once, with 0 iterations;
   * stall: a rejected step whose predicted reduction is ``<= 16 eps * cost`` (the model promises
-    nothing above the cost's rounding: the best point is as good as this precision can tell).
+    nothing above the cost's rounding: the best point is as good as this precision can tell);
+  * the next step: at each check, the undamped Gauss-Newton step ``s = -(J^T J)^-1 g`` from the
+    current point passes the ``xtol`` test. It is taken without evaluating the point it reaches,
+    whose cost is then the Gauss-Newton model's, ``cost + g^T s / 2`` (exact for a linear
+    problem, within ``O(|s|^3)`` otherwise, ``s`` being below ``xtol``): the evaluation would only
+    confirm the convergence (on bench_fit's capture ~1 evaluation fewer in ~4.6 per pixel, at the
+    same accuracy). Skipped where ``J^T J`` is singular.
 
   In float32 the cost resolves parameters to about ``sqrt(eps)`` of their statistical scale only.
 - Failure: when a rejection pushes ``lambda`` above ``max_damping`` (before the stall test
@@ -159,7 +165,8 @@ class LMResult:
 
     Attributes:
         params: ``(N, P)`` best parameters seen (the start for ``DIVERGED`` at the start).
-        cost: ``(N,)`` ``0.5 * sum r^2`` at ``params`` (``inf`` when not finite at the start).
+        cost: ``(N,)`` ``0.5 * sum r^2`` at ``params`` (``inf`` when not finite at the start; the
+            Gauss-Newton model's after a last step under ``xtol``, see the module docstring).
         initial_cost: ``(N,)`` the cost at the start (``inf`` when not finite).
         status: ``(N,)`` int8 codes, messages in :data:`STATUS`.
         iterations: ``(N,)`` int32 LM steps taken (accepted or rejected) until the problem stopped.
@@ -282,6 +289,26 @@ class _State:
         return _State(**{name: value[keep] for name, value in vars(self).items()})
 
 
+def _newton_stop(state: _State, xtol: float) -> _State:
+    """Stop the running problems whose undamped Gauss-Newton step ``s = -(J^T J)^-1 g`` passes the
+    ``xtol`` test, ``||s|| <= xtol (||x|| + xtol)``: take it without evaluating the point reached,
+    whose cost is the model's ``cost + g^T s / 2`` (skipped where ``J^T J`` is singular)."""
+    diag = state.hess.diagonal(dim1=-2, dim2=-1)
+    finfo = torch.finfo(state.x.dtype)
+    inv = torch.maximum(diag, (finfo.eps * diag.amax(-1, keepdim=True)).clamp(min=finfo.tiny)).rsqrt()
+    chol, info = torch.linalg.cholesky_ex(state.hess * inv[:, :, None] * inv[:, None, :])
+    step = -inv * torch.cholesky_solve((state.grad * inv).unsqueeze(-1), chol).squeeze(-1)
+    small = step.norm(dim=-1) <= xtol * (state.x.norm(dim=-1) + xtol)
+    done = state.running & (info == 0) & step.isfinite().all(-1) & small
+    gain = (-0.5 * (state.grad * step).sum(-1)).clamp(min=0.0)  # the model's reduction, >= 0
+    state.x = torch.where(done[:, None], state.x + step, state.x)
+    state.cost = torch.where(done, (state.cost - gain).clamp(min=0.0), state.cost)
+    state.iterations = state.iterations + done.to(torch.int32)
+    state.running = state.running & ~done
+    state.status = torch.where(done, CONVERGED, state.status).to(torch.int8)
+    return state
+
+
 def _step(state: _State, residual_fn: ResidualFn, config: LMConfig) -> _State:
     """One LM step of every running problem; the others are left as they are."""
     x, cost, hess, grad, lam, running = state.x, state.cost, state.hess, state.grad, state.damping, state.running
@@ -402,6 +429,7 @@ def solve(
     cost, hess, grad, finite = _evaluate(residual_fn, x0, index)
     out.initial_cost.copy_(cost)
     gtol = max(config.gtol, _ROUNDING * torch.finfo(params.dtype).eps)
+    xtol = max(config.xtol, _ROUNDING * torch.finfo(params.dtype).eps)
     start_converged = finite & _gradient_small(grad, hess, cost, gtol)
     state = _State(
         index=index,
@@ -421,6 +449,7 @@ def solve(
         if k > 0:
             state = _step(state, residual_fn, config)
         if k % every == 0 or k == config.max_iterations:
+            state = _newton_stop(state, xtol)
             for name in ("params", "cost", "status", "iterations", "damping"):
                 getattr(out, name)[state.index] = getattr(state, "x" if name == "params" else name)
             running = int(state.running.sum())  # the host synchronisation
