@@ -289,13 +289,19 @@ class _State:
         return _State(**{name: value[keep] for name, value in vars(self).items()})
 
 
+def _column_scale(hess: Tensor) -> Tensor:
+    """``(M, P)``: the diagonal of ``J^T J``, floored at ``eps`` of its largest entry (a zero
+    column keeps a finite scale)."""
+    finfo = torch.finfo(hess.dtype)
+    diag = hess.diagonal(dim1=-2, dim2=-1)
+    return torch.maximum(diag, (finfo.eps * diag.amax(-1, keepdim=True)).clamp(min=finfo.tiny))
+
+
 def _newton_stop(state: _State, xtol: float) -> _State:
     """Stop the running problems whose undamped Gauss-Newton step ``s = -(J^T J)^-1 g`` passes the
     ``xtol`` test, ``||s|| <= xtol (||x|| + xtol)``: take it without evaluating the point reached,
     whose cost is the model's ``cost + g^T s / 2`` (skipped where ``J^T J`` is singular)."""
-    diag = state.hess.diagonal(dim1=-2, dim2=-1)
-    finfo = torch.finfo(state.x.dtype)
-    inv = torch.maximum(diag, (finfo.eps * diag.amax(-1, keepdim=True)).clamp(min=finfo.tiny)).rsqrt()
+    inv = _column_scale(state.hess).rsqrt()
     chol, info = torch.linalg.cholesky_ex(state.hess * inv[:, :, None] * inv[:, None, :])
     step = -inv * torch.cholesky_solve((state.grad * inv).unsqueeze(-1), chol).squeeze(-1)
     small = step.norm(dim=-1) <= xtol * (state.x.norm(dim=-1) + xtol)
@@ -315,8 +321,7 @@ def _step(state: _State, residual_fn: ResidualFn, config: LMConfig) -> _State:
     finfo = torch.finfo(x.dtype)
     ftol, xtol, gtol = (max(tol, _ROUNDING * finfo.eps) for tol in (config.ftol, config.xtol, config.gtol))
 
-    diag = hess.diagonal(dim1=-2, dim2=-1)
-    scale = torch.maximum(diag, (finfo.eps * diag.amax(-1, keepdim=True)).clamp(min=finfo.tiny))
+    scale = _column_scale(hess)
     # Solved in the variables s_j = sqrt(scale_j) step_j: S (J^T J) S + lambda I with a unit-ish
     # diagonal, so that columns of very different scales cost no accuracy in the factorisation.
     inv = scale.rsqrt()
