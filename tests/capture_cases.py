@@ -56,16 +56,39 @@ def edit_manifest(root: Path, edit) -> None:
     path.write_text(json.dumps(manifest))
 
 
-def write_small_painting(path: Path) -> Path:
-    """A simulated 12 x 12 painting (no gilding) under a 5 x 5 grid of a projected Gaussian light, with
-    truth: 144 pixels, 25 frames; the fit, resume and Dask tests share it."""
+def write_painting(
+    path: Path,
+    *,
+    size: int = 12,
+    seed: int = 3,
+    gilded: bool = False,
+    grid: int = 5,
+    extent: float = 0.6,
+    radius: float = 1.0,
+    photons: float | None = None,
+    sensor_seed: int = 0,
+) -> Path:
+    """A simulated ``size x size`` painting (its gilded patch only with ``gilded``) under a
+    ``grid x grid`` layout of a projected Gaussian light (sigma 0.08), with truth; shot noise of
+    ``photons`` per unit when given, else the simulator's default sensor."""
     from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-    from torchspec.synth import PaintingConfig
+    from torchspec.synth import PaintingConfig, SensorConfig
 
+    painting = PaintingConfig(width=size, height=size, seed=seed)
+    if not gilded:
+        painting = PaintingConfig(width=size, height=size, seed=seed, gilded=None)
+    sensor = {} if photons is None else {"sensor": SensorConfig(photons_per_unit=photons, seed=sensor_seed)}
     config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=12, height=12, seed=3, gilded=None)),
+        scene=SceneConfig(kind="painting", painting=painting),
         light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
-        layout=LayoutConfig(kind="grid", nx=5, ny=5, extent=0.6, radius=1.0),
+        layout=LayoutConfig(kind="grid", nx=grid, ny=grid, extent=extent, radius=radius),
+        **sensor,
     )
     write_simulation(path, simulate(config))
     return path
+
+
+def write_small_painting(path: Path) -> Path:
+    """A simulated 12 x 12 painting (no gilding) under a 5 x 5 grid of a projected Gaussian light, with
+    truth: 144 pixels, 25 frames; the fit, resume and Dask tests share it."""
+    return write_painting(path)

@@ -5,27 +5,19 @@ from collections import Counter
 import numpy as np
 import pytest
 import torch
+from capture_cases import write_painting
 
 from torchspec.cli import main
 from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
-from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig, SensorConfig
 
 
 @pytest.fixture(scope="module")
 def painting(tmp_path_factory):
     """A 16 x 16 simulated painting (no gilding) under 60 frames of a projected Gaussian light."""
-    config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=16, height=16, seed=5, gilded=None)),
-        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
-        layout=LayoutConfig(kind="grid", nx=9, ny=9, extent=0.8, radius=0.8),
-    )
-    path = tmp_path_factory.mktemp("fit") / "painting"
-    write_simulation(path, simulate(config))
-    return path
+    return write_painting(tmp_path_factory.mktemp("fit") / "painting", size=16, seed=5, grid=9, extent=0.8, radius=0.8)
 
 
 def _errors(result, truth, regions):
@@ -193,15 +185,10 @@ def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
 @pytest.fixture(scope="module")
 def gilded(tmp_path_factory):
     """A 24 x 24 painting with its gilded patch (a coloured anisotropic lobe), shot noise."""
-    config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=24, height=24, seed=11)),
-        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
-        layout=LayoutConfig(kind="grid", nx=10, ny=10, extent=0.8, radius=0.8),
-        sensor=SensorConfig(photons_per_unit=1e5, seed=2),
-    )
     path = tmp_path_factory.mktemp("fit") / "gilded"
-    write_simulation(path, simulate(config))
-    return path
+    return write_painting(
+        path, size=24, seed=11, gilded=True, grid=10, extent=0.8, radius=0.8, photons=1e5, sensor_seed=2
+    )
 
 
 def test_auto_models_no_more_than_the_scene_needs(gilded):

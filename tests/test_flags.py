@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from capture_cases import write_painting
 
 from torchspec.brdf import SVBRDF
 from torchspec.fit import FitConfig, fit, write_fit
@@ -24,8 +25,6 @@ from torchspec.geometry import from_plane, normalize
 from torchspec.io.exr import read_exr
 from torchspec.lights import Kernel, Lights
 from torchspec.render import render
-from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig, SensorConfig
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -138,15 +137,8 @@ def test_bits():
 
 @pytest.fixture(scope="module")
 def painting(tmp_path_factory):
-    config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=12, height=12, seed=5, gilded=None)),
-        light=LightConfig(kernel="gaussian", domain="projected", sigma=0.08),
-        layout=LayoutConfig(kind="grid", nx=9, ny=9, extent=0.8, radius=0.8),
-        sensor=SensorConfig(photons_per_unit=1e5, seed=3),
-    )
     path = tmp_path_factory.mktemp("flags") / "painting"
-    write_simulation(path, simulate(config))
-    return path
+    return write_painting(path, size=12, seed=5, grid=9, extent=0.8, radius=0.8, photons=1e5, sensor_seed=3)
 
 
 def test_a_fit_flags_few_good_pixels_and_writes_its_flags(painting, tmp_path):
