@@ -324,16 +324,20 @@ class Lights:
         return Lights(moved[0], self.kernel, moved[1], moved[2])
 
 
+def _rule_tensors(rule, order: int) -> tuple[Tensor, Tensor]:
+    """``rule(order)``'s nodes and weights as float64 tensors."""
+    x, w = rule(order)
+    return torch.from_numpy(np.asarray(x, dtype=np.float64)), torch.from_numpy(np.asarray(w, dtype=np.float64))
+
+
 def _gauss_table(rule, orders: range) -> dict[int, tuple[Tensor, Tensor]]:
-    return {n: tuple(torch.from_numpy(np.asarray(a, dtype=np.float64)) for a in rule(n)) for n in orders}
+    return {n: _rule_tensors(rule, n) for n in orders}
 
 
 def _gauss_rule(table: dict, rule, order: int, like: Tensor) -> tuple[Tensor, Tensor]:
     """The nodes and weights of ``order`` from ``table`` (else computed), like ``like``."""
-    if order in table:
-        x, w = table[order]
-    else:  # numpy's rule is opaque to torch.compile: the graph splits here
-        x, w = (torch.from_numpy(np.asarray(a, dtype=np.float64)) for a in rule(order))
+    # numpy's rule, for an order not in the table, is opaque to torch.compile: the graph splits there
+    x, w = table[order] if order in table else _rule_tensors(rule, order)
     return x.to(dtype=like.dtype, device=like.device), w.to(dtype=like.dtype, device=like.device)
 
 
