@@ -62,21 +62,27 @@ def write_painting(
     size: int = 12,
     seed: int = 3,
     gilded: bool = False,
+    dual: bool = False,
     grid: int = 5,
     extent: float = 0.6,
     radius: float = 1.0,
     photons: float | None = None,
     sensor_seed: int = 0,
 ) -> Path:
-    """A simulated ``size x size`` painting (its gilded patch only with ``gilded``) under a
+    """A simulated ``size x size`` painting (its gilded patch only with ``gilded``, a box of two-lobed
+    gloss with ``dual``) under a
     ``grid x grid`` layout of a projected Gaussian light (sigma 0.08), with truth; shot noise of
     ``photons`` per unit when given, else the simulator's default sensor."""
     from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-    from torchspec.synth import PaintingConfig, SensorConfig
+    from torchspec.synth import DualConfig, GildedConfig, PaintingConfig, SensorConfig
 
-    painting = PaintingConfig(width=size, height=size, seed=seed)
-    if not gilded:
-        painting = PaintingConfig(width=size, height=size, seed=seed, gilded=None)
+    painting = PaintingConfig(
+        width=size,
+        height=size,
+        seed=seed,
+        gilded=GildedConfig() if gilded else None,
+        dual=DualConfig() if dual else None,
+    )
     sensor = {} if photons is None else {"sensor": SensorConfig(photons_per_unit=photons, seed=sensor_seed)}
     config = SimulationConfig(
         scene=SceneConfig(kind="painting", painting=painting),

@@ -114,3 +114,32 @@ def test_svbrdf_shape_errors(kwargs, match):
                 roughness=torch.zeros(2, 3, 2))
     with pytest.raises(ValueError, match=match):
         SVBRDF(**{**base, **kwargs})
+
+
+def test_a_second_lobe_adds_to_the_first():
+    g = torch.Generator().manual_seed(4)
+    n = normal_from_angles(0.2 * torch.randn(6, 2, dtype=F64, generator=g))
+    kd, ks, ks2 = (torch.rand(6, c, dtype=F64, generator=g) for c in (3, 3, 1))
+    alpha, alpha2 = torch.full((6, 2), 0.05, dtype=F64), torch.full((6, 2), 0.3, dtype=F64)
+    one = SVBRDF(n, kd, ks, alpha)
+    two = SVBRDF(n, kd, ks, alpha, None, None, ks2, alpha2)
+    wi = normal_from_angles(0.4 * torch.randn(6, 2, dtype=F64, generator=g))
+    wo = torch.tensor([0.0, 0.0, 1.0], dtype=F64).expand(6, 3)
+    torch.testing.assert_close(reflectance(wi, wo, two), reflectance(wi, wo, one) + ward(wi, wo, n, ks2, alpha2))
+    assert two.second().specular is ks2 and one.second() is None
+    assert two[1:3].specular2.shape == (2, 1) and two.reshape(2, 3).roughness2.shape == (2, 3, 2)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(specular2=torch.zeros(2, 3, 1)), "must be given together"),
+        (dict(specular2=torch.zeros(2, 3, 2), roughness2=torch.zeros(2, 3, 2)), r"specular2 must have shape"),
+        (dict(specular2=torch.zeros(2, 3, 1), roughness2=torch.zeros(2, 3)), r"roughness2 must have shape \(2, 3, 2\)"),
+    ],
+)
+def test_second_lobe_shape_errors(kwargs, match):
+    base = dict(normal=torch.zeros(2, 3, 3), diffuse=torch.zeros(2, 3, 3), specular=torch.zeros(2, 3, 1),
+                roughness=torch.zeros(2, 3, 2))
+    with pytest.raises(ValueError, match=match):
+        SVBRDF(**{**base, **kwargs})

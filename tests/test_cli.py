@@ -40,3 +40,12 @@ def test_demo_size_is_checked(capsys):
 def test_no_command_prints_help(capsys):
     assert main([]) == 2
     assert "usage: torchspec" in capsys.readouterr().out
+
+
+def test_the_model_choices_are_the_packages_models():
+    from torchspec.cli import _parser
+    from torchspec.models import MODELS
+
+    fit = _parser()._subparsers._group_actions[0].choices["fit"]
+    (action,) = [a for a in fit._actions if a.dest == "model"]
+    assert action.choices == ["auto", *MODELS]

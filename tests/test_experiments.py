@@ -155,3 +155,21 @@ def test_fig5_dome_frames_are_the_simulation():
     direct = fig5._simulate(settings, 2.6, LightConfig(kernel="point"))
     error = float(((acquired - direct).abs() / direct.abs().max()).max())
     assert acquired.shape == (1, 20) and error < 1e-6, f"relative difference {error:.3g}"
+
+
+def test_two_lobes_runs(tmp_path):
+    result = _main(
+        "two_lobes",
+        tmp_path,
+        "size: 16\nseed: 5\ngrid: 10\nkernel_sigma: 0.08\nphotons_per_unit: 100000.0\nframes: '::2'\n"
+        "models: [auto, ward-iso]\nscipy_pixels: 2\n",
+    )
+    auto, one = result["rows"]
+    box = auto["models_per_region"]["dual"]
+    assert box.get("ward-dual", 0) >= 0.9 * result["dual_box_pixels"] > 0, box
+    assert auto["held_out_psnr_db"]["dual_box"] > one["held_out_psnr_db"]["dual_box"] + 10
+    assert auto["dual_box"]["alpha2"] < 0.05 and "alpha2" not in one["dual_box"]
+    base = result["baseline"]
+    assert base["scipy_pixels"] == 2 and base["scipy_ms_per_pixel"] > 0
+    assert base["scipy"]["alpha2"] == pytest.approx(base["torchspec"]["alpha2"], rel=0.05, abs=1e-3)
+    assert json.loads((tmp_path / "tiny.json").read_text())["coverage"].keys() == result["coverage"].keys()

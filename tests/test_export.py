@@ -3,6 +3,7 @@ and 16-bit PNG maps, each checked against the maps it was written from."""
 
 import json
 import math
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -395,3 +396,17 @@ def test_export_mitsuba_experiment_runs(tmp_path):
     assert saved["frames"] == [5, 16] and saved["psnr_db"] == pytest.approx(result["psnr_db"])
     assert min(saved["exports"]["shadowing"]["per_frame_psnr_db"]) > 120.0
     assert (tmp_path / "tiny.png").stat().st_size > 10000
+
+
+@pytest.mark.parametrize("to", ["mitsuba", "gltf", "png16"])
+def test_a_second_lobe_is_left_out_with_a_warning(tmp_path, to):
+    maps = _maps()
+    ks2 = torch.zeros(5, 7, 1, dtype=F64)
+    ks2[1:3, 2:5] = 0.2  # 6 pixels with a second lobe
+    two = SVBRDF(maps.normal, maps.diffuse, maps.specular, maps.roughness, maps.rotation, maps.channels,
+                 ks2, torch.full((5, 7, 2), 0.3, dtype=F64))
+    with pytest.warns(ExportWarning, match=r"6 pixel\(s\) have a second lobe .*first \(sharper\) lobe only"):
+        export(two, tmp_path / "two", to=to)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ExportWarning)
+        export(maps, tmp_path / "one", to=to)  # the same maps without it: no warning

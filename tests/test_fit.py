@@ -8,7 +8,7 @@ import torch
 from capture_cases import write_painting
 
 from torchspec.cli import main
-from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames
+from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames, write_fit
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
@@ -115,6 +115,11 @@ def test_config_is_checked():
         FitConfig(model="phong")
     with pytest.raises(ValueError, match="quadrature must be one of"):
         FitConfig(quadrature="rough")
+    for ladder in ((), ("ward-iso", "diffuse"), ("ward-iso", "ward-iso")):
+        with pytest.raises(ValueError, match="ladder must name one or more models with a lobe"):
+            FitConfig(ladder=ladder)
+    with pytest.raises(ValueError, match="model must be one of"):
+        FitConfig(ladder=("ward-iso", "phong"))
 
 
 def test_write_fit_and_cli(painting, tmp_path):
@@ -207,6 +212,9 @@ def test_auto_models_no_more_than_the_scene_needs(gilded):
     assert varnish.count("ward-iso") >= 0.9 * len(varnish), Counter(varnish)
     assert auto.stats["models"] == dict(Counter(names)) | {n: 0 for n in MODEL_CODES if n not in names}
     assert torch.equal(auto.lobe, auto.model > 0)
+    # No pixel took two lobes: the maps have no second lobe, nor its deviations.
+    assert auto.stats["models"]["ward-dual"] == 0
+    assert auto.svbrdf.specular2 is None and "specular2" not in auto.std and "roughness2" not in auto.std
     # The criterion: the choice beats every model forced on every pixel, and is the lower of the two
     # wherever it differs from one of them.
     for name in ("diffuse", "ward-iso", "ward-iso-colour", "ward-aniso"):
@@ -249,3 +257,51 @@ def test_standard_deviations_are_finite_for_the_models_parameters_only(gilded):
     lobe = result.model.flatten() > 0
     assert bool(std["roughness"][lobe].isfinite().all()) and bool(std["roughness"][~lobe].isnan().all())
     assert bool(std["diffuse"].isfinite().all()) and bool(std["normal"].isfinite().all())
+
+
+@pytest.fixture(scope="module")
+def dual(tmp_path_factory):
+    """A 24 x 24 painting with a box of two-lobed gloss (a sharp varnish over a broad lobe), shot noise."""
+    path = tmp_path_factory.mktemp("fit") / "dual"
+    return write_painting(
+        path, size=24, seed=5, dual=True, grid=10, extent=0.8, radius=0.8, photons=1e5, sensor_seed=3
+    )
+
+
+def test_auto_gives_two_lobes_only_where_the_gloss_has_two(dual, tmp_path):
+    truth = read_svbrdf(dual / "truth")
+    regions = truth.extra["regions"].round().long().flatten()
+    auto = fit(dual, config=FitConfig(model="auto"))
+    names = np.array([MODEL_CODES[int(code)] for code in auto.model.flatten()])
+    two = regions == 3
+    assert int(two.sum()) >= 40
+    assert (names[two.numpy()] == "ward-dual").mean() >= 0.9, Counter(names[two.numpy()])
+    assert (names[~two.numpy()] == "ward-dual").mean() <= 0.01, Counter(names[~two.numpy()])
+    # Both lobes recovered, the sharper named first.
+    s, t = auto.svbrdf.flatten(), truth.svbrdf.flatten()
+    picked = two & torch.from_numpy(names == "ward-dual")
+    for fitted, true in (
+        (s.specular.mean(-1), t.specular.mean(-1)),
+        (s.roughness[:, 0], t.roughness[:, 0]),
+        (s.specular2.mean(-1), t.specular2.mean(-1)),
+        (s.roughness2[:, 0], t.roughness2[:, 0]),
+    ):
+        error = ((fitted.double() - true.double()) / true.double()).abs()[picked]
+        assert float(error.median()) < 0.02
+    assert float(torch.rad2deg(angle(s.normal.double(), t.normal.double()))[picked].median()) < 0.05
+    # The second lobe is 0, with no deviation, where another model was chosen.
+    assert float(s.specular2[~picked].abs().max()) == 0.0
+    assert bool(auto.std["specular2"].flatten()[~picked].isnan().all())
+    assert bool(auto.std["specular2"].flatten()[picked].isfinite().all())
+    # The choice beats one lobe forced everywhere, and two lobes forced everywhere.
+    for name in ("ward-aniso", "ward-dual"):
+        assert auto.stats["criterion"] < fit(dual, config=FitConfig(model=name)).stats["criterion"], name
+    # A ladder without it: one lobe everywhere, no second lobe's maps.
+    single = fit(dual, config=FitConfig(ladder=("ward-iso", "ward-iso-colour", "ward-aniso")))
+    assert single.svbrdf.specular2 is None and "specular2" not in single.std
+    assert single.stats["models"]["ward-dual"] == 0 and auto.stats["criterion"] < single.stats["criterion"]
+    # Written and read back: the second lobe's maps and deviations.
+    write_fit(tmp_path / "out", auto)
+    back = read_svbrdf(tmp_path / "out")
+    torch.testing.assert_close(back.svbrdf.specular2[..., 0], auto.svbrdf.specular2[..., 0].float())
+    assert back.extra["std_roughness2"].shape == (24, 24, 2)

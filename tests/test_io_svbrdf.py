@@ -275,3 +275,50 @@ def test_meta_is_written_last(folder, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         write_svbrdf(folder, _svbrdf(seed=1))
     assert calls and not (folder / "svbrdf.json").exists(), "a manifest over half-written maps"
+
+
+def _two_lobes(svbrdf: SVBRDF) -> SVBRDF:
+    generator = torch.Generator().manual_seed(9)
+    ks2 = torch.rand(H, W, 1, generator=generator)
+    ks2[:, :3] = 0  # no second lobe in these columns
+    alpha2 = torch.rand(H, W, 2, generator=generator) * 0.3 + 0.1
+    return SVBRDF(*(getattr(svbrdf, k) for k in ("normal", "diffuse", "specular", "roughness", "rotation")),
+                  specular2=ks2, roughness2=alpha2)
+
+
+def test_a_second_lobe_round_trips_and_is_named_in_the_meta(tmp_path):
+    svbrdf = _two_lobes(_svbrdf())
+    write_svbrdf(tmp_path, svbrdf)
+    maps = read_svbrdf(tmp_path)
+    back = maps.svbrdf
+    _assert_close(back.specular2, svbrdf.specular2.expand(H, W, 3))  # grey, replicated to the channels
+    lobe = (svbrdf.specular2 > 0).all(-1)
+    _assert_close(back.roughness2[lobe], svbrdf.roughness2[lobe])
+    assert (back.roughness2[~lobe] == 0).all()  # "no lobe": roughness 0
+    assert maps.meta["second_lobe"] == {"specular": "specular2.exr", "roughness": "roughness2.exr"}
+    assert maps.extra == {}
+    # Written again without it: no stale second lobe stays behind, in the files or the meta.
+    write_svbrdf(tmp_path, Maps(_svbrdf(), maps.meta))
+    again = read_svbrdf(tmp_path)
+    assert again.svbrdf.specular2 is None and "second_lobe" not in again.meta
+    assert not (tmp_path / "specular2.exr").exists() and not (tmp_path / "roughness2.exr").exists()
+
+
+def test_a_second_lobe_needs_both_maps(tmp_path):
+    write_svbrdf(tmp_path, _two_lobes(_svbrdf()))
+    (tmp_path / "roughness2.exr").unlink()
+    with pytest.raises(SVBRDFError, match=r"specular2.exr \(a second lobe\) needs .*roughness2.exr"):
+        read_svbrdf(tmp_path)
+
+
+def test_a_negative_second_lobe_is_refused(tmp_path):
+    bad = _two_lobes(_svbrdf())
+    bad.specular2[0, 5, 0] = -0.1
+    with pytest.raises(SVBRDFError, match=r"specular2.exr: SVBRDF.specular2 must be >= 0; got 1 pixel"):
+        write_svbrdf(tmp_path, bad)
+    write_svbrdf(tmp_path, _two_lobes(_svbrdf()))
+    image = read_exr(tmp_path / "roughness2.exr")
+    image[1, 4, 0] = float("nan")
+    write_exr(tmp_path / "roughness2.exr", image, ["X", "Y"])
+    with pytest.raises(SVBRDFError, match=r"roughness2.exr must be finite; got 1 pixel"):
+        read_svbrdf(tmp_path)

@@ -235,3 +235,52 @@ def test_every_models_compiled_normal_equations(name):
     assert fused.hess.shape == (params.shape[0], params.shape[1], params.shape[1])
     for got, expected in zip(fused, eager, strict=True):
         torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6 * float(expected.abs().max()))
+
+
+def _with_second_lobe(maps):
+    """``maps`` with a broader grey second lobe (one pixel's k_s2 at 0)."""
+    n = maps.shape[0]
+    ks2 = torch.linspace(0.0, 0.6, n, dtype=maps.diffuse.dtype)[:, None]
+    alpha2 = torch.linspace(0.1, 0.5, n, dtype=maps.diffuse.dtype)[:, None].expand(n, 2)
+    return SVBRDF(maps.normal, maps.diffuse, maps.specular, maps.roughness, maps.rotation, maps.channels, ks2, alpha2)
+
+
+@pytest.mark.parametrize("kernel", [Kernel("point"), Kernel("gaussian", "projected", 0.06)])
+def test_a_second_lobes_columns(kernel):
+    """With a second lobe: ``C_s2 + 2`` more columns (its k_s, alpha_x, alpha_y; the rotation is
+    shared), exact for point lights and in forward mode, and the quadrature of the derivative
+    (as for one lobe) on an extended light."""
+    maps, lights = _problem(False, kernel, seed=3)
+    maps = _with_second_lobe(maps)
+    value, jac = jacobian(maps, lights, VIEW)
+    assert jac.shape == (5, 5, 3, 2 + 3 + 3 + 3 + 1 + 2)
+    torch.testing.assert_close(value, render(maps, lights, VIEW), rtol=1e-10, atol=1e-12)
+    params = parameters(maps)
+
+    def forward(p):
+        return render(_svbrdf(p, maps.channels, False, 1), lights, VIEW)
+
+    full = torch.autograd.functional.jacobian(forward, params)
+    index = torch.arange(params.shape[0])
+    exact = full[index, :, :, index]
+    torch.testing.assert_close(jacobian(maps, lights, VIEW, mode="forward")[1], exact, rtol=1e-9, atol=1e-12)
+    if kernel.kind == "point":
+        torch.testing.assert_close(jac, exact, rtol=1e-9, atol=1e-11)
+    else:
+        scale = exact.abs().amax(dim=(1, 2, 3), keepdim=True)
+        assert float(((jac - exact).abs() / scale).max()) < 1e-3
+    # The first lobe's columns are those of the first lobe alone, but for the shared normal and rotation.
+    alone = jacobian(SVBRDF(maps.normal, maps.diffuse, maps.specular, maps.roughness, maps.rotation), lights, VIEW)[1]
+    torch.testing.assert_close(jac[..., 2:10], alone[..., 2:10])
+
+
+def test_the_lobe_snr_counts_both_lobes():
+    maps, lights = _problem(True, Kernel("gaussian", "projected", 0.06), seed=3)
+    two = _with_second_lobe(maps)
+    observed = render(two, lights, VIEW)
+    ones = torch.ones_like(observed)
+    select = MODELS["ward-dual"].selection(3, observed)
+    snr = sandwich_terms(two, lights, VIEW, observed, ones, ones, select, samples=True)[-1]
+    matte = SVBRDF(two.normal, two.diffuse, 0 * two.specular, two.roughness)
+    lobes = render(two, lights, VIEW) - render(matte, lights, VIEW)
+    torch.testing.assert_close(snr, lobes.flatten(1).norm(dim=-1))

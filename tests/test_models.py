@@ -5,6 +5,7 @@ from torchspec.brdf import SVBRDF
 from torchspec.geometry import normalize
 from torchspec.lights import Kernel, Lights
 from torchspec.models import MODELS, get_model
+from torchspec.render import render
 from torchspec.simulate import LayoutConfig, layout
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -152,3 +153,36 @@ def test_normal_equations_check_their_inputs():
         normal_equations(svbrdf, lights, VIEW, good, good[..., 0], select)
     with pytest.raises(ValueError, match="clamp must be one of"):
         normal_equations(svbrdf, lights, VIEW, good, good, select, clamp="rough")
+
+
+def test_ward_dual_starts_either_side_of_one_lobe_and_names_the_sharper_first():
+    model = get_model("ward-dual")
+    one = _svbrdf()
+    params = model.pack(one)  # a smaller model's fit: the lobes start at alpha / 2 and 2 alpha, half k_s each
+    assert params.shape == (5, 3 + 6) and model.size(3) == 9
+    ks, alpha = one.specular.mean(-1), one.roughness.mean(-1)
+    torch.testing.assert_close(params[:, 5], 0.5 * ks)
+    torch.testing.assert_close(params[:, 7], 0.5 * ks)
+    torch.testing.assert_close(params[:, 6], 0.5 * alpha)
+    torch.testing.assert_close(params[:, 8], 2.0 * alpha)
+    swapped = params[:, [0, 1, 2, 3, 4, 7, 8, 5, 6]]  # the broad lobe first, as a solver may leave it
+    ordered = model.unpack(swapped, ("R", "G", "B"), order=True)
+    torch.testing.assert_close(ordered.roughness[:, 0], 0.5 * alpha)
+    torch.testing.assert_close(ordered.roughness2[:, 1], 2.0 * alpha)
+    as_is = model.unpack(swapped, ("R", "G", "B"))
+    torch.testing.assert_close(as_is.roughness2[:, 0], 0.5 * alpha)
+    # Either order renders the same.
+    lights = _lights()
+    torch.testing.assert_close(render(ordered, lights, VIEW), render(as_is, lights, VIEW))
+
+
+def test_ward_dual_selection_sums_each_lobes_two_roughness_columns():
+    model = get_model("ward-dual")
+    full = torch.arange(3 * 12, dtype=torch.float64).reshape(3, 12)  # 2 + C + 1 + 3 + 1 + 2 columns, C = 3
+    picked = model.select(full, 3)
+    assert picked.shape == (3, 9)
+    torch.testing.assert_close(picked[:, :6], full[:, :6])
+    torch.testing.assert_close(picked[:, 6], full[:, 6] + full[:, 7])  # alpha: alpha_x + alpha_y
+    torch.testing.assert_close(picked[:, 7], full[:, 9])  # k_s2 (the rotation, column 8, is shared and not fitted)
+    torch.testing.assert_close(picked[:, 8], full[:, 10] + full[:, 11])
+    torch.testing.assert_close(full @ model.selection(3, full), picked)

@@ -165,3 +165,28 @@ def test_gradcheck(kernel):
 
 def test_top_level_exports():
     assert ts.render is render
+
+
+@pytest.mark.parametrize("kernel", [Kernel("point"), Kernel("gaussian", "projected", 0.06)])
+def test_a_second_lobe_renders_as_the_sum_of_the_lobes(kernel):
+    """Two lobes render as the first lobe's SVBRDF plus the second alone (no k_d); pixels whose
+    second lobe is 0 render as without it. Gradients reach the second lobe's parameters, also
+    where its k_s is 0 (the lobe's value there)."""
+    g = torch.Generator().manual_seed(7)
+    n = normal_from_angles(0.15 * torch.randn(4, 2, dtype=F64, generator=g))
+    kd, ks = torch.rand(4, 3, dtype=F64, generator=g), torch.rand(4, 1, dtype=F64, generator=g)
+    ks2 = torch.tensor([[0.3], [0.0], [0.5], [0.2]], dtype=F64, requires_grad=True)
+    alpha2 = torch.tensor([0.2, 0.3, 0.4, 0.1], dtype=F64)[:, None].expand(4, 2).clone().requires_grad_()
+    alpha = torch.full((4, 2), 0.05, dtype=F64)
+    theta = torch.tensor([0.0, 0.2, 0.5], dtype=F64)
+    centre = torch.stack([torch.sin(theta), torch.zeros_like(theta), torch.cos(theta)], -1)
+    lights = Lights(centre, kernel, torch.ones(3, 1, dtype=F64), torch.ones(3, dtype=F64))
+    two = render(SVBRDF(n, kd, ks, alpha, None, None, ks2, alpha2), lights, VIEW)
+    first = render(SVBRDF(n, kd, ks, alpha), lights, VIEW)
+    second = render(SVBRDF(n, torch.zeros_like(kd), ks2, alpha2), lights, VIEW)
+    torch.testing.assert_close(two, first + second, rtol=1e-12, atol=1e-14)
+    assert torch.equal(two[1], first[1])
+    grad_ks2, grad_alpha2 = torch.autograd.grad(two.sum(), (ks2, alpha2))
+    assert bool((grad_ks2 > 0).all()) and bool((grad_alpha2[[0, 2, 3]] != 0).all())
+    unit = SVBRDF(n[1:2], torch.zeros_like(kd[1:2]), torch.ones_like(ks[1:2]), alpha2[1:2].detach())
+    torch.testing.assert_close(grad_ks2[1, 0], render(unit, lights, VIEW).sum())  # d/dk_s2 at k_s2 = 0

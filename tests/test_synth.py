@@ -8,9 +8,11 @@ import torch
 
 from torchspec.config import ConfigError, from_mapping, load_config
 from torchspec.synth import (
+    DUAL,
     GILDED,
     MATTE,
     VARNISHED,
+    DualConfig,
     GildedConfig,
     MirrorConfig,
     PaintingConfig,
@@ -161,6 +163,9 @@ def test_float32_matches_float64():
         ({"gilded": GildedConfig(box=(0.5, 0.1, 0.2, 0.9))}, "gilded.box"),
         ({"gilded": GildedConfig(box=(0.1, 0.2, 0.3))}, "gilded.box"),
         ({"stroke_width": (0.0, 2.0)}, "stroke_width"),
+        ({"dual": DualConfig(box=(0.5, 0.1, 0.2, 0.9))}, "dual.box"),
+        ({"dual": DualConfig(ks2=-0.1)}, "dual.ks and dual.ks2"),
+        ({"dual": DualConfig(alpha2=0.0)}, "dual.alpha and dual.alpha2"),
     ],
 )
 def test_painting_rejects_bad_settings(change, match):
@@ -280,3 +285,20 @@ def test_defaults_match_mirror_dev_scene():
     material = json.loads(MIRROR_SCENE.read_text())["material"]
     material.pop("generator")
     assert from_mapping(material, MirrorConfig) == MirrorConfig()
+
+
+def test_the_dual_box_has_two_lobes_and_the_gilding_stays_on_top():
+    config = PaintingConfig(
+        width=40, height=20, gilded=GildedConfig(box=(0.0, 0.0, 0.6, 0.5)), dual=DualConfig(box=(0.5, 0.0, 1.0, 0.5))
+    )
+    svbrdf, regions = painting(config, dtype=F64)
+    cols = torch.arange(40, dtype=F64)[None, :].expand(20, 40) + 0.5
+    rows = torch.arange(20, dtype=F64)[:, None].expand(20, 40) + 0.5
+    in_dual = (cols / 40 >= 0.5) & (rows / 20 <= 0.5)
+    in_gilding = (cols / 40 <= 0.6) & (rows / 20 <= 0.5)
+    assert torch.equal(regions == DUAL, in_dual & ~in_gilding) and torch.equal(regions == GILDED, in_gilding)
+    dual = regions == DUAL
+    assert (svbrdf.specular[dual] == config.dual.ks).all() and (svbrdf.roughness[dual] == config.dual.alpha).all()
+    assert (svbrdf.specular2[dual] == config.dual.ks2).all() and (svbrdf.roughness2[dual] == config.dual.alpha2).all()
+    assert (svbrdf.specular2[~dual] == 0).all() and (svbrdf.roughness2[~dual] == 0).all()
+    assert painting(PaintingConfig(width=8, height=8), dtype=F64)[0].specular2 is None

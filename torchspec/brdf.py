@@ -44,6 +44,10 @@ class SVBRDF:
         rotation: ``(*)`` lobe rotation ``A`` in radians, or ``None`` for 0.
         channels: the ``C`` channel names; by default ``("R", "G", "B")`` for 3 channels,
             ``("Y",)`` for 1.
+        specular2, roughness2: a second Ward lobe (``(*, C)`` or ``(*, 1)``, and ``(*, 2)``), or
+            ``None`` for none: it shares the normal and the rotation, and adds to the first (the
+            ``ward-dual`` model of :mod:`torchspec.models`: a sharp and a broad gloss, a varnish
+            over a glossy layer). 0 where a pixel has no second lobe.
     """
 
     normal: Tensor
@@ -52,6 +56,8 @@ class SVBRDF:
     roughness: Tensor
     rotation: Tensor | None = None
     channels: tuple[str, ...] | None = None
+    specular2: Tensor | None = None
+    roughness2: Tensor | None = None
 
     def __post_init__(self):
         lead = tuple(self.normal.shape[:-1])
@@ -71,6 +77,18 @@ class SVBRDF:
             raise ValueError(
                 f"SVBRDF.specular must have shape {lead + (count,)} or {lead + (1,)}; got {tuple(self.specular.shape)}."
             )
+        if (self.specular2 is None) != (self.roughness2 is None):
+            raise ValueError("SVBRDF.specular2 and roughness2 (a second lobe) must be given together.")
+        if self.specular2 is not None:
+            if tuple(self.specular2.shape) not in (lead + (count,), lead + (1,)):
+                raise ValueError(
+                    f"SVBRDF.specular2 must have shape {lead + (count,)} or {lead + (1,)}; "
+                    f"got {tuple(self.specular2.shape)}."
+                )
+            if tuple(self.roughness2.shape) != lead + (2,):
+                raise ValueError(
+                    f"SVBRDF.roughness2 must have shape {lead + (2,)}; got {tuple(self.roughness2.shape)}."
+                )
         if self.rotation is not None and tuple(self.rotation.shape) != lead:
             raise ValueError(f"SVBRDF.rotation must have shape {lead}; got {tuple(self.rotation.shape)}.")
         channels = _default_channels(count) if self.channels is None else tuple(self.channels)
@@ -85,11 +103,19 @@ class SVBRDF:
 
     def _map(self, fn) -> SVBRDF:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
-        for name in ("normal", "diffuse", "specular", "roughness"):
-            values[name] = fn(values[name], 1)
+        for name in ("normal", "diffuse", "specular", "roughness", "specular2", "roughness2"):
+            if values[name] is not None:
+                values[name] = fn(values[name], 1)
         if values["rotation"] is not None:
             values["rotation"] = fn(values["rotation"], 0)
         return SVBRDF(**values)
+
+    def second(self) -> SVBRDF | None:
+        """The second lobe as the first of an SVBRDF (the same normal, ``k_d`` and rotation), or
+        ``None`` without one."""
+        if self.specular2 is None:
+            return None
+        return SVBRDF(self.normal, self.diffuse, self.specular2, self.roughness2, self.rotation, self.channels)
 
     def reshape(self, *shape: int) -> SVBRDF:
         """The same parameters with leading dims ``shape`` (``-1`` allowed)."""
@@ -154,12 +180,15 @@ def ward(wi: Tensor, wo: Tensor, n: Tensor, k_s: Tensor, alpha: Tensor, rotation
 
 
 def reflectance(wi: Tensor, wo: Tensor, svbrdf: SVBRDF) -> Tensor:
-    """The full BRDF ``rho (*, C) = k_d / pi + Ward`` of ``svbrdf`` for directions ``(*, 3)``;
-    0 for back-facing directions."""
+    """The full BRDF ``rho (*, C) = k_d / pi + Ward`` (+ the second lobe's) of ``svbrdf`` for
+    directions ``(*, 3)``; 0 for back-facing directions."""
     n = svbrdf.normal
     front = ((dot(n, wi) > 0) & (dot(n, wo) > 0))[..., None]
     diffuse = torch.where(front, lambert(svbrdf.diffuse), torch.zeros_like(svbrdf.diffuse))
-    return diffuse + ward(wi, wo, n, svbrdf.specular, svbrdf.roughness, svbrdf.rotation)
+    value = diffuse + ward(wi, wo, n, svbrdf.specular, svbrdf.roughness, svbrdf.rotation)
+    if svbrdf.specular2 is not None:
+        value = value + ward(wi, wo, n, svbrdf.specular2, svbrdf.roughness2, svbrdf.rotation)
+    return value
 
 
 def _smith_g1(v: Tensor, m: Tensor, n: Tensor, s: Tensor, t: Tensor, alpha: Tensor) -> Tensor:

@@ -44,7 +44,8 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--frames", default=None,
                      help="frames to fit: 'all', a slice like '::2' (every second) or a list like '0,3,10-19'")
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
-    fit.add_argument("--model", default=None, choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso"],
+    fit.add_argument("--model", default=None,
+                     choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
                      help="auto (default): each pixel's model by the BIC; or one forced on every pixel")
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"

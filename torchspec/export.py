@@ -596,6 +596,14 @@ def _arrays(maps) -> _Arrays:
     for name in ("diffuse", "specular", "roughness"):
         if (values[name] < 0).any():
             raise ExportError(f"SVBRDF.{name} must be >= 0; got a minimum of {values[name].min():.3g}.")
+    if svbrdf.specular2 is not None and bool((svbrdf.specular2 > 0).any()):
+        count = int((svbrdf.specular2 > 0).any(-1).sum())
+        warnings.warn(
+            f"{count} pixel(s) have a second lobe (ward-dual: specular2.exr, roughness2.exr), which no export "
+            "carries: they are exported with their first (sharper) lobe only (docs/export.md).",
+            ExportWarning,
+            stacklevel=3,
+        )
     return _Arrays(channels=channels, **values)
 
 

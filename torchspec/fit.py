@@ -18,6 +18,7 @@ counts, and statistics per stage; :func:`write_fit` writes them as an SVBRDF fol
 
 from __future__ import annotations
 
+import json
 import math
 import time
 import warnings
@@ -48,7 +49,7 @@ __all__ = ["FitConfig", "Fit", "FitInterrupted", "Start", "fit", "start", "write
 
 INITS = ("fri", "naive", "grid")
 AUTO = "auto"
-LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso")
+LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
 """The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
 MODEL_CODES = tuple(MODELS)
 """``model.exr``'s codes: the index of each pixel's model in this tuple."""
@@ -70,9 +71,15 @@ class FitConfig:
     Attributes:
         model: ``auto`` picks each pixel's model by the Bayesian information criterion, trying
             the larger ones only where the smaller leave a residual above the noise
-            (:data:`LADDER`); or one model forced on every pixel that shows a peak
-            (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``
-            or ``ward-aniso``, or ``diffuse`` on every pixel.
+            (``ladder``); or one model forced on every pixel that shows a peak
+            (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``,
+            ``ward-aniso`` or ``ward-dual`` (two grey isotropic lobes), or ``diffuse`` on every
+            pixel. Where some pixel gets ``ward-dual``, the maps have a second lobe
+            (``SVBRDF.specular2``, 0 where another model was chosen; ``std`` has its deviations).
+        ladder: the models ``auto`` climbs, in order, each tried from the previous one's solution on
+            the pixels it leaves unexplained (:data:`LADDER` by default). Leave ``ward-dual`` out to
+            spend no time on two lobes: a pixel no single Ward lobe explains (a lobe of another
+            shape, such as the development captures' Beckmann lobes) climbs to the last model.
         uncertainty: compute each pixel's criterion and standard deviations (one more evaluation
             of the model per pixel, at the solution), with each sample's noise from the sensor's
             ``a y + b`` fitted to the residuals of the pixels without a peak
@@ -118,6 +125,7 @@ class FitConfig:
     """
 
     model: str = "auto"
+    ladder: tuple[str, ...] = LADDER
     select_z: float = 3.0
     uncertainty: bool = True
     flag_peak_misfit: float = 3.0
@@ -146,6 +154,13 @@ class FitConfig:
     def __post_init__(self):
         if self.model != AUTO:
             get_model(self.model)
+        ladder = tuple(self.ladder)
+        object.__setattr__(self, "ladder", ladder)
+        if not ladder or len(set(ladder)) != len(ladder) or not all(get_model(name).lobe for name in ladder):
+            raise ValueError(
+                f"FitConfig.ladder must name one or more models with a lobe, each once "
+                f"(of {[name for name in MODELS if get_model(name).lobe]}); got {list(ladder)!r}."
+            )
         if not self.select_z >= 0:
             raise ValueError(f"FitConfig.select_z must be >= 0; got {self.select_z!r}.")
         if self.init not in INITS:
@@ -272,8 +287,7 @@ def _tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, res
     (the stack and its masks) and :data:`RUNTIME_BYTES`."""
     if config.tile:
         return config.tile
-    model = get_model(LADDER[-1] if config.model == AUTO else config.model)
-    p = model.size(channels)
+    p = max(get_model(name).size(channels) for name in (config.ladder if config.model == AUTO else (config.model,)))
     # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
     # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
     # for transients (~20 kB per pixel was measured at K = 144, C = 3, float32, when the solver held
@@ -306,7 +320,7 @@ def _lm_stage(model, start: SVBRDF, observed, weight, lights, view, channels, co
             result = run(False)
     else:
         result = run(False)
-    return model.unpack(bounds.from_free(result.params)[0], channels), result
+    return model.unpack(bounds.from_free(result.params)[0], channels, order=True), result
 
 
 @dataclass(frozen=True)
@@ -401,7 +415,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     lobe = begun.lobe if config.model != "diffuse" else torch.zeros_like(begun.lobe)
     count = valid.sum(-1).clamp(min=1).to(y.dtype)
     t0 = time.perf_counter()
-    ladder = LADDER if config.model == AUTO else (() if config.model == "diffuse" else (config.model,))
+    ladder = config.ladder if config.model == AUTO else (() if config.model == "diffuse" else (config.model,))
     n, c = y.shape[0], y.shape[-1]
     safe_level = torch.where(level > 0, level, torch.ones_like(level))
     weight = valid.to(y.dtype) / safe_level[:, None]
@@ -427,6 +441,8 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     specular = y.new_zeros((n, 1 if grey else c))
     roughness = y.new_zeros((n, 2))
     rotation = y.new_zeros(n) if any(get_model(name).anisotropic for name in ladder) else None
+    dual = any(get_model(name).dual for name in ladder)  # a second lobe's maps, 0 where not fitted
+    specular2, roughness2 = (y.new_zeros((n, 1)), y.new_zeros((n, 2))) if dual else (None, None)
     status = torch.zeros(n, dtype=torch.int8, device=y.device)
     iterations = torch.zeros(n, dtype=torch.int32, device=y.device)
     cost = y.new_zeros(n)
@@ -444,6 +460,8 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         "specular": y.new_full((n, specular.shape[-1]), math.nan),
         "roughness": y.new_full((n, 2), math.nan),
     }
+    if dual:
+        deviation.update(specular2=y.new_full((n, 1), math.nan), roughness2=y.new_full((n, 2), math.nan))
 
     def keep(name, index, fitted, result) -> Tensor:
         """Take the fit of model ``name`` where its criterion is the lowest so far; returns the
@@ -476,10 +494,15 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         roughness[pick] = fit.roughness
         if rotation is not None:
             rotation[pick] = fit.rotation if fit.rotation is not None else torch.zeros_like(fit.roughness[:, 0])
+        if dual:
+            specular2[pick] = fit.specular2 if model.dual else 0.0
+            roughness2[pick] = fit.roughness2 if model.dual else 0.0
         status[pick], iterations[pick] = result.status[better], result.iterations[better]
         cost[pick], criterion[pick] = result.cost[better], bic[better]
         code[pick] = MODEL_CODES.index(name)
         for key, value in std.items():
+            if key not in deviation:  # a second lobe's, where no model has one
+                continue
             chosen = value[better]
             deviation[key][pick] = chosen.expand(-1, deviation[key].shape[-1]) if chosen.dim() > 1 else chosen
         tried[name] = tried.get(name, 0) + index.numel()
@@ -535,7 +558,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     times["lm"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    svbrdf = SVBRDF(normal, diffuse, specular, roughness, rotation, channels)
+    svbrdf = SVBRDF(normal, diffuse, specular, roughness, rotation, channels, specular2, roughness2)
     checked = config.uncertainty or config.model == AUTO  # the checks need the sensor's noise
     checks = {name: y.new_full((n,), math.nan) for name in ("peak_misfit", "astray")}
     flags = torch.zeros(n, dtype=torch.int16, device=y.device)
@@ -633,8 +656,9 @@ def _uncertainty(
     """The fit's ``chi^2 = sum ((render - observed) weight)^2`` per pixel ``(n,)``, ``weight``
     being one over each sample's noise, what :mod:`torchspec.flags` takes (``z2`` and ``excess``,
     each ``(n, K)``, and ``lobe_snr (n,)``), and the standard deviations of its parameters there:
-    ``normal`` (radians, the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``;
-    NaN for the parameters the model does not have, ``inf`` for those the data leave undetermined.
+    ``normal`` (radians, the angle), ``diffuse (n, C)``, ``specular (n, C_s)``, ``roughness (n, 2)``,
+    ``specular2 (n, 1)`` and ``roughness2 (n, 2)`` (``ward-dual``'s second lobe); NaN for the
+    parameters the model does not have, ``inf`` for those the data leave undetermined.
 
     The estimate minimised ``|fit_weight (render - observed)|^2``, not the noise-weighted residual
     (it is fitted before the noise is known): its covariance is the sandwich ``A^-1 B A^-1``
@@ -692,6 +716,10 @@ def _uncertainty(
     else:
         out["specular"] = torch.full((n, 1), nan, **like)
         out["roughness"] = torch.full((n, 2), nan, **like)
+    if model.dual:  # after the first lobe's alpha: k_s2, alpha2
+        out["specular2"], out["roughness2"] = std[:, at + 1 : at + 2], std[:, at + 2 : at + 3].expand(-1, 2)
+    else:
+        out["specular2"], out["roughness2"] = torch.full((n, 1), nan, **like), torch.full((n, 2), nan, **like)
     return 2.0 * cost, out, (z2, excess, lobe_snr)
 
 
@@ -710,9 +738,10 @@ STATE = "state.json"
 
 def _job(capture: Capture, picked: list[int], config: FitConfig, tile: int, pixels: int) -> dict:
     """What a checkpoint's tiles depend on: the manifest, each frame file's size and time, the
-    frames, the settings and the tiling (a resumed fit must be the same job to give the same maps)."""
+    frames, the settings and the tiling (a resumed fit must be the same job to give the same maps); as
+    JSON gives it back (tuples as lists), to compare with a saved one."""
     files = [capture.root / capture.frames[k].file for k in picked]
-    return {
+    job = {
         "torchspec": __version__,
         "capture": str(capture.root.resolve()),
         "manifest": _stamp(capture.manifest) if capture.manifest.is_file() else None,
@@ -722,6 +751,7 @@ def _job(capture: Capture, picked: list[int], config: FitConfig, tile: int, pixe
         "tile_pixels": tile,
         "pixels": pixels,
     }
+    return json.loads(json.dumps(job))
 
 
 def _stamp(path: Path) -> list:
@@ -954,6 +984,12 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
 
     pieces = [p["svbrdf"] for p in parts]
     rotation = None if pieces[0].rotation is None else torch.cat([p.rotation for p in pieces]).reshape(h, w)
+    second = {}  # a second lobe's maps when some pixel has one (a ladder with ward-dual may give none)
+    if pieces[0].specular2 is not None and any(bool((p.specular2 > 0).any()) for p in pieces):
+        second = {
+            "specular2": torch.cat([p.specular2 for p in pieces]).reshape(h, w, -1),
+            "roughness2": torch.cat([p.roughness2 for p in pieces]).reshape(h, w, 2),
+        }
     svbrdf = SVBRDF(
         torch.cat([p.normal for p in pieces]).reshape(h, w, 3),
         torch.cat([p.diffuse for p in pieces]).reshape(h, w, c),
@@ -961,6 +997,7 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
         torch.cat([p.roughness for p in pieces]).reshape(h, w, 2),
         rotation,
         channels,
+        **second,
     )
     status, iterations, lobe = join("status"), join("iterations"), join("lobe")
     model, criterion, flags = join("model"), join("criterion"), join("flags")
@@ -968,6 +1005,7 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
     std = {
         name: torch.cat([p["std"][name] for p in parts]).reshape(h, w, *parts[0]["std"][name].shape[1:])
         for name in parts[0]["std"]
+        if second or name not in ("specular2", "roughness2")
     }
     total = time.perf_counter() - started
     stats = {
@@ -1027,4 +1065,6 @@ def write_fit(path: str | Path, result: Fit) -> None:
         "std_specular": result.std["specular"].float(),
         "std_roughness": result.std["roughness"].float(),
     }
+    if "specular2" in result.std:  # ward-dual's second lobe
+        extra.update(std_specular2=result.std["specular2"].float(), std_roughness2=result.std["roughness2"].float())
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra)

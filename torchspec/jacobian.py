@@ -6,6 +6,8 @@ The parameters of a pixel, in this order (``P = 2 + C + C_s + 3``):
     k_d           C values
     k_s           C_s values (C, or 1 for grey)
     alpha_x, alpha_y, rotation
+    k_s2, alpha2_x, alpha2_y   only with a second lobe (``SVBRDF.specular2``): ``C_s2 + 2`` more;
+                  it shares the normal and the rotation
 
 Pixels are independent, so each column of the Jacobian is one derivative for all pixels at once.
 
@@ -59,16 +61,21 @@ MODES = ("analytic", "forward")
 def parameters(svbrdf: SVBRDF) -> Tensor:
     """The parameter vectors ``(*, P)`` of ``svbrdf`` in the order of this module."""
     rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[..., 0])
-    return torch.cat(
-        [angles_from_normal(svbrdf.normal), svbrdf.diffuse, svbrdf.specular, svbrdf.roughness, rotation[..., None]],
-        -1,
-    )
+    parts = [angles_from_normal(svbrdf.normal), svbrdf.diffuse, svbrdf.specular, svbrdf.roughness, rotation[..., None]]
+    if svbrdf.specular2 is not None:
+        parts += [svbrdf.specular2, svbrdf.roughness2]
+    return torch.cat(parts, -1)
 
 
-def _svbrdf(params: Tensor, channels: tuple[str, ...], grey: bool) -> SVBRDF:
+def _svbrdf(params: Tensor, channels: tuple[str, ...], grey: bool, second: int | None = None) -> SVBRDF:
+    """The SVBRDF of :func:`parameters`; ``second``: the second lobe's ``k_s`` count, if it has one."""
     count = len(channels)
     cs = 1 if grey else count
     at = [2, 2 + count, 2 + count + cs, 4 + count + cs]
+    lobe2 = {}
+    if second is not None:
+        end = at[3] + 1 + second
+        lobe2 = {"specular2": params[..., at[3] + 1 : end], "roughness2": params[..., end : end + 2]}
     return SVBRDF(
         normal_from_angles(params[..., :2]),
         params[..., at[0] : at[1]],
@@ -76,6 +83,7 @@ def _svbrdf(params: Tensor, channels: tuple[str, ...], grey: bool) -> SVBRDF:
         params[..., at[2] : at[3]],
         params[..., at[3]],
         channels,
+        **lobe2,
     )
 
 
@@ -127,6 +135,7 @@ def jacobian(
     lead = svbrdf.shape
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
+    second = None if flat.specular2 is None else flat.specular2.shape[-1]
     params = parameters(flat)
     chunk = _chunk(lights.directions.shape[0], order)
     values = jacs = None  # filled in place: the Jacobian is the largest tensor of a fit, held once
@@ -135,7 +144,7 @@ def jacobian(
         if mode == "forward":
 
             def forward(p):
-                return render(_svbrdf(p, flat.channels, grey), lights, view, path=path)
+                return render(_svbrdf(p, flat.channels, grey, second), lights, view, path=path)
 
             eye = torch.eye(part.shape[-1], dtype=part.dtype, device=part.device)
             columns = []
@@ -145,7 +154,7 @@ def jacobian(
             jac = torch.stack(columns, -1)
         else:
             parts = _parts(
-                _svbrdf(part, flat.channels, grey),
+                _svbrdf(part, flat.channels, grey, second),
                 lights,
                 view,
                 path,
@@ -278,14 +287,42 @@ def _parts(
     diffuse, d_diffuse = _diffuse(n, lights, direction, gradient=True, clamp=clamp, compiled=compiled)
 
     # Specular: the value's nodes, held fixed.
-    isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
-    frames = (None, None) if isotropic or diffuse_only else _frame_derivatives(n, rotation)
     if diffuse_only:
         spec = torch.zeros_like(diffuse)
         d_spec_n, d_spec_shape = d_diffuse.new_zeros(d_diffuse.shape), d_diffuse.new_zeros(d_diffuse.shape)
         no_lobe = torch.zeros_like(svbrdf.specular)
         svbrdf = SVBRDF(n, svbrdf.diffuse, no_lobe, svbrdf.roughness, rotation, svbrdf.channels)
-    elif chosen == "point":
+    else:
+        spec, d_spec_n, d_spec_shape = _lobe_parts(svbrdf, lights, view, chosen, order, rotation, compiled)
+
+    scale = lights.scale[None]  # (1, K, C or 1)
+    second = ()
+    if svbrdf.specular2 is not None and not diffuse_only:
+        lobe2 = SVBRDF(n, svbrdf.diffuse, svbrdf.specular2, svbrdf.roughness2, rotation, svbrdf.channels)
+        second = (*_lobe_parts(lobe2, lights, view, chosen, order, rotation, compiled), svbrdf.specular2.contiguous())
+    # Contiguous coefficients: slices of the solver's parameters sit at offsets torch.compile guards on.
+    return (
+        diffuse,
+        d_diffuse,
+        spec,
+        d_spec_n,
+        d_spec_shape,
+        dn,
+        scale,
+        svbrdf.diffuse.contiguous(),
+        svbrdf.specular.contiguous(),
+        *second,
+    )
+
+
+def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, order, rotation, compiled: bool) -> tuple:
+    """The lobe's integrals ``(N, K)`` and their derivatives in the normal and its shape
+    ``(N, K, 3)`` (:func:`_parts`), on the path ``chosen``."""
+    kernel, centre = lights.kernel, lights.directions
+    n = svbrdf.normal
+    isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
+    frames = (None, None) if isotropic else _frame_derivatives(n, rotation)
+    if chosen == "point":
         pixels = _pixels(svbrdf, view)
         frame_ds, frame_dt = frames
         lx, ly = centre[None, :, None, 0], centre[None, :, None, 1]
@@ -336,42 +373,42 @@ def _parts(
             d_spec_n = d_spec_n.index_put((p, k), d_value_n[:, 0])
             d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
 
-    scale = lights.scale[None]  # (1, K, C or 1)
-    # Contiguous coefficients: slices of the solver's parameters sit at offsets torch.compile guards on.
-    return (
-        diffuse,
-        d_diffuse,
-        spec,
-        d_spec_n,
-        d_spec_shape,
-        dn,
-        scale,
-        svbrdf.diffuse.contiguous(),
-        svbrdf.specular.contiguous(),
-    )
+    return spec, d_spec_n, d_spec_shape
 
 
-def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s) -> tuple[Tensor, Tensor]:
-    """Values ``(N, K, C)`` and the Jacobian ``(N, K, C, 2 + C + C_s + 3)`` from :func:`_parts`."""
+def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s, *second) -> tuple[Tensor, Tensor]:
+    """Values ``(N, K, C)`` and the Jacobian ``(N, K, C, 2 + C + C_s + 3)`` from :func:`_parts`
+    (``+ C_s2 + 2`` columns with a second lobe: ``second = (spec2, d_spec2_n, d_spec2_shape, k_s2)``)."""
     count = k_d.shape[-1]
-    grey = k_s.shape[-1] == 1 and count != 1
     like = k_d
-    k_d, k_s = k_d[:, None, :], k_s[:, None, :]
-    value = (k_d / math.pi * diffuse[..., None] + k_s * spec[..., None]) * scale
-    # Columns: angles (2), k_d (C), k_s (C or 1), alpha_x, alpha_y, rotation.
-    # Through the angles first (N, K, 2), then per channel: no (N, K, C, 3) products.
-    diffuse_angles, spec_angles = d_diffuse @ dn, d_spec_n @ dn
-    d_angles = k_d[..., None] / math.pi * diffuse_angles[:, :, None, :] + k_s[..., None] * spec_angles[:, :, None, :]
-    d_angles = d_angles * scale[..., None]  # (N, K, C, 2)
+    k_d = k_d[:, None, :]
     eye = torch.eye(count, dtype=like.dtype, device=like.device)
+
+    def coefficient_columns(integral, k_s):  # dvalue/dk_s (N, K, C, C_s), for C_s = C or 1 (grey)
+        grey = k_s.shape[-1] == 1 and count != 1
+        basis = torch.ones(count, 1, dtype=like.dtype, device=like.device) if grey else eye
+        return (integral[..., None, None] * basis) * scale[..., None]
+
+    lobes = [(spec, d_spec_n, d_spec_shape, k_s)]
+    if second:
+        lobes.append(second)
+    value = k_d / math.pi * diffuse[..., None] * scale
+    # Columns: angles (2), k_d (C), k_s (C or 1), alpha_x, alpha_y, rotation, [k_s2, alpha2_x, alpha2_y].
+    # Through the angles first (N, K, 2), then per channel: no (N, K, C, 3) products.
+    d_angles = k_d[..., None] / math.pi * (d_diffuse @ dn)[:, :, None, :]
     d_kd = (diffuse[..., None, None] / math.pi * eye) * scale[..., None]  # (N, K, C, C)
-    if grey:
-        d_ks = (spec[..., None, None] * torch.ones(count, 1, dtype=like.dtype, device=like.device)) * scale[..., None]
-    else:
-        d_ks = (spec[..., None, None] * eye) * scale[..., None]
-    d_shape = k_s[..., None] * d_spec_shape[:, :, None, :] * scale[..., None]
-    d_shape = d_shape.expand(-1, -1, count, -1)  # (N, K, C, 3), also for a grey k_s under grey irradiance
-    return value, torch.cat([d_angles, d_kd, d_ks, d_shape], -1)
+    columns, d_rotation = [], 0.0
+    for integral, d_n, d_shape, k_s in lobes:
+        k_s = k_s[:, None, :]
+        value = value + k_s * integral[..., None] * scale
+        d_angles = d_angles + k_s[..., None] * (d_n @ dn)[:, :, None, :]
+        d_shape = k_s[..., None] * d_shape[:, :, None, :] * scale[..., None]
+        d_shape = d_shape.expand(-1, -1, count, -1)  # (N, K, C, 3), also for a grey k_s under grey irradiance
+        columns.append([coefficient_columns(integral, k_s[:, 0]), d_shape[..., :2]])
+        d_rotation = d_rotation + d_shape[..., 2:]  # one rotation, shared by the lobes
+    columns[0].append(d_rotation)
+    d_angles = d_angles * scale[..., None]  # (N, K, C, 2)
+    return value, torch.cat([d_angles, d_kd, *(c for lobe in columns for c in lobe)], -1)
 
 
 def _normal(parts: tuple, observed: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -489,7 +526,7 @@ def _contract(
     count = svbrdf.diffuse.shape[-1]
     grey = svbrdf.specular.shape[-1] == 1 and count != 1
     channel_rows = None
-    if compile and gram is not None:
+    if compile and gram is not None and svbrdf.specular2 is None:  # gram: one lobe
         # (1, C, 7, P): a first axis of 1 is never taken for the batch (torchspec.render._compiled),
         # and the models' parameter counts P share one compiled graph.
         channel_rows = _channel_rows(select, count, grey)[None]
@@ -539,12 +576,14 @@ def _sandwich_samples(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor
     the lobe's signal-to-noise ratio ``(N,)``, the norm of its part of the values in noise units."""
     value, jac = _assemble(*parts)
     cost, bread, meat, r = _sandwich_sums(value, jac, observed, noise, fit)
-    diffuse, _, _, _, _, _, scale, k_d, _ = parts
+    diffuse, _, spec, _, _, _, scale, k_d, k_s, *second = parts
     valid = (noise > 0).to(observed.dtype)
     lambertian = k_d[:, None, :] / math.pi * diffuse[..., None] * scale
     excess = ((observed - lambertian) * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
-    _, _, spec, _, _, _, _, _, k_s = parts
-    lobe = k_s[:, None, :] * spec[..., None] * scale * noise  # the lobe's part, in units of the noise
+    lobe = k_s[:, None, :] * spec[..., None]
+    if second:  # both lobes
+        lobe = lobe + second[3][:, None, :] * second[0][..., None]
+    lobe = lobe * scale * noise  # the lobes' part, in units of the noise
     return cost, bread, meat, (r * r).sum(-1), excess, (lobe * lobe).sum((1, 2)).sqrt()
 
 
@@ -578,8 +617,8 @@ def sandwich_terms(
         samples: also return, per sample ``(N, K)``, the squared residual in units of the noise
             (summed over channels) and the samples less the model's diffuse part (mean over the
             valid channels), and per pixel the lobe's signal-to-noise ratio (the norm of the lobe's
-            part of the values in units of the noise): what :mod:`torchspec.flags` needs, from the
-            same pass.
+            part of the values in units of the noise; both lobes' with a second): what
+            :mod:`torchspec.flags` needs, from the same pass.
 
     Returns:
         ``(0.5 chi^2 (N,), A = J^T W^2 J (N, P, P), B = J^T W^2 S W^2 J (N, P, P))`` with ``chi^2``

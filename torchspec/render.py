@@ -671,7 +671,8 @@ def render(
     """Predicted values of every pixel under every frame: ``(*, K, C)``.
 
     Args:
-        svbrdf: parameters with leading dims ``*`` and ``C`` channels (or grey ``k_s``).
+        svbrdf: parameters with leading dims ``*`` and ``C`` channels (or grey ``k_s``), and a
+            second lobe if it has one.
         lights: ``K`` frames; the kernel must be known (not ``unknown``).
         view: ``(3,)`` unit direction towards the camera.
         path: ``auto`` (the rule of :func:`choose_path`), ``point``, ``fast`` or ``reference``.
@@ -733,5 +734,17 @@ def render(
         specular = _specular(part, lights, view, chosen, orders, compile, lobe)
         diffuse = _diffuse(part.normal, lights, direction)
         value = lambert(part.diffuse)[:, None, :] * diffuse[..., None] + part.specular[:, None, :] * specular[..., None]
+        second = part.second()
+        if second is not None:  # the second lobe, on the pixels that have one (all when its k_s needs a derivative)
+            lobed = (second.specular > 0).any(-1)
+            tangent = torch.autograd.forward_ad.unpack_dual(second.specular).tangent
+            if (torch.is_grad_enabled() and second.specular.requires_grad) or tangent is not None:
+                lobed = torch.ones_like(lobed)
+            index = lobed.nonzero()[:, 0]
+            if index.numel():
+                picked = second[index]
+                lobe2 = _specular(picked, lights, view, chosen, orders, compile, lobe)
+                lobe2 = (picked.specular[:, None, :] * lobe2[..., None]).expand(-1, -1, count)
+                value = value.index_add(0, index, lobe2)
         out.append(value * lights.scale[None])
     return torch.cat(out).reshape(*lead, lights.directions.shape[0], count)

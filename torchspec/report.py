@@ -25,11 +25,12 @@ from ._atomic import atomic_path, save_figure
 from .brdf import SVBRDF
 from .geometry import angle, from_plane
 from .lights import Kernel, Lights
+from .models import MODELS
 from .render import render
 
 __all__ = ["REGIONS", "score", "heldout_psnr", "write_previews", "relit_strip", "write_report", "display"]
 
-REGIONS = ("matte", "varnished", "gilded")
+REGIONS = ("matte", "varnished", "gilded", "dual")
 """Region codes of a simulated painting's ``regions`` map (``truth/regions.exr``)."""
 
 
@@ -42,7 +43,8 @@ def score(svbrdf: SVBRDF, truth: SVBRDF, regions: Tensor | None = None, matte_ks
     degrees (median and 90th percentile), the relative error of ``k_d`` over all pixels; with
     ``regions`` (codes of :data:`REGIONS`) also per region, ``k_s`` (channel mean) and ``alpha``
     (mean of both axes) on the lobed regions, and the share of matte pixels whose fitted ``k_s``
-    stays below ``matte_ks``."""
+    stays below ``matte_ks``; where the truth has a second lobe and the fit one too, its
+    ``k_s`` and ``alpha`` (``<region>_ks2``, ``<region>_alpha2``)."""
     s, t = svbrdf.flatten(), truth.flatten()
     normal = torch.rad2deg(angle(s.normal.double(), t.normal.double()))
     kd = _relative(s.diffuse, t.diffuse)
@@ -67,6 +69,9 @@ def score(svbrdf: SVBRDF, truth: SVBRDF, regions: Tensor | None = None, matte_ks
         if name != "matte":
             out[f"{name}_ks"] = float(ks[m].median())
             out[f"{name}_alpha"] = float(alpha[m].median())
+        if t.specular2 is not None and s.specular2 is not None and bool((t.specular2[m] > 0).any()):
+            out[f"{name}_ks2"] = float(_relative(s.specular2[m].mean(-1), t.specular2[m].mean(-1)).median())
+            out[f"{name}_alpha2"] = float(_relative(s.roughness2[m], t.roughness2[m]).mean(-1).median())
     return out
 
 
@@ -121,8 +126,9 @@ def write_previews(
 ) -> list[Path]:
     """PNG previews of fitted maps (leading dims ``(H, W)``) in ``folder``: ``normal.png``
     (``RGB = (n + 1) / 2``), ``diffuse.png`` (sRGB-encoded), ``specular.png`` and
-    ``roughness.png`` (false colour), and where given ``model.png`` (the model codes of
-    :data:`torchspec.fit.MODEL_CODES`, 0 diffuse to 3 ward-aniso),
+    ``roughness.png`` (false colour), ``specular2.png`` and ``roughness2.png`` for a second lobe
+    (where some pixel has one), and where given ``model.png`` (the model codes of
+    :data:`torchspec.fit.MODEL_CODES`, 0 diffuse to 4 ward-dual),
     ``residual.png``, ``quality.png`` and, against ``truth``, ``normal_error.png`` (degrees) and
     ``diffuse_error.png`` (relative). Returns the paths written."""
     folder = Path(folder)
@@ -139,8 +145,12 @@ def write_previews(
     ks = s.specular.mean(-1).numpy()
     save("specular.png", ks, "magma", 0.0, max(float(ks.max()), 1e-6))
     save("roughness.png", s.roughness.mean(-1).numpy(), "viridis", 0.0, max(float(s.roughness.max()), 1e-6))
+    if s.specular2 is not None and bool((s.specular2 > 0).any()):
+        ks2 = s.specular2.mean(-1).numpy()
+        save("specular2.png", ks2, "magma", 0.0, float(ks2.max()))
+        save("roughness2.png", s.roughness2.mean(-1).numpy(), "viridis", 0.0, float(s.roughness2.max()))
     if model is not None:
-        save("model.png", model.cpu().numpy().astype(np.float64), "viridis", 0.0, 3.0)
+        save("model.png", model.cpu().numpy().astype(np.float64), "viridis", 0.0, float(len(MODELS) - 1))
     if residual is not None:
         r = residual.cpu().double().numpy()
         save("residual.png", np.log10(np.clip(r, 1e-6, None)), "inferno", -6.0, 0.0)

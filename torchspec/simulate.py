@@ -11,7 +11,7 @@ development captures.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -149,7 +149,7 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".") -> Simulation:
     count = len(config.channels)
     if truth.diffuse.shape[-1] != count:
         raise ValueError(f"channels names {count} channels but the scene has {truth.diffuse.shape[-1]}.")
-    truth = SVBRDF(truth.normal, truth.diffuse, truth.specular, truth.roughness, truth.rotation, tuple(config.channels))
+    truth = replace(truth, channels=tuple(config.channels))
     centres = layout(config.layout)
     k = centres.shape[0]
     kernel = _kernel(config.light)

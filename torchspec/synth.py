@@ -33,12 +33,14 @@ __all__ = [
     "MATTE",
     "VARNISHED",
     "GILDED",
+    "DUAL",
+    "DualConfig",
     "painting",
     "mirror",
     "sense",
 ]
 
-MATTE, VARNISHED, GILDED = 0, 1, 2
+MATTE, VARNISHED, GILDED, DUAL = 0, 1, 2, 3
 """The labels of the region map (as in ``truth/regions.exr``)."""
 
 _F64 = torch.float64
@@ -74,6 +76,25 @@ class GildedConfig:
 
 
 @dataclass(frozen=True)
+class DualConfig:
+    """A rectangle of two-lobed gloss: a sharp varnish over a glossy layer with a broad lobe of
+    its own (both grey and isotropic, on one normal: the ``ward-dual`` model). It replaces the
+    varnish (and the matte) inside it; gilding stays on top.
+
+    Attributes:
+        box: ``(x0, y0, x1, y1)`` as :attr:`GildedConfig.box`.
+        ks, alpha: the sharp lobe's ``k_s`` and ``alpha``.
+        ks2, alpha2: the broad lobe's.
+    """
+
+    box: tuple[float, float, float, float] = (0.55, 0.1, 0.9, 0.4)
+    ks: float = 0.08
+    alpha: float = 0.04
+    ks2: float = 0.25
+    alpha2: float = 0.25
+
+
+@dataclass(frozen=True)
 class PaintingConfig:
     """Settings of :func:`painting`; lengths are in pixels.
 
@@ -95,6 +116,8 @@ class PaintingConfig:
         ks_range, alpha_range: ``(lo, hi)`` of the grey ``k_s`` and the isotropic ``alpha`` of
             the varnish.
         gilded: the gilded box, or ``None`` for none.
+        dual: a box of two-lobed gloss (:class:`DualConfig`), or ``None`` for none: the maps
+            then have a second lobe (``SVBRDF.specular2``).
     """
 
     width: int = 48
@@ -115,6 +138,7 @@ class PaintingConfig:
     ks_range: tuple[float, float] = (0.05, 0.3)
     alpha_range: tuple[float, float] = (0.03, 0.2)
     gilded: GildedConfig | None = field(default_factory=GildedConfig)
+    dual: DualConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -176,6 +200,14 @@ def _range_check(name: str, value: tuple[float, float], *, positive: bool = Fals
     return ok, f"{name} must be (lo, hi) with {'0 <' if positive else '0 <='} lo <= hi; got {value!r}."
 
 
+def _box_check(name: str, box: tuple) -> tuple[bool, str]:
+    x0, y0, x1, y1 = box if len(box) == 4 else (1, 1, 0, 0)
+    return (
+        0 <= x0 <= x1 <= 1 and 0 <= y0 <= y1 <= 1,
+        f"{name}.box must be (x0, y0, x1, y1) with 0 <= x0 <= x1 <= 1, 0 <= y0 <= y1 <= 1; got {box!r}.",
+    )
+
+
 def _check_painting(config: PaintingConfig) -> None:
     checks = _size_checks(config) + [
         (config.pigments >= 1, f"pigments must be >= 1; got {config.pigments}."),
@@ -195,15 +227,21 @@ def _check_painting(config: PaintingConfig) -> None:
     ]
     gilded = config.gilded
     if gilded is not None:
-        x0, y0, x1, y1 = gilded.box if len(gilded.box) == 4 else (1, 1, 0, 0)
         checks += [
-            (0 <= x0 <= x1 <= 1 and 0 <= y0 <= y1 <= 1,
-             f"gilded.box must be (x0, y0, x1, y1) with 0 <= x0 <= x1 <= 1, 0 <= y0 <= y1 <= 1; got {gilded.box!r}."),
+            _box_check("gilded", gilded.box),
             (len(gilded.kd) == 3 and len(gilded.ks) == 3,
              f"gilded.kd and gilded.ks must have 3 values (R, G, B); got {gilded.kd!r}, {gilded.ks!r}."),
             (len(gilded.alpha) == 2 and min(gilded.alpha) > 0,
              f"gilded.alpha must be 2 values > 0; got {gilded.alpha!r}."),
             (0 <= gilded.max_tilt_deg < 90, f"gilded.max_tilt_deg must be in [0, 90); got {gilded.max_tilt_deg!r}."),
+        ]
+    dual = config.dual
+    if dual is not None:
+        checks += [
+            _box_check("dual", dual.box),
+            (dual.ks >= 0 and dual.ks2 >= 0, f"dual.ks and dual.ks2 must be >= 0; got {dual.ks!r}, {dual.ks2!r}."),
+            (dual.alpha > 0 and dual.alpha2 > 0,
+             f"dual.alpha and dual.alpha2 must be > 0; got {dual.alpha!r}, {dual.alpha2!r}."),
         ]
     _require(checks)
 
@@ -369,7 +407,8 @@ def painting(
     softmax over ``pigments`` smooth fields) give ``k_d``; brush strokes add ridges of one
     pigment each; the canvas weave and the strokes make a height field whose gradient, capped at
     ``max_tilt_deg``, gives the normals; smooth blobs of varnish cover ``varnish_fraction`` of the
-    non-gilded area with a grey isotropic lobe; the gilded box replaces everything inside it.
+    non-gilded area with a grey isotropic lobe; the dual box (if any) gives two grey lobes inside
+    it; the gilded box replaces everything inside it.
 
     Args:
         config: the settings.
@@ -379,8 +418,9 @@ def painting(
     Returns:
         ``(svbrdf, regions)``: maps with leading dims ``(H, W)`` (normal ``(H, W, 3)``, diffuse
         and specular ``(H, W, 3)``, roughness ``(H, W, 2)``, no rotation) and an int64
-        ``(H, W)`` map of :data:`MATTE` (``k_s = 0``, roughness 0), :data:`VARNISHED` and
-        :data:`GILDED` pixels.
+        ``(H, W)`` map of :data:`MATTE` (``k_s = 0``, roughness 0), :data:`VARNISHED`,
+        :data:`GILDED` and :data:`DUAL` pixels. With ``config.dual`` the maps have a second lobe
+        (``specular2 (H, W, 1)``, ``roughness2 (H, W, 2)``, 0 outside the dual box).
 
     Raises:
         ValueError: a setting is out of its domain (the message names it).
@@ -409,6 +449,16 @@ def painting(
     regions[varnished] = VARNISHED
     ks = torch.where(varnished, ks_grey, 0.0)[..., None].expand(*size, 3).clone()
     roughness = torch.where(varnished, alpha_iso, 0.0)[..., None].expand(*size, 2).clone()
+    second = {}
+    if config.dual is not None:
+        dual = _gilded_mask(config.dual.box, rows, cols, size) & ~box
+        regions[dual] = DUAL
+        ks = torch.where(dual[..., None], config.dual.ks, ks)
+        roughness = torch.where(dual[..., None], config.dual.alpha, roughness)
+        second = {
+            "specular2": torch.where(dual, config.dual.ks2, 0.0)[..., None],
+            "roughness2": torch.where(dual, config.dual.alpha2, 0.0)[..., None].expand(*size, 2),
+        }
     if gilded is not None:
         regions[box] = GILDED
         inside = box[..., None]
@@ -420,7 +470,13 @@ def painting(
     def cast(t: Tensor) -> Tensor:
         return t.to(device=device, dtype=dtype)
 
-    svbrdf = SVBRDF(normal=cast(normal), diffuse=cast(kd), specular=cast(ks), roughness=cast(roughness))
+    svbrdf = SVBRDF(
+        normal=cast(normal),
+        diffuse=cast(kd),
+        specular=cast(ks),
+        roughness=cast(roughness),
+        **{name: cast(value) for name, value in second.items()},
+    )
     return svbrdf, regions.to(device=device)
 
 

@@ -4,6 +4,11 @@
     svbrdf.json     {"format": "torchspec.svbrdf", "version": 1, "model": "ward", ...}
     normal.exr      X, Y, Z          diffuse.exr, specular.exr   the capture's channels
     roughness.exr   X, Y (+ A)       any other *.exr             extra maps (model, regions, ...)
+    specular2.exr, roughness2.exr    optional, together: a second lobe (``SVBRDF.specular2``)
+
+The second lobe is this package's extension of the format (the ``ward-dual`` model): a reader that
+does not know it ignores both files, as the format asks, and sees the first lobe alone.
+``svbrdf.json`` then names them in ``second_lobe``.
 
 Maps are ``(H, W, ...)`` tensors, row 0 at the top of the image. :func:`write_svbrdf` writes
 ``svbrdf.json`` last, so a folder with a manifest always has its maps.
@@ -31,6 +36,7 @@ FORMAT = "torchspec.svbrdf"
 VERSIONS = (1,)
 META = "svbrdf.json"
 _MAPS = ("normal", "diffuse", "specular", "roughness")
+_SECOND = ("specular2", "roughness2")
 _KNOWN_EXTRA = ("model",)
 """Optional maps of the format: an unreadable one is an error, where an unknown one is skipped."""
 _UNIT_TOLERANCE = 1e-3
@@ -70,7 +76,8 @@ def read_svbrdf(path: str | Path) -> Maps:
 
     Returns:
         The maps: float32 tensors, leading dims ``(H, W)``; ``svbrdf.rotation`` from channel
-        ``A`` of ``roughness.exr`` when present, else ``None``.
+        ``A`` of ``roughness.exr`` when present, else ``None``; ``svbrdf.specular2`` and
+        ``roughness2`` from ``specular2.exr`` and ``roughness2.exr`` when present.
 
     Raises:
         SVBRDFError: ``svbrdf.json`` is missing or invalid, a map is missing, unreadable, lacks
@@ -106,10 +113,11 @@ def read_svbrdf(path: str | Path) -> Maps:
     normal = _unit(folder / "normal.exr", normal)
     _check_non_negative(folder / "roughness.exr", "roughness (alpha)", roughness)
     _check_non_negative(folder / "specular.exr", "k_s", specular)
+    second = _read_second(folder, channels, size)
 
     extra = {}
     for file in sorted(folder.glob("*.exr")):
-        if file.stem in _MAPS or file.name.startswith("."):  # .*.part.exr: a write in progress
+        if file.stem in _MAPS + _SECOND or file.name.startswith("."):  # .*.part.exr: a write in progress
             continue
         try:
             _, image = _read(file, None)
@@ -127,8 +135,26 @@ def read_svbrdf(path: str | Path) -> Maps:
         roughness=torch.from_numpy(np.ascontiguousarray(roughness)),
         rotation=None if rotation is None else torch.from_numpy(np.ascontiguousarray(rotation)),
         channels=tuple(channels),
+        **second,
     )
     return Maps(svbrdf=svbrdf, meta=meta, extra=extra)
+
+
+def _read_second(folder: Path, channels: list[str], size) -> dict:
+    """``specular2`` and ``roughness2`` (a second lobe) when the folder has them, else nothing."""
+    present = [(folder / f"{name}.exr").exists() for name in _SECOND]
+    if not any(present):
+        return {}
+    if not all(present):
+        have, lack = (_SECOND[0], _SECOND[1]) if present[0] else (_SECOND[1], _SECOND[0])
+        raise SVBRDFError(f"{folder / (have + '.exr')} (a second lobe) needs {folder / (lack + '.exr')} beside it.")
+    specular = _read_map(folder / "specular2.exr", channels, size)[1]
+    roughness = _read_map(folder / "roughness2.exr", ["X", "Y"], size)[1]
+    for name, value in (("specular2", specular), ("roughness2", roughness)):
+        _check_finite(folder / f"{name}.exr", value)
+    _check_non_negative(folder / "specular2.exr", "k_s", specular)
+    _check_non_negative(folder / "roughness2.exr", "roughness (alpha)", roughness)
+    return {"specular2": torch.from_numpy(specular), "roughness2": torch.from_numpy(np.ascontiguousarray(roughness))}
 
 
 def write_svbrdf(
@@ -142,7 +168,8 @@ def write_svbrdf(
 
     ``roughness.exr`` gets channel ``A`` only when ``rotation`` is not ``None``; a grey
     ``specular (H, W, 1)`` is written replicated to every channel; roughness (and rotation) is
-    written as 0 where ``k_s = 0`` on every channel, as the format requires. An existing
+    written as 0 where ``k_s = 0`` on every channel, as the format requires. A second lobe
+    (``specular2``) is written as ``specular2.exr`` and ``roughness2.exr``, the same way. An existing
     ``svbrdf.json`` is removed first, so an interrupted write leaves no manifest; each file is
     written atomically.
 
@@ -195,6 +222,17 @@ def write_svbrdf(
     _unit(folder / "normal.exr", normal, "SVBRDF.normal for ")
     _check_non_negative(folder / "roughness.exr", "SVBRDF.roughness", roughness)
     _check_non_negative(folder / "specular.exr", "SVBRDF.specular", specular)
+    second = {}
+    if svbrdf.specular2 is not None:
+        specular2 = np.broadcast_to(_numpy(svbrdf.specular2), diffuse.shape)
+        roughness2 = np.where((specular2 != 0).any(axis=-1)[:, :, None], _numpy(svbrdf.roughness2), np.float32(0))
+        second = {"specular2": (specular2, list(svbrdf.channels)), "roughness2": (roughness2, ["X", "Y"])}
+        for name, (value, _) in second.items():
+            _check_finite(folder / f"{name}.exr", value, f"SVBRDF.{name} for ")
+            _check_non_negative(folder / f"{name}.exr", f"SVBRDF.{name}", value)
+        meta = {**meta, "second_lobe": {"specular": "specular2.exr", "roughness": "roughness2.exr"}}
+    else:
+        meta = {key: value for key, value in meta.items() if key != "second_lobe"}
     document = _meta_to_write(folder / META, meta)
     extras = {name: _extra_to_write(folder, name, value, size) for name, value in extra.items()}
 
@@ -207,6 +245,11 @@ def write_svbrdf(
         write_exr(folder / "roughness.exr", roughness, ["X", "Y"])
     else:
         write_exr(folder / "roughness.exr", np.concatenate([roughness, rotation[:, :, None]], axis=-1), ["X", "Y", "A"])
+    for name in _SECOND:  # a second lobe, or none: a stale one from an earlier write must not stay
+        if name in second:
+            write_exr(folder / f"{name}.exr", *second[name])
+        else:
+            (folder / f"{name}.exr").unlink(missing_ok=True)
     for name, image in extras.items():
         write_exr(folder / f"{name}.exr", image, _extra_channels(image.shape[2]))
     write_json(folder / META, document)
@@ -290,7 +333,7 @@ def _meta_to_write(file: Path, meta: dict) -> dict:
 
 
 def _extra_to_write(folder: Path, name: Any, value: Any, size: tuple[int, int]) -> np.ndarray:
-    reserved = _MAPS + ("svbrdf",)
+    reserved = _MAPS + _SECOND + ("svbrdf",)
     if not isinstance(name, str) or not name or name.startswith(".") or any(c in name for c in "/\\:"):
         raise SVBRDFError(f"extra map names for {folder} must be plain file stems like 'model'; got {name!r}.")
     if name in reserved:
