@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import parse_args
+from _common import parse_args, scipy_fit
 
 from torchspec._atomic import write_json
 from torchspec.brdf import SVBRDF
@@ -38,7 +38,7 @@ from torchspec.config import load_config
 from torchspec.fit import QUADRATURES, FitConfig, start
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
-from torchspec.models import ALPHA_BOUNDS, get_model
+from torchspec.models import get_model
 from torchspec.relight import lights_of
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import PaintingConfig, SensorConfig
@@ -142,8 +142,6 @@ def _scores(svbrdf: SVBRDF, truth: SVBRDF) -> dict:
 
 def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[SVBRDF, float, list[int]]:
     """Per-pixel scipy least_squares from the fit's own start: returns the maps, seconds, evaluations."""
-    from scipy.optimize import least_squares
-
     torch.set_num_threads(settings.threads)
     capture = read_capture(capture_dir)
     dtype = getattr(torch, settings.fit.dtype)
@@ -157,47 +155,18 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
         raise ValueError("bench_fit compares one model with scipy: set fit.model to one of the models, not 'auto'.")
     model = get_model(settings.fit.model)
     channels = capture.channels
-    init = begun.svbrdf(channels)
-    x0 = model.pack(init).double().numpy()
-    kinds = model.bounds(len(channels)).kinds
-    lower = [-np.inf if k == "free" else (ALPHA_BOUNDS[0] if isinstance(k, tuple) else 0.0) for k in kinds]
-    upper = [ALPHA_BOUNDS[1] if isinstance(k, tuple) else np.inf for k in kinds]
-    times = []
-    for _ in range(max(1, settings.scipy_repeats)):
-        fitted, evaluations = [], []
-        begin = time.perf_counter()
-        for i in range(pick.numel()):
-            weight = torch.full((1, y.shape[1]), 1.0, dtype=dtype) / begun.level[i]  # as the fit weighs a pixel
-            # The fit's own model and quadrature: the two differ in the solver only.
-            fn = model.residuals(
-                y[i : i + 1],
-                weight,
-                lights,
-                view,
-                channels,
-                path=settings.fit.path,
-                **QUADRATURES[settings.fit.quadrature],
-            )
-            index = torch.zeros(1, dtype=torch.long)
-            cache = {}
-
-            def value(x, fn=fn, index=index, cache=cache):
-                r, j = fn(torch.as_tensor(x, dtype=dtype)[None], index)
-                cache["j"] = (x.copy(), j[0].double().numpy())
-                return r[0].double().numpy()
-
-            def jac(x, fn=fn, index=index, cache=cache):
-                if "j" in cache and np.array_equal(cache["j"][0], x):
-                    return cache["j"][1]
-                return fn(torch.as_tensor(x, dtype=dtype)[None], index)[1][0].double().numpy()
-
-            x = np.clip(x0[i], np.array(lower) + 1e-12, np.array(upper) - 1e-12)
-            out = least_squares(value, x, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac")
-            fitted.append(torch.as_tensor(out.x, dtype=dtype))
-            evaluations.append(int(out.nfev))
-        times.append(time.perf_counter() - begin)
-    seconds = min(times)
-    return model.unpack(torch.stack(fitted), channels), seconds, evaluations
+    return scipy_fit(
+        model,
+        y,
+        begun.level,
+        begun.svbrdf(channels),
+        lights,
+        view,
+        channels,
+        path=settings.fit.path,
+        quadrature=QUADRATURES[settings.fit.quadrature],
+        repeats=settings.scipy_repeats,
+    )
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

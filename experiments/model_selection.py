@@ -13,6 +13,9 @@ varnish): the share of pixels whose truth lies within 2 standard deviations, per
 (a Gaussian estimate: 95 %; the issue asks 90-98 %), and the sensor noise fitted against the
 simulated one.
 
+``ladders`` adds ``auto`` runs with other ladders (``FitConfig.ladder``): ``auto`` without
+``ward-dual``, to show what trying two lobes costs where no pixel has them.
+
     python experiments/model_selection.py [--config configs/model_selection.yaml] [--output experiments/results]
 """
 
@@ -21,7 +24,7 @@ from __future__ import annotations
 import math
 import tempfile
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from _common import ROOT, parse_args
@@ -50,6 +53,7 @@ class Settings:
     models: tuple[str, ...]  # "auto" and the forced ones
     matte_ks: float
     coverage: Coverage
+    ladders: dict[str, tuple[str, ...]] = field(default_factory=dict)  # more auto runs: label -> FitConfig.ladder
 
 
 def _selection(settings: Settings) -> list[dict]:
@@ -58,8 +62,10 @@ def _selection(settings: Settings) -> list[dict]:
     regions = truth.extra["regions"].round().long().flatten()
     rows = []
     frames = select_frames(settings.frames, len(read_capture(folder).frames))
-    for name in settings.models:
-        result = fit(folder, config=FitConfig(model=name), frames=frames)
+    runs = [(name, FitConfig(model=name)) for name in settings.models]
+    runs += [(label, FitConfig(ladder=tuple(ladder))) for label, ladder in settings.ladders.items()]
+    for name, config in runs:
+        result = fit(folder, config=config, frames=frames)
         codes = result.model.flatten()
         per_region = {
             region: dict(Counter(MODEL_CODES[int(c)] for c in codes[regions == r])) for r, region in enumerate(REGIONS)
@@ -135,6 +141,9 @@ def main(argv: list[str] | None = None) -> dict:
             f"{row['model']:16s} {row['criterion']:11.4g} {row['seconds_lm']:6.1f} {100 * share:12.1f}% "
             f"{gilded:>30s} {row['normal_deg']:7.3f} {100 * row['kd']:6.2f} {100 * row['varnished_alpha']:7.2f}"
         )
+    for row in rows:
+        if row["model"] == "auto" or row["model"] in settings.ladders:
+            print(f"{row['model']}: varnish {row['models_per_region']['varnished']}, tried {row['models_tried']}")
     coverage = _coverage(settings.coverage)
     print(
         f"\n{'photons/unit':>12s} {'seed':>5s} {'pixels':>6s} {'k_d':>6s} {'k_s':>6s} {'alpha':>6s} {'normal':>6s} "
