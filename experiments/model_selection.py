@@ -13,8 +13,9 @@ varnish): the share of pixels whose truth lies within 2 standard deviations, per
 (a Gaussian estimate: 95 %; the issue asks 90-98 %), and the sensor noise fitted against the
 simulated one.
 
-``ladders`` adds ``auto`` runs with other ladders (``FitConfig.ladder``): ``auto`` without
-``ward-dual``, to show what trying two lobes costs where no pixel has them.
+``runs`` adds fits with other settings (:class:`torchspec.fit.FitConfig`, by label): ``auto`` without
+``ward-dual`` (its ``ladder``), to show what trying two lobes costs where no pixel has them, and
+``auto`` with its choice smoothed (``smooth``).
 
     python experiments/model_selection.py [--config configs/model_selection.yaml] [--output experiments/results]
 """
@@ -30,7 +31,7 @@ from pathlib import Path
 from _common import ROOT, parse_args
 
 from torchspec._atomic import write_json
-from torchspec.config import load_config
+from torchspec.config import from_mapping, load_config
 from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
@@ -53,7 +54,7 @@ class Settings:
     models: tuple[str, ...]  # "auto" and the forced ones
     matte_ks: float
     coverage: Coverage
-    ladders: dict[str, tuple[str, ...]] = field(default_factory=dict)  # more auto runs: label -> FitConfig.ladder
+    runs: dict[str, dict] = field(default_factory=dict)  # more runs: label -> FitConfig settings
 
 
 def _selection(settings: Settings) -> list[dict]:
@@ -63,7 +64,7 @@ def _selection(settings: Settings) -> list[dict]:
     rows = []
     frames = select_frames(settings.frames, len(read_capture(folder).frames))
     runs = [(name, FitConfig(model=name)) for name in settings.models]
-    runs += [(label, FitConfig(ladder=tuple(ladder))) for label, ladder in settings.ladders.items()]
+    runs += [(label, from_mapping(values, FitConfig, f"runs.{label}")) for label, values in settings.runs.items()]
     for name, config in runs:
         result = fit(folder, config=config, frames=frames)
         codes = result.model.flatten()
@@ -78,6 +79,7 @@ def _selection(settings: Settings) -> list[dict]:
                 "seconds_lm": result.stats["seconds"]["lm"],
                 "seconds_total": result.stats["seconds"]["total"],
                 "models_tried": result.stats["models_tried"],
+                "smoothed": result.stats["smoothed"],
                 "sensor_noise": result.stats["sensor_noise"],
                 **score(result.svbrdf, truth.svbrdf, truth.extra["regions"], settings.matte_ks),
             }
@@ -142,8 +144,11 @@ def main(argv: list[str] | None = None) -> dict:
             f"{gilded:>30s} {row['normal_deg']:7.3f} {100 * row['kd']:6.2f} {100 * row['varnished_alpha']:7.2f}"
         )
     for row in rows:
-        if row["model"] == "auto" or row["model"] in settings.ladders:
-            print(f"{row['model']}: varnish {row['models_per_region']['varnished']}, tried {row['models_tried']}")
+        if row["model"] == "auto" or row["model"] in settings.runs:
+            print(
+                f"{row['model']}: matte {row['models_per_region']['matte']}, varnish "
+                f"{row['models_per_region']['varnished']}, tried {row['models_tried']}, smoothed {row['smoothed']}"
+            )
     coverage = _coverage(settings.coverage)
     print(
         f"\n{'photons/unit':>12s} {'seed':>5s} {'pixels':>6s} {'k_d':>6s} {'k_s':>6s} {'alpha':>6s} {'normal':>6s} "

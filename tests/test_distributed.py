@@ -219,3 +219,13 @@ def test_the_cli_fits_on_a_scheduler(capture, client, reference, tmp_path, capsy
     maps, expected = read_svbrdf(output), read_svbrdf(tmp_path / "in-process")
     for name in MAPS:
         _equal(getattr(maps.svbrdf, name), getattr(expected.svbrdf, name), name)
+
+
+def test_a_smoothed_choice_spans_the_tasks(capture, client, tmp_path):
+    """FitConfig.smooth decides over the whole image after the tiles: the same maps from two workers
+    as in process, with tiles across the rows whose neighbours sit in other tiles and tasks. (This
+    capture has almost no noise: its lobes lower the criterion by ~1e8, and so must the weight.)"""
+    config = FitConfig(tile=7, smooth=1e8)
+    ours = fit(capture, config=config)
+    _same(fit_on(capture, client, checkpoint=tmp_path / "tiles", config=config), ours)
+    assert ours.stats["smoothed"] > 0

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 import torch
 from capture_cases import write_painting
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from torchspec.cli import main
-from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames, write_fit
+from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
@@ -305,3 +307,78 @@ def test_auto_gives_two_lobes_only_where_the_gloss_has_two(dual, tmp_path):
     back = read_svbrdf(tmp_path / "out")
     torch.testing.assert_close(back.svbrdf.specular2[..., 0], auto.svbrdf.specular2[..., 0].float())
     assert back.extra["std_roughness2"].shape == (24, 24, 2)
+
+
+def _energy(choice, lobed, plain, weight):
+    """The total smooth_choice lowers, by brute force (pairs of 4-neighbours counted once)."""
+    own = torch.where(choice, lobed, plain).sum()
+    pairs = (choice[1:] != choice[:-1]).sum() + (choice[:, 1:] != choice[:, :-1]).sum()
+    return float(own + weight * pairs)
+
+
+def test_smooth_choice_by_hand():
+    inf = math.inf
+    plain = torch.zeros(5, 5, dtype=torch.float64)
+    lobed = torch.full((5, 5), inf, dtype=torch.float64)  # a matte field: no lobed fit
+    lobed[2, 2] = -30.0  # one pixel whose lobe lowers its criterion by 30
+    assert torch.equal(smooth_choice(lobed, plain, 0.0), lobed < plain)
+    assert not smooth_choice(lobed, plain, 8.0)[2, 2]  # 4 neighbours x 8 = 32 > 30: it joins the field
+    assert smooth_choice(lobed, plain, 7.0)[2, 2]  # 28 < 30: its lobe stays
+    lobed[0, 0] = -15.0  # a corner has 2 neighbours
+    assert not smooth_choice(lobed, plain, 8.0)[0, 0] and smooth_choice(lobed, plain, 7.0)[0, 0]
+    # A region keeps its shape: a 3 x 3 block of lobes, each worth 10, is not eaten at weight 4 (its
+    # corners have 2 outside neighbours: 8 < 10), and its interior never has an outside one.
+    lobed = torch.full((7, 7), inf, dtype=torch.float64)
+    lobed[2:5, 2:5] = -10.0
+    plain = torch.zeros(7, 7, dtype=torch.float64)
+    assert torch.equal(smooth_choice(lobed, plain, 4.0), lobed < plain)
+    with pytest.raises(ValueError, match=r"must be \(H, W\) alike"):
+        smooth_choice(lobed, plain[:3], 1.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(1, 6),
+    st.integers(1, 6),
+    st.floats(0.0, 20.0),
+    st.integers(0, 2**31 - 1),
+)
+def test_smooth_choice_lowers_the_total_to_a_local_minimum(h, w, weight, seed):
+    g = torch.Generator().manual_seed(seed)
+    lobed = 20 * torch.randn(h, w, generator=g, dtype=torch.float64)
+    plain = 20 * torch.randn(h, w, generator=g, dtype=torch.float64)
+    plain[torch.rand(h, w, generator=g) < 0.2] = math.inf  # pixels with one of the two fits only
+    choice = smooth_choice(lobed, plain, weight)
+    start = lobed < plain
+    assert _energy(choice, lobed, plain, weight) <= _energy(start, lobed, plain, weight) + 1e-9
+    assert bool(choice[plain == math.inf].all())
+    for i in range(h):  # no single pixel's change lowers the total
+        for j in range(w):
+            other = choice.clone()
+            other[i, j] = ~other[i, j]
+            assert _energy(other, lobed, plain, weight) >= _energy(choice, lobed, plain, weight) - 1e-9
+
+
+def test_smoothing_takes_lobes_only_where_the_neighbours_outweigh_them(dual, tmp_path):
+    with pytest.raises(ValueError, match="smooth must be >= 0"):
+        FitConfig(smooth=-1.0)
+    with pytest.raises(ValueError, match="smooth regularises auto's choice"):
+        FitConfig(model="ward-iso", smooth=1.0)
+    regions = read_svbrdf(dual / "truth").extra["regions"].round().long()
+    plain = fit(dual, config=FitConfig(), frames="::2")
+    smooth = fit(dual, config=FitConfig(smooth=20.0, tile=150), frames="::2")  # tiles: the choice is the image's
+    assert plain.stats["smoothed"] is None
+    dropped = (plain.model > 0) & (smooth.model == 0)
+    assert smooth.stats["smoothed"] == int(dropped.sum()) and not bool(((plain.model == 0) & (smooth.model > 0)).any())
+    # The lobes a matte region had lose them; the varnish, gilding and two-lobed box keep theirs.
+    assert bool((smooth.model[regions == 0] == 0).all()) and int(dropped[regions == 0].sum()) > 0
+    assert int(dropped[regions > 0].sum()) <= 0.01 * int((regions > 0).sum())
+    # A dropped lobe leaves no trace: the fit without one, its criterion, deviations and flags.
+    s = smooth.svbrdf
+    assert float(s.specular[dropped].abs().max()) == 0.0 and float(s.roughness[dropped].abs().max()) == 0.0
+    assert bool(smooth.std["specular"][dropped].isnan().all()) and bool(smooth.std["diffuse"][dropped].isfinite().all())
+    assert not bool(smooth.lobe[dropped].any()) and bool(smooth.checks["astray"][dropped].isnan().all())
+    kept = ~dropped
+    torch.testing.assert_close(s.normal[kept], plain.svbrdf.normal[kept], rtol=1e-4, atol=1e-4)
+    write_fit(tmp_path / "smooth", smooth)
+    assert read_svbrdf(tmp_path / "smooth").extra["model"][dropped].eq(0).all()

@@ -9,7 +9,13 @@ Stages, per tile of pixels (all frames of a tile at once, so memory is bounded b
    the FRI location of the peak (:func:`torchspec.specular.locate_peak`; or a naive start, or a
    dense grid search, for comparison);
 4. batched Levenberg-Marquardt (:func:`torchspec.lm.solve`) of every parameter jointly on every
-   valid sample: the lobed pixels with the configured Ward model, the others diffuse only.
+   valid sample: the lobed pixels with the configured Ward model, the others diffuse only; with
+   ``auto``, each pixel's model by the information criterion, climbing ``FitConfig.ladder``
+   (one grey lobe, coloured, anisotropic, two lobes) only where the smaller model leaves a
+   residual above the noise.
+
+Then, over the whole image (with ``FitConfig.smooth``), the choice between a lobe and none is
+regularised across neighbouring pixels (:func:`smooth_choice`).
 
 The result holds the maps, a per-pixel relative RMS residual, quality and flags
 (:mod:`torchspec.flags`: which pixels not to trust, and why), the solver's status and iteration
@@ -45,7 +51,18 @@ from .relight import lights_of
 from .specular import Start as SpecularStart
 from .specular import grid_search, layout_of, locate_peak, naive_start, specular_residual
 
-__all__ = ["FitConfig", "Fit", "FitInterrupted", "Start", "fit", "start", "write_fit", "select_frames", "INITS"]
+__all__ = [
+    "FitConfig",
+    "Fit",
+    "FitInterrupted",
+    "Start",
+    "fit",
+    "start",
+    "write_fit",
+    "select_frames",
+    "smooth_choice",
+    "INITS",
+]
 
 INITS = ("fri", "naive", "grid")
 AUTO = "auto"
@@ -90,6 +107,14 @@ class FitConfig:
             ``astray`` flags and the neighbourhood of the peak (:mod:`torchspec.flags`; they need
             the noise: ``uncertainty`` or ``auto``). Set by the stability study: they catch most
             peaks placed more than 10 Cramer-Rao deviations away while flagging few good ones.
+        smooth: spatial regularisation of ``auto``'s choice between a lobe and none (a matte region
+            of a painting is contiguous): the criterion of a pixel gains ``smooth`` for each of its
+            four neighbours on the other side of that choice, and the image's total is lowered pixel
+            by pixel (:func:`smooth_choice`). Every pixel given a lobe is then also fitted without one
+            (its ``diffuse`` fit is the alternative). ``0`` (the default): each pixel on its own, and a
+            pixel whose samples show a peak always gets a lobe. In units of the criterion: the BIC
+            charges ``ln n`` (~5 for a few hundred samples) per parameter, so ``smooth = 10`` lets
+            four matte neighbours outweigh about eight parameters' worth of improvement.
         select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
             degrees of freedom by more than ``select_z`` of its standard deviations
             (``dof + select_z sqrt(2 dof)``): the residual is not noise.
@@ -126,6 +151,7 @@ class FitConfig:
 
     model: str = "auto"
     ladder: tuple[str, ...] = LADDER
+    smooth: float = 0.0
     select_z: float = 3.0
     uncertainty: bool = True
     flag_peak_misfit: float = 3.0
@@ -163,6 +189,13 @@ class FitConfig:
             )
         if not self.select_z >= 0:
             raise ValueError(f"FitConfig.select_z must be >= 0; got {self.select_z!r}.")
+        if not (self.smooth >= 0 and math.isfinite(self.smooth)):
+            raise ValueError(f"FitConfig.smooth must be >= 0 and finite; got {self.smooth!r}.")
+        if self.smooth > 0 and self.model != AUTO:
+            raise ValueError(
+                f"FitConfig.smooth regularises auto's choice of a lobe; a forced model ({self.model!r}) has none "
+                "to regularise: set smooth to 0, or model to 'auto'."
+            )
         if self.init not in INITS:
             raise ValueError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
         if self.quadrature not in QUADRATURES:
@@ -463,10 +496,9 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     if dual:
         deviation.update(specular2=y.new_full((n, 1), math.nan), roughness2=y.new_full((n, 2), math.nan))
 
-    def keep(name, index, fitted, result) -> Tensor:
-        """Take the fit of model ``name`` where its criterion is the lowest so far; returns the
-        pixels (of ``index``) whose residual it leaves above the noise."""
-        model = get_model(name)
+    def assess(model, index, fitted, result):
+        """The fit's chi-square, deviations and flag inputs (:func:`_uncertainty`), its criterion (NaN
+        without the noise, inf where it diverged) and whether its residual is above the noise."""
         if config.uncertainty or config.model == AUTO:
             chi2, std, samples_at = _uncertainty(
                 model,
@@ -485,6 +517,14 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         dof = (samples[index] - model.size(c)).clamp(min=1.0)
         bic = chi2 + model.size(c) * torch.log(samples[index].clamp(min=1.0))
         bic = torch.where(result.status == DIVERGED, torch.full_like(bic, math.inf), bic)
+        unexplained = chi2 > dof + config.select_z * (2.0 * dof).sqrt()
+        return chi2, std, samples_at, bic, unexplained
+
+    def keep(name, index, fitted, result) -> Tensor:
+        """Take the fit of model ``name`` where its criterion is the lowest so far; returns the
+        pixels (of ``index``) whose residual it leaves above the noise."""
+        model = get_model(name)
+        chi2, std, samples_at, bic, unexplained = assess(model, index, fitted, result)
         better = (bic < criterion[index]) | (chi2 == -math.inf)
         bic = torch.where(chi2 == -math.inf, torch.full_like(bic, math.nan), bic)
         pick = index[better]
@@ -506,7 +546,6 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
             chosen = value[better]
             deviation[key][pick] = chosen.expand(-1, deviation[key].shape[-1]) if chosen.dim() > 1 else chosen
         tried[name] = tried.get(name, 0) + index.numel()
-        unexplained = chi2 > dof + config.select_z * (2.0 * dof).sqrt()
         misfit[pick] = unexplained[better]
         if samples_at is not None:
             z2[pick], excess[pick], lobe_snr[pick] = (value[better] for value in samples_at)
@@ -515,16 +554,23 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     # Pixels without a peak: normal and k_d only; pixels with a peak: the first model of the ladder
     # from the specular start. Their residuals give the sensor's noise, then the criterion of each.
     first = []
+    zero = y.new_zeros((n, 1))
+    plain_start = SVBRDF(ps.normal, ps.diffuse, zero, zero.expand(-1, 2), None, channels)  # without a lobe
     index = (~lobe).nonzero()[:, 0]
     if index.numel():
-        zero = y.new_zeros((n, 1))
-        ps_svbrdf = SVBRDF(ps.normal, ps.diffuse, zero, zero.expand(-1, 2), None, channels)[index]
         first.append(
             (
                 "diffuse",
                 index,
                 *_lm_stage(
-                    get_model("diffuse"), ps_svbrdf, observed[index], weight[index], lights, view, channels, config
+                    get_model("diffuse"),
+                    plain_start[index],
+                    observed[index],
+                    weight[index],
+                    lights,
+                    view,
+                    channels,
+                    config,
                 ),
             )
         )
@@ -561,14 +607,8 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     svbrdf = SVBRDF(normal, diffuse, specular, roughness, rotation, channels, specular2, roughness2)
     checked = config.uncertainty or config.model == AUTO  # the checks need the sensor's noise
     checks = {name: y.new_full((n,), math.nan) for name in ("peak_misfit", "astray")}
-    flags = torch.zeros(n, dtype=torch.int16, device=y.device)
     few = valid.sum(-1) < 3
-    for name, where in (
-        ("diverged", status == DIVERGED),
-        ("few_samples", few),
-        ("not_converged", (status != CONVERGED) & (status != DIVERGED)),
-    ):
-        flags = flags | torch.where(where, bit(name), 0).to(torch.int16)
+    flags = _solver_flags(status, few)
     if checked:
         lobed = torch.tensor([get_model(name).lobe for name in MODEL_CODES], device=y.device)[code.long()]
         weak = lobed & (lobe_snr < WEAK_LOBE_SNR)
@@ -592,6 +632,49 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     quality = ps.quality * found_quality
     quality = torch.where(status == CONVERGED, quality, 0.5 * quality)
     quality = torch.where(untrusted(flags), torch.zeros_like(quality), quality)
+
+    plain = None
+    if config.smooth > 0:
+        # Every pixel without a lobe, for the neighbours' term of the choice (_smooth_choice, over the
+        # whole image in _result): the pixels given a lobe are fitted without one too.
+        plain = {
+            "normal": normal.clone(),
+            "diffuse": diffuse.clone(),
+            "criterion": torch.where(code == 0, criterion, torch.full_like(criterion, math.inf)),
+            "status": status.clone(),
+            "iterations": iterations.clone(),
+            "residual": rms.clone(),
+            "quality": quality.clone(),
+            "flags": flags.clone(),
+            "std_normal": deviation["normal"].clone(),
+            "std_diffuse": deviation["diffuse"].clone(),
+        }
+        index = (code > 0).nonzero()[:, 0]
+        if index.numel():
+            model = get_model("diffuse")
+            fitted, result = _lm_stage(
+                model, plain_start[index], observed[index], weight[index], lights, view, channels, config
+            )
+            _, std, _, bic, unexplained = assess(model, index, fitted, result)
+            tried["diffuse"] = tried.get("diffuse", 0) + index.numel()
+            few_at = few[index]
+            alone = _solver_flags(result.status, few_at)
+            for name, where in (("undetermined", ~std["normal"].isfinite() & ~few_at), ("misfit", unexplained)):
+                alone = alone | torch.where(where, bit(name), 0).to(torch.int16)
+            alone_quality = torch.where(result.status == CONVERGED, ps.quality[index], 0.5 * ps.quality[index])
+            for key, value in (
+                ("normal", fitted.normal),
+                ("diffuse", fitted.diffuse),
+                ("criterion", bic),
+                ("status", result.status),
+                ("iterations", result.iterations),
+                ("residual", torch.nan_to_num((2.0 * result.cost / (count[index] * c)).sqrt(), nan=math.inf)),
+                ("quality", torch.where(untrusted(alone), torch.zeros_like(alone_quality), alone_quality)),
+                ("flags", alone),
+                ("std_normal", std["normal"]),
+                ("std_diffuse", std["diffuse"]),
+            ):
+                plain[key][index] = value
     return {
         "svbrdf": svbrdf,
         "flags": flags,
@@ -607,7 +690,21 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         "tried": tried,
         "noise": sensor,
         "times": times,
+        "plain": plain,
     }
+
+
+def _solver_flags(status: Tensor, few: Tensor) -> Tensor:
+    """The flags a fit gets from its solver and its samples alone: ``diverged``, ``few_samples`` and
+    ``not_converged``."""
+    flags = torch.zeros(status.shape, dtype=torch.int16, device=status.device)
+    for name, where in (
+        ("diverged", status == DIVERGED),
+        ("few_samples", few),
+        ("not_converged", (status != CONVERGED) & (status != DIVERGED)),
+    ):
+        flags = flags | torch.where(where, bit(name), 0).to(torch.int16)
+    return flags
 
 
 NOISE_PIXELS = 64
@@ -801,6 +898,8 @@ def _save_tile(folder: Path, first: int, out: dict) -> None:
             return value.cpu()
         if isinstance(value, SVBRDF):
             return value.to(device="cpu")
+        if isinstance(value, dict):
+            return {name: cpu(item) for name, item in value.items()}
         return value
 
     with atomic_path(folder / f"tile-{first:012d}.pt") as tmp:
@@ -813,6 +912,8 @@ def _load_tile(tile: dict, device: torch.device) -> dict:
             return value.to(device)
         if isinstance(value, SVBRDF):
             return value.to(device=device)
+        if isinstance(value, dict):
+            return {name: move(item) for name, item in value.items()}
         return value
 
     return {name: move(value) for name, value in tile.items() if name != "first"}
@@ -967,6 +1068,85 @@ def fit(
     return _result(parts, h, w, capture.channels, stats, started=clock - read_seconds)  # clock: the masks began
 
 
+SMOOTH_SWEEPS = 50
+"""The most sweeps of :func:`smooth_choice` (each lowers the total; it stops at the first that changes nothing)."""
+
+
+def smooth_choice(lobed: Tensor, plain: Tensor, weight: float, sweeps: int = SMOOTH_SWEEPS) -> Tensor:
+    """Per pixel of an image, a lobe or none: ``(H, W)`` bool, from the criterion of each pixel's
+    fit with a lobe ``lobed (H, W)`` and without ``plain (H, W)`` (``inf`` where there is none), a
+    local minimum of
+
+        E = sum_p criterion(p) + weight * (pairs of 4-neighbours on different sides)
+
+    by iterated conditional modes: from each pixel's own choice, each pixel takes the side that
+    lowers ``E`` given its neighbours, the two colours of a checkerboard in turn (a pixel's
+    neighbours are all of the other colour, so each update lowers ``E`` and the sweeps end). A tie
+    keeps the pixel's side; a pixel with one of the two fits only keeps it."""
+    if lobed.shape != plain.shape or lobed.dim() != 2:
+        raise ValueError(f"lobed and plain must be (H, W) alike; got {tuple(lobed.shape)} and {tuple(plain.shape)}.")
+    choice = lobed < plain
+    h, w = choice.shape
+
+    def neighbours(x: Tensor) -> Tensor:  # the sum over each pixel's 4-neighbours (0 beyond the border)
+        padded = torch.nn.functional.pad(x[None, None], (1, 1, 1, 1))[0, 0]
+        return padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]
+
+    count = neighbours(torch.ones_like(lobed))
+    rows = torch.arange(h, device=lobed.device)[:, None]
+    colour = (rows + torch.arange(w, device=lobed.device)[None, :]) % 2
+    for _ in range(sweeps):
+        before = choice
+        for turn in (0, 1):
+            with_lobe = neighbours(choice.to(lobed.dtype))
+            e_lobed = lobed + weight * (count - with_lobe)
+            e_plain = plain + weight * with_lobe
+            side = torch.where(e_lobed < e_plain, True, torch.where(e_plain < e_lobed, False, choice))
+            choice = torch.where(colour == turn, side, choice)
+        if torch.equal(choice, before):
+            break
+    return choice
+
+
+def _smooth(joined: dict, plain: dict, weight: float) -> int:
+    """:func:`smooth_choice` on a joined fit: the pixels it leaves without a lobe take their fit without
+    one (``plain``) in every output of ``joined`` (maps, criterion, deviations, flags, ...), in place;
+    returns how many pixels changed side."""
+    model, criterion = joined["model"], joined["criterion"]
+    lobed = torch.where(model > 0, criterion, torch.full_like(criterion, math.inf))
+    choice = smooth_choice(lobed, plain["criterion"], weight)
+    drop = (model > 0) & ~choice  # the pixels that lose their lobe; the others keep the fit they have
+    if not bool(drop.any()):
+        return 0
+    svbrdf = joined["svbrdf"]
+    zero = {
+        name: torch.where(drop[..., None] if value.dim() == 3 else drop, torch.zeros_like(value), value)
+        for name in ("specular", "roughness", "rotation", "specular2", "roughness2")
+        if (value := getattr(svbrdf, name)) is not None
+    }
+    joined["svbrdf"] = replace(
+        svbrdf,
+        normal=torch.where(drop[..., None], plain["normal"], svbrdf.normal),
+        diffuse=torch.where(drop[..., None], plain["diffuse"], svbrdf.diffuse),
+        **zero,
+    )
+    for key in ("criterion", "status", "iterations", "residual", "quality", "flags"):
+        joined[key] = torch.where(drop, plain[key], joined[key])
+    joined["model"] = torch.where(drop, torch.zeros_like(model), model)
+    joined["lobe"] = joined["lobe"] & ~drop
+    for key in joined["checks"]:
+        joined["checks"][key] = torch.where(
+            drop, torch.full_like(joined["checks"][key], math.nan), joined["checks"][key]
+        )
+    std = joined["std"]
+    std["normal"] = torch.where(drop, plain["std_normal"], std["normal"])
+    std["diffuse"] = torch.where(drop[..., None], plain["std_diffuse"], std["diffuse"])
+    for key in std:
+        if key not in ("normal", "diffuse"):  # the lobe's: none
+            std[key] = torch.where(drop[..., None], torch.full_like(std[key], math.nan), std[key])
+    return int(drop.sum())
+
+
 def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats: dict, started: float) -> Fit:
     """The :class:`Fit` of an image from its tiles' outputs (in pixel order), ``stats`` completed
     with the tiles' statistics and the time since ``started`` (``time.perf_counter``)."""
@@ -983,30 +1163,52 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
         return torch.cat([p[name] for p in parts]).reshape(h, w, *parts[0][name].shape[1:])
 
     pieces = [p["svbrdf"] for p in parts]
-    rotation = None if pieces[0].rotation is None else torch.cat([p.rotation for p in pieces]).reshape(h, w)
-    second = {}  # a second lobe's maps when some pixel has one (a ladder with ward-dual may give none)
-    if pieces[0].specular2 is not None and any(bool((p.specular2 > 0).any()) for p in pieces):
-        second = {
-            "specular2": torch.cat([p.specular2 for p in pieces]).reshape(h, w, -1),
-            "roughness2": torch.cat([p.roughness2 for p in pieces]).reshape(h, w, 2),
-        }
+
+    def glue(name, tail):
+        return (
+            None
+            if getattr(pieces[0], name) is None
+            else torch.cat([getattr(p, name) for p in pieces]).reshape(h, w, *tail)
+        )
+
     svbrdf = SVBRDF(
-        torch.cat([p.normal for p in pieces]).reshape(h, w, 3),
-        torch.cat([p.diffuse for p in pieces]).reshape(h, w, c),
-        torch.cat([p.specular for p in pieces]).reshape(h, w, -1),
-        torch.cat([p.roughness for p in pieces]).reshape(h, w, 2),
-        rotation,
+        glue("normal", (3,)),
+        glue("diffuse", (c,)),
+        glue("specular", (-1,)),
+        glue("roughness", (2,)),
+        glue("rotation", ()),
         channels,
-        **second,
+        glue("specular2", (-1,)),
+        glue("roughness2", (2,)),
     )
-    status, iterations, lobe = join("status"), join("iterations"), join("lobe")
-    model, criterion, flags = join("model"), join("criterion"), join("flags")
-    finite = criterion.isfinite()
-    std = {
-        name: torch.cat([p["std"][name] for p in parts]).reshape(h, w, *parts[0]["std"][name].shape[1:])
-        for name in parts[0]["std"]
-        if second or name not in ("specular2", "roughness2")
+    joined = {
+        "svbrdf": svbrdf,
+        **{name: join(name) for name in ("status", "iterations", "lobe", "model", "criterion", "flags")},
+        **{name: join(name) for name in ("residual", "quality")},
+        "std": {
+            name: torch.cat([p["std"][name] for p in parts]).reshape(h, w, *parts[0]["std"][name].shape[1:])
+            for name in parts[0]["std"]
+        },
+        "checks": {name: join(f"check_{name}") for name in ("peak_misfit", "astray")},
     }
+    smoothed = None
+    if parts[0].get("plain") is not None:  # FitConfig.smooth: the choice of a lobe over the whole image
+        plain = {
+            name: torch.cat([p["plain"][name] for p in parts]).reshape(h, w, *parts[0]["plain"][name].shape[1:])
+            for name in parts[0]["plain"]
+        }
+        smoothed = _smooth(joined, plain, stats["settings"]["smooth"])
+    svbrdf = joined["svbrdf"]
+    if svbrdf.specular2 is not None and not bool((svbrdf.specular2 > 0).any()):
+        # A ladder with ward-dual that no pixel took: no second lobe's maps or deviations.
+        svbrdf = replace(svbrdf, specular2=None, roughness2=None)
+        joined["std"] = {
+            name: value for name, value in joined["std"].items() if name not in ("specular2", "roughness2")
+        }
+    status, iterations, lobe = joined["status"], joined["iterations"], joined["lobe"]
+    model, criterion, flags = joined["model"], joined["criterion"], joined["flags"]
+    std, checks = joined["std"], joined["checks"]
+    finite = criterion.isfinite()
     total = time.perf_counter() - started
     stats = {
         **stats,
@@ -1025,14 +1227,14 @@ def _result(parts: list[dict], h: int, w: int, channels: tuple[str, ...], stats:
             "max": int(iterations.max()),
             "mean_lobe": float(iterations[lobe].float().mean()) if bool(lobe.any()) else None,
         },
-        "median_residual": float(join("residual").median()),
+        "median_residual": float(joined["residual"].median()),
         "flags": describe(flags),
         "untrusted": int(untrusted(flags).sum()),
+        # FitConfig.smooth: the pixels whose lobe the neighbours' term took away (None: not smoothed).
+        "smoothed": smoothed,
     }
-    checks = {name: join(f"check_{name}") for name in ("peak_misfit", "astray")}
-    return Fit(
-        svbrdf, join("residual"), join("quality"), status, iterations, lobe, model, criterion, std, stats, flags, checks
-    )
+    residual, quality = joined["residual"], joined["quality"]
+    return Fit(svbrdf, residual, quality, status, iterations, lobe, model, criterion, std, stats, flags, checks)
 
 
 def write_fit(path: str | Path, result: Fit) -> None:
