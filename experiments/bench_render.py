@@ -5,7 +5,8 @@ pixel-frames per second, seconds per call and peak memory (the rise of ``ru_maxr
 a fresh process), and the relative error against the reference quadrature at high order on a
 subset of the pixels. Paths: ``point`` (a point light), ``fast`` and ``auto`` (a projected
 Gaussian kernel; ``auto`` sends pairs whose kernel-lobe product reaches the horizon to the
-reference rule), ``fast`` fused by ``torch.compile``, ``reference``, and the Jacobian in its
+reference rule), ``fast`` fused by ``torch.compile``, ``fast`` with an angular Gaussian kernel of the
+same width (in radians), eager and fused, ``reference``, and the Jacobian in its
 ``analytic`` and ``forward`` modes. The baseline a user would otherwise write is Monte Carlo:
 light directions drawn from the kernel, the BRDF averaged over them.
 
@@ -42,6 +43,8 @@ ROWS = [
     ("fast", "forward"),
     ("auto", "forward"),
     ("fast, compiled", "forward"),
+    ("fast, angular", "forward"),
+    ("fast, compiled, angular", "forward"),
     ("reference", "forward"),
     ("Monte Carlo (baseline)", "forward"),
     ("auto", "jacobian, analytic"),
@@ -49,7 +52,7 @@ ROWS = [
 ]
 
 
-def _scene(settings: Settings, count: int, point: bool):
+def _scene(settings: Settings, count: int, point: bool, angular: bool = False):
     from torchspec.brdf import SVBRDF
     from torchspec.geometry import normal_from_angles
     from torchspec.lights import Kernel, Lights
@@ -60,7 +63,8 @@ def _scene(settings: Settings, count: int, point: bool):
     gx, gy = torch.meshgrid(axis, axis, indexing="ij")
     l = torch.stack([gx, gy], -1).reshape(-1, 2)
     centre = torch.cat([l, torch.sqrt(1.0 - (l * l).sum(-1))[:, None]], -1)
-    kernel = Kernel("point") if point else Kernel("gaussian", "projected", settings.kernel_sigma)
+    domain = "angular" if angular else "projected"
+    kernel = Kernel("point") if point else Kernel("gaussian", domain, settings.kernel_sigma)
     lights = Lights(centre, kernel, torch.ones(centre.shape[0], 3), torch.ones(centre.shape[0]))
     maps = SVBRDF(
         normal_from_angles(0.08 * torch.randn(count, 2, generator=g)),
@@ -108,21 +112,23 @@ def _row(settings: Settings, path: str, what: str) -> dict:
     from torchspec.render import render
 
     torch.manual_seed(settings.seed)
+    label = path
     slow = path in ("reference", "Monte Carlo (baseline)") or "forward mode" in what
     count = settings.slow_pixels if slow else settings.pixels
-    maps, lights, view = _scene(settings, count, point=(path == "point"))
+    maps, lights, view = _scene(settings, count, point=(path == "point"), angular=path.endswith("angular"))
+    compiled = "compiled" in path
+    if path.startswith("fast"):
+        path = "fast"
 
     def call():
         if what.startswith("jacobian"):
             return jacobian(maps, lights, view, mode="analytic" if "analytic" in what else "forward", path=path)[0]
         if path == "Monte Carlo (baseline)":
             return _monte_carlo(maps, lights, view, settings.monte_carlo_samples, settings.seed)
-        if path == "fast, compiled":
-            return render(maps, lights, view, path="fast", compile=True)
-        return render(maps, lights, view, path=path)
+        return render(maps, lights, view, path=path, compile=compiled)
 
-    if path == "fast, compiled":
-        render(maps, lights, view, path="fast", compile=True)  # compile (every chunk shape) outside the timing
+    if compiled:
+        render(maps, lights, view, path=path, compile=True)  # compile (every chunk shape) outside the timing
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     runs = []
     for _ in range(1 if (slow or "forward mode" in what) else settings.repeats):
@@ -139,7 +145,7 @@ def _row(settings: Settings, path: str, what: str) -> dict:
     got = value[: settings.accuracy_pixels].double()
     error = ((got - reference).abs() / reference.abs().clamp(min=1e-12)).max().item()
     return {
-        "path": path,
+        "path": label,
         "what": what,
         "pixels": count,
         "frames": lights.directions.shape[0],

@@ -113,3 +113,28 @@ def test_from_spec():
     disk = Kernel.from_spec({"kind": "supergaussian", "domain": "angular", "radius": 0.035, "power": 6.0})
     assert disk.kind == "supergaussian" and disk.sigma == 0.035 and disk.power == 6.0
     assert Kernel.from_spec({"kernel": "unknown", "symmetric": True}).kind == "unknown"
+
+
+def test_an_angular_kernel_compiles_without_a_graph_break():
+    """The angular kernel's normaliser is a number fixed per kernel: under torch.compile its density
+    is one graph (a Gauss-Legendre rule built in each call split it, and compiled fits of angular
+    kernels ran at eager speed), with the eager values."""
+    import torch._dynamo
+
+    from torchspec.brdf import SVBRDF
+    from torchspec.geometry import normal_from_angles
+    from torchspec.render import render
+
+    kernel = Kernel("gaussian", "angular", 0.05)
+    assert kernel._radial_normaliser() == pytest.approx(2 * math.pi * 0.05**2, rel=2e-3)  # small angles: planar
+    theta = torch.tensor([0.1, 0.4, 0.8])
+    centre = torch.stack([torch.sin(theta), torch.zeros_like(theta), torch.cos(theta)], -1)
+    lights = Lights(centre, kernel, torch.ones(3, 1), torch.ones(3))
+    g = torch.Generator().manual_seed(0)
+    maps = SVBRDF(normal_from_angles(0.2 * torch.randn(6, 2, generator=g)), torch.rand(6, 3, generator=g),
+                  torch.rand(6, 1, generator=g), torch.full((6, 2), 0.1))
+    view = torch.tensor([0.0, 0.0, 1.0])
+    torch._dynamo.utils.counters.clear()
+    compiled = render(maps, lights, view, compile=True)
+    assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
+    torch.testing.assert_close(compiled, render(maps, lights, view), rtol=1e-4, atol=1e-6)

@@ -103,6 +103,10 @@ class Kernel:
                 raise ValueError("a tabulated kernel's table must be finite, >= 0 and not all zero.")
             if self.domain != "projected":
                 raise ValueError("a tabulated kernel lives in the projected domain.")
+        if self.kind in ("gaussian", "supergaussian"):
+            # Once per kernel, as a Python float: a constant of the compiled graphs, not work (and a graph
+            # break) in each density call.
+            object.__setattr__(self, "_normaliser", self._integrate_profile())
 
     @staticmethod
     def from_spec(spec, table: Tensor | None = None) -> Kernel:
@@ -203,19 +207,22 @@ class Kernel:
         std = math.sqrt(self.sigma**2 * math.gamma(4.0 / self.power) / (2.0 * math.gamma(2.0 / self.power)))
         return mean, chol, self.reach() / std
 
-    def _radial_normaliser(self, like: Tensor) -> Tensor:
-        """``integral K dmu`` of the unnormalised radial profile (exact for ``projected``)."""
-        if self.domain == "projected":
-            if self.kind == "gaussian":
-                return like.new_full((), 2.0 * math.pi * self.sigma**2)
+    def _radial_normaliser(self) -> float:
+        """``integral K dmu`` of the unnormalised radial profile (computed once per kernel)."""
+        if self.domain == "projected" and self.kind != "gaussian":
             raise ValueError(f"a projected {self.kind} kernel has no radial profile.")
-        # Angular: 2 pi integral_0^pi profile(g) sin g dg, by Gauss-Legendre on [0, min(pi, reach)].
+        return self._normaliser
+
+    def _integrate_profile(self) -> float:
+        """:meth:`_radial_normaliser`: exact for ``projected``; for ``angular``, ``2 pi integral_0^pi
+        profile(g) sin g dg`` by 256-node Gauss-Legendre on ``[0, min(pi, reach)]`` in float64."""
+        if self.domain == "projected":
+            return 2.0 * math.pi * self.sigma**2
         top = min(math.pi, self.reach())
         x, w = np.polynomial.legendre.leggauss(256)
-        g = torch.tensor(0.5 * top * (x + 1.0), dtype=torch.float64)
-        weight = torch.tensor(0.5 * top * w, dtype=torch.float64)
-        value = 2.0 * math.pi * (self._profile(g) * torch.sin(g) * weight).sum()
-        return value.to(dtype=like.dtype, device=like.device)
+        g = torch.from_numpy(0.5 * top * (x + 1.0))
+        weight = torch.from_numpy(0.5 * top * w)
+        return float(2.0 * math.pi * (self._profile(g) * torch.sin(g) * weight).sum())
 
     def _profile(self, g: Tensor) -> Tensor:
         if self.kind == "gaussian":
@@ -229,7 +236,7 @@ class Kernel:
             return self.density(torch.stack(torch.broadcast_tensors(lx, ly), -1), centre)
         r2 = lx * lx + ly * ly
         inside = r2 < 1.0
-        normaliser = self._radial_normaliser(lx)
+        normaliser = self._radial_normaliser()
         if self.domain == "projected":
             d2 = (lx - centre[..., 0]) ** 2 + (ly - centre[..., 1]) ** 2
             return torch.where(inside, torch.exp(-0.5 / self.sigma**2 * d2) / normaliser, torch.zeros_like(d2))
@@ -246,7 +253,7 @@ class Kernel:
         inside = (l * l).sum(-1) < 1.0
         if self.kind == "tabulated":
             return torch.where(inside, self._table_density(l - centre[..., :2]), torch.zeros_like(l[..., 0]))
-        normaliser = self._radial_normaliser(l)
+        normaliser = self._radial_normaliser()
         if self.domain == "projected":
             r2 = ((l - centre[..., :2]) ** 2).sum(-1)
             return torch.where(inside, torch.exp(-0.5 * r2 / self.sigma**2) / normaliser, torch.zeros_like(r2))
