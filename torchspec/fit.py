@@ -222,7 +222,8 @@ class Fit:
     """The result of :func:`fit`.
 
     Attributes:
-        svbrdf: the maps, leading dims ``(H, W)``.
+        svbrdf: the maps, leading dims ``(H, W)``; with a second lobe (``specular2``,
+            ``roughness2``) where some pixel got ``ward-dual``.
         residual: ``(H, W)`` RMS of the fit's residual over the valid samples, relative to the
             pixel's mean value.
         quality: ``(H, W)`` in ``[0, 1]``: photometric-stereo quality, times the peak location's
@@ -238,9 +239,11 @@ class Fit:
         std: standard deviations of the fitted parameters from the Fisher information at the
             solution with the estimated noise (the Cramer-Rao bound at the estimate):
             ``normal (H, W)`` (the angle, radians), ``diffuse (H, W, C)``, ``specular (H, W, C_s)``,
-            ``roughness (H, W, 2)``; NaN for a parameter the pixel's model does not have, ``inf``
-            where the data leave it undetermined.
-        stats: settings, timings and per-stage statistics (JSON-ready).
+            ``roughness (H, W, 2)``, and ``specular2 (H, W, 1)``, ``roughness2 (H, W, 2)`` with a
+            second lobe; NaN for a parameter the pixel's model does not have, ``inf`` where the data
+            leave it undetermined.
+        stats: settings, timings and per-stage statistics (JSON-ready); ``smoothed``: the lobes
+            that ``FitConfig.smooth`` took away (``None`` without it).
         flags: ``(H, W)`` int16 bits of :data:`torchspec.flags.FLAGS`: why not to trust a pixel
             (the :data:`torchspec.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
             of it (its solver stopped early, its model leaves a residual above the noise, its
@@ -1242,8 +1245,9 @@ def write_fit(path: str | Path, result: Fit) -> None:
     ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
     ``criterion.exr``, ``flags.exr`` (bits of ``flag_bits``), ``check_peak_misfit.exr``,
     ``check_astray.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
-    ``std_specular.exr``, ``std_roughness.exr`` and ``svbrdf.json`` (model, settings, timings,
-    statistics)."""
+    ``std_specular.exr``, ``std_roughness.exr`` (and ``std_specular2.exr``, ``std_roughness2.exr``
+    with a second lobe, whose maps are ``specular2.exr`` and ``roughness2.exr``) and ``svbrdf.json``
+    (model, settings, timings, statistics)."""
     meta = {
         "model": "ward",
         "fit": result.stats,
