@@ -35,7 +35,6 @@ from torchspec.config import load_config  # noqa: E402
 from torchspec.fit import FitConfig, fit, select_frames  # noqa: E402
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
-from torchspec.lights import Lights  # noqa: E402
 from torchspec.relight import lights_of  # noqa: E402
 from torchspec.render import render  # noqa: E402
 from torchspec.report import score  # noqa: E402
@@ -57,14 +56,9 @@ class Settings:
     runs: tuple[Run, ...]
 
 
-def _subset(lights: Lights, index: list[int]) -> Lights:
-    i = torch.tensor(index)
-    return Lights(lights.directions[i], lights.kernel, lights.irradiance[i], lights.exposure[i])
-
-
 def _held_out(svbrdf: SVBRDF, capture, frames: list[int], observed: torch.Tensor) -> float:
     """PSNR of predicting ``frames`` from the maps (peak: the maximum of the whole capture)."""
-    lights = _subset(lights_of(capture, dtype=torch.float64), frames)
+    lights = lights_of(capture, dtype=torch.float64)[frames]
     view = torch.tensor(capture.view, dtype=torch.float64)
     predicted = render(svbrdf.flatten().to(torch.float64), lights, view).permute(1, 2, 0)  # (K, C, H W)
     truth = observed[frames].flatten(2)

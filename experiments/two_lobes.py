@@ -80,11 +80,6 @@ def _errors(s: SVBRDF, t: SVBRDF) -> dict:
     return out
 
 
-def _subset(lights: Lights, index: list[int]) -> Lights:
-    i = torch.tensor(index)
-    return Lights(lights.directions[i], lights.kernel, lights.irradiance[i], lights.exposure[i])
-
-
 def _psnr(svbrdf: SVBRDF, lights: Lights, view: torch.Tensor, observed: torch.Tensor, peak: float) -> float:
     """PSNR of predicting ``observed (n, K, C)`` from flat maps ``(n,)``."""
     mse = (render(svbrdf.to(torch.float64), lights, view) - observed).pow(2).mean().item()
@@ -129,7 +124,7 @@ def _baseline(settings: Settings, folder: Path, frames: list[int], chosen: torch
     capture = read_capture(folder)
     config = FitConfig(model="ward-dual")
     dtype = getattr(torch, config.dtype)
-    lights = _subset(lights_of(capture, dtype=dtype), frames)
+    lights = lights_of(capture, dtype=dtype)[frames]
     view = torch.tensor(capture.view, dtype=dtype)
     y = capture.read_frames(dtype=dtype)[frames].flatten(2)[:, :, chosen].permute(2, 0, 1)  # (n, K, C)
     valid = torch.isfinite(y).all(-1)
@@ -191,7 +186,7 @@ def main(argv: list[str] | None = None) -> dict:
         left = [i for i in range(count) if i not in frames]
         observed = capture.read_frames(dtype=torch.float64).flatten(2).permute(2, 0, 1)  # (N, K, C)
         peak = float(observed.abs().max())
-        held = _subset(lights_of(capture, dtype=torch.float64), left)
+        held = lights_of(capture, dtype=torch.float64)[left]
         view = torch.tensor(capture.view, dtype=torch.float64)
         box = regions == DUAL
         bound = {

@@ -251,7 +251,7 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
     assert capture.light.kernel == "tabulated" and capture.read_kernel().shape == (16, 16)
     lights = lights_of(capture)
     picked = torch.arange(2, 80, 8)  # every 8th frame keeps the test fast
-    lights = Lights(lights.directions[picked], lights.kernel, lights.irradiance[picked], lights.exposure[picked])
+    lights = lights[picked]
     maps = read_svbrdf(DATA / "mirror-dev-1d" / "truth").svbrdf[5:6, 7:8].to(F64)
     predicted = render(maps, lights, VIEW)[0, 0]
     observed = frames[picked, :, 0, 0].double()

@@ -138,3 +138,15 @@ def test_an_angular_kernel_compiles_without_a_graph_break():
     compiled = render(maps, lights, view, compile=True)
     assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
     torch.testing.assert_close(compiled, render(maps, lights, view), rtol=1e-4, atol=1e-6)
+
+
+def test_lights_pick_frames():
+    centre = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8]], dtype=torch.float64)
+    lights = Lights(centre, Kernel("gaussian", sigma=0.05), torch.tensor([[1.0], [2.0], [3.0]]), torch.ones(3))
+    for index in ([2, 0], torch.tensor([2, 0])):
+        picked = lights[index]
+        assert torch.equal(picked.directions, centre[[2, 0]]) and picked.irradiance[:, 0].tolist() == [3.0, 1.0]
+        assert picked.kernel is lights.kernel
+    assert lights[torch.tensor([True, False, True])].irradiance[:, 0].tolist() == [1.0, 3.0]
+    assert lights[1].directions.shape == (1, 3) and lights[-1].irradiance.tolist() == [[3.0]]
+    assert lights[1:].exposure.shape == (2,)

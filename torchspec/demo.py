@@ -76,9 +76,7 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
     view = torch.tensor(capture.view, dtype=torch.float64)
     stack = capture.read_frames(dtype=torch.float64)
     index = torch.tensor(held)
-    held_lights = type(lights)(
-        lights.directions[index], lights.kernel, lights.irradiance[index], lights.exposure[index]
-    )
+    held_lights = lights[index]
     peak = float(stack.abs().max())
     scores = score(result.svbrdf, truth, regions)
     scores["heldout_psnr_db"] = heldout_psnr(result.svbrdf.to(torch.float64), held_lights, view, stack[index], peak)

@@ -632,9 +632,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
     times["checks"] = time.perf_counter() - t0
 
     rms = (2.0 * cost / (count * c)).sqrt()
-    quality = ps.quality * found_quality
-    quality = torch.where(status == CONVERGED, quality, 0.5 * quality)
-    quality = torch.where(untrusted(flags), torch.zeros_like(quality), quality)
+    quality = _quality(ps.quality * found_quality, status, flags)
 
     plain = None
     if config.smooth > 0:
@@ -664,7 +662,6 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
             alone = _solver_flags(result.status, few_at)
             for name, where in (("undetermined", ~std["normal"].isfinite() & ~few_at), ("misfit", unexplained)):
                 alone = alone | torch.where(where, bit(name), 0).to(torch.int16)
-            alone_quality = torch.where(result.status == CONVERGED, ps.quality[index], 0.5 * ps.quality[index])
             for key, value in (
                 ("normal", fitted.normal),
                 ("diffuse", fitted.diffuse),
@@ -672,7 +669,7 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
                 ("status", result.status),
                 ("iterations", result.iterations),
                 ("residual", torch.nan_to_num((2.0 * result.cost / (count[index] * c)).sqrt(), nan=math.inf)),
-                ("quality", torch.where(untrusted(alone), torch.zeros_like(alone_quality), alone_quality)),
+                ("quality", _quality(ps.quality[index], result.status, alone)),
                 ("flags", alone),
                 ("std_normal", std["normal"]),
                 ("std_diffuse", std["diffuse"]),
@@ -695,6 +692,12 @@ def _tile(y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels, conf
         "times": times,
         "plain": plain,
     }
+
+
+def _quality(base: Tensor, status: Tensor, flags: Tensor) -> Tensor:
+    """A pixel's quality: ``base``, halved where the solver did not converge, 0 where untrusted."""
+    quality = torch.where(status == CONVERGED, base, 0.5 * base)
+    return torch.where(untrusted(flags), torch.zeros_like(quality), quality)
 
 
 def _solver_flags(status: Tensor, few: Tensor) -> Tensor:

@@ -330,6 +330,15 @@ class Lights:
             return self
         return Lights(moved[0], self.kernel, moved[1], moved[2])
 
+    def __getitem__(self, index) -> Lights:
+        """The frames ``index`` (a list of frame numbers, a slice, a bool mask or an index tensor) as
+        lights of their own: e.g. the frames a fit left out, to predict them."""
+        if isinstance(index, int):
+            index = slice(index, index + 1 if index != -1 else None)
+        elif isinstance(index, (list, tuple)):
+            index = torch.as_tensor(index, dtype=torch.long, device=self.directions.device)
+        return Lights(self.directions[index], self.kernel, self.irradiance[index], self.exposure[index])
+
 
 def _rule_tensors(rule, order: int) -> tuple[Tensor, Tensor]:
     """``rule(order)``'s nodes and weights as float64 tensors."""
