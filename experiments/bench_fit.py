@@ -14,7 +14,7 @@ Jacobian of :func:`torchspec.jacobian.jacobian` with the fit's quadrature), from
 start; its time per pixel (the fastest of ``scipy_repeats`` timings of the same loop) is scaled
 to the whole image. Accuracy is scored against the truth on the same pixels.
 
-    python experiments/bench_fit.py [--config configs/bench_fit.yaml] [--output experiments/results]
+    python experiments/bench_fit.py [--config experiments/configs/bench_fit.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from _common import parse_args, scipy_fit
 
-from torchspec._atomic import write_json
+from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
 from torchspec.fit import QUADRATURES, FitConfig, start

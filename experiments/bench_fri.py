@@ -9,7 +9,7 @@ every method of :func:`torchspec.fri.locate` and for the baselines a user would 
 The first points of the speed-vs-accuracy chart (issue 6 adds the rest). Each row runs in a fresh
 process, so its peak memory (the rise of ``ru_maxrss`` during the call) is its own.
 
-    python experiments/bench_fri.py [--config configs/bench_fri.yaml] [--output experiments/results]
+    python experiments/bench_fri.py [--config experiments/configs/bench_fri.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -153,7 +153,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchspec._atomic import save_figure
+    from torchspec.atomic import save_figure
 
     fig, ax = plt.subplots(figsize=(7, 5))
     for k, row in enumerate(rows):
@@ -174,7 +174,7 @@ def _plot(rows: list[dict], path: Path) -> None:
 def main(argv: list[str] | None = None) -> list[dict]:
     from _common import parse_args
 
-    from torchspec._atomic import write_json
+    from torchspec.atomic import write_json
     from torchspec.config import load_config
 
     args = parse_args(__doc__, "bench_fri.yaml", argv)

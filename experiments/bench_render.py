@@ -10,7 +10,7 @@ same width (in radians), eager and fused, ``reference``, and the Jacobian in its
 ``analytic`` and ``forward`` modes. The baseline a user would otherwise write is Monte Carlo:
 light directions drawn from the kernel, the BRDF averaged over them.
 
-    python experiments/bench_render.py [--config configs/bench_render.yaml] [--output experiments/results]
+    python experiments/bench_render.py [--config experiments/configs/bench_render.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -160,7 +160,7 @@ def _row(settings: Settings, path: str, what: str) -> dict:
 def main(argv: list[str] | None = None) -> list[dict]:
     from _common import parse_args
 
-    from torchspec._atomic import write_json
+    from torchspec.atomic import write_json
     from torchspec.config import load_config
 
     args = parse_args(__doc__, "bench_render.yaml", argv)

@@ -16,7 +16,7 @@ bytes read are counted by the kernel (``/proc/thread-self/io``), against the cap
 disk. The scheduler's overhead per task is the time of ``noop_tasks`` empty tasks on the largest
 cluster, per task.
 
-    python experiments/bench_scale.py [--config configs/bench_scale.yaml] [--output experiments/results]
+    python experiments/bench_scale.py [--config experiments/configs/bench_scale.yaml] [--output experiments/results]
 
 Writes ``bench_scale.json`` and ``bench_scale.png`` (seconds against workers).
 """
@@ -35,7 +35,7 @@ import torch
 from _common import parse_args
 from bench_fit import _capture  # the same simulated painting, cached by its settings
 
-from torchspec._atomic import save_figure, write_json
+from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.fit import FitConfig
 

@@ -10,7 +10,7 @@ default normal-map shadowing function kept, as the captures were rendered). For 
 frames predicted by ``torchspec render`` from the same maps with the format's Ward lobe (the data
 README's ceiling of a perfect Ward fit: 65.2 dB on painting-dev-relight) and the Beckmann lobe.
 
-    python experiments/export_mitsuba.py [--config configs/export_mitsuba.yaml] [--output experiments/results]
+    python experiments/export_mitsuba.py [--config experiments/configs/export_mitsuba.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from _common import ROOT, parse_args
 
-from torchspec._atomic import save_figure, write_json
+from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.export import export_mitsuba
 from torchspec.io import read_capture

@@ -7,7 +7,7 @@ variance), 10,000 repetitions per point in one batched call per method. The capt
 sigma = 0.05 and the text's variance 0.05 are both run. Adds the 2D case (separable Gaussian,
 8 x 8 grid) with the paper's single-row estimator, and the time per 10^6 locations.
 
-    python experiments/fig2_crb.py [--config configs/fig2.yaml] [--output experiments/results]
+    python experiments/fig2_crb.py [--config experiments/configs/fig2.yaml] [--output experiments/results]
 
 Writes <config stem>.json and .png (fig2.json, fig2.png); prints MSE / CRB (with its standard
 error in the JSON) and the outlier rate per point.
@@ -25,7 +25,7 @@ import torch
 from _common import parse_args
 
 import torchspec as ts
-from torchspec._atomic import save_figure, write_json
+from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.fri import pulses
 

@@ -1,7 +1,7 @@
 """Fig. 3 of the paper: recover a sharp specular reflectance from samples blurred by an extended light.
 
 The paper's simulation (Sec. 5): one surface point with ``k_d = 1``, ``k_s = 1/1000``,
-``alpha = 0.008`` and a random normal (configs/sim_paper_1d.yaml, sim_paper_2d.yaml), lit by a
+``alpha = 0.008`` and a random normal (experiments/configs/sim_paper_1d.yaml, sim_paper_2d.yaml), lit by a
 Gaussian kernel at 50 positions along a line (1D) or a 40 x 40 grid (2D). ``torchspec fit`` runs
 on the simulated capture (photometric stereo, FRI peak location, Levenberg-Marquardt), and the
 *reconstruction SNR* compares the reflectance the fitted parameters predict under a point light
@@ -13,7 +13,7 @@ the relative errors of ``alpha`` and ``k_s``; with noise-free samples and with n
 Panels (fig3.png): A 1D samples and the fitted model; B 1D reconstructed reflectance against the
 truth; C 2D samples; D 2D reconstruction error.
 
-    python experiments/fig3_simulation.py [--config configs/fig3.yaml] [--output experiments/results]
+    python experiments/fig3_simulation.py [--config experiments/configs/fig3.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from _common import ROOT, parse_args  # noqa: E402
 
-from torchspec._atomic import save_figure, write_json  # noqa: E402
+from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
 from torchspec.fit import FitConfig, fit  # noqa: E402
 from torchspec.geometry import (

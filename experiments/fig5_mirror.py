@@ -24,7 +24,7 @@ Panels (fig5.png): A the 100-frame responses (point and extended, one tilt) with
 of one offset marked and the estimates; B the error distributions per method; C RMS error per
 tilt; D the calibrated kernel's profile against the truth.
 
-    python experiments/fig5_mirror.py [--config configs/fig5.yaml] [--output experiments/results]
+    python experiments/fig5_mirror.py [--config experiments/configs/fig5.yaml] [--output experiments/results]
 
 Writes <output>/fig5/<config stem>.json and .png.
 """
@@ -45,7 +45,7 @@ import torch  # noqa: E402
 from _common import parse_args  # noqa: E402
 
 import torchspec as ts  # noqa: E402
-from torchspec._atomic import save_figure, write_json  # noqa: E402
+from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.calibrate import recover_kernel  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
 from torchspec.geometry import reflect  # noqa: E402

@@ -13,7 +13,7 @@ The bound: the truth maps themselves predict the left-out frames with the format
 only to the PSNR of the row ``truth maps`` (the renderer's Beckmann lobe differs from Ward's), and
 a perfect Ward fit is biased in ``k_s`` and ``alpha`` by the amounts the data's README states.
 
-    python experiments/fit_painting.py [--config configs/fit_painting.yaml] [--output experiments/results]
+    python experiments/fit_painting.py [--config experiments/configs/fit_painting.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from _common import ROOT, parse_args  # noqa: E402
 
-from torchspec._atomic import save_figure, write_json  # noqa: E402
+from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.brdf import SVBRDF  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
 from torchspec.fit import FitConfig, fit, select_frames  # noqa: E402

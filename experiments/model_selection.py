@@ -17,7 +17,7 @@ simulated one.
 ``ward-dual`` (its ``ladder``), to show what trying two lobes costs where no pixel has them, and
 ``auto`` with its choice smoothed (``smooth``).
 
-    python experiments/model_selection.py [--config configs/model_selection.yaml] [--output experiments/results]
+    python experiments/model_selection.py [--config experiments/configs/model_selection.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 
 from _common import ROOT, parse_args
 
-from torchspec._atomic import write_json
+from torchspec.atomic import write_json
 from torchspec.config import from_mapping, load_config
 from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.geometry import angle

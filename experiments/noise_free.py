@@ -4,7 +4,7 @@ For every kernel of the config, number of samples (1D) or grid (2D, the same ker
 axes), dtype and method: the largest |error| over random locations of lowpass samples with a
 negative DC level. Float64 should stay below 1e-10 of the period, float32 below 1e-5.
 
-    python experiments/noise_free.py [--config configs/noise_free.yaml] [--output experiments/results]
+    python experiments/noise_free.py [--config experiments/configs/noise_free.yaml] [--output experiments/results]
 
 Writes noise_free.json and noise_free.png (log10 of the worst error per kernel and size).
 Takes ~12 minutes on 2 cores, most of it Cadzow on the 64 x 64 grids.
@@ -20,7 +20,7 @@ import torch
 from _common import parse_args
 
 import torchspec as ts
-from torchspec._atomic import save_figure, write_json
+from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.fri import pulses
 

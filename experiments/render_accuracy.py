@@ -13,7 +13,7 @@ at once, the fast and auto paths against the reference, the error relative to ea
 brightest frame; then the pairs where auto and reference disagree most, and some random lit pairs,
 are integrated by the brute force to check the reference itself.
 
-    python experiments/render_accuracy.py [--config configs/render_accuracy.yaml] [--output experiments/results]
+    python experiments/render_accuracy.py [--config experiments/configs/render_accuracy.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 import torch
 from _common import ROOT, parse_args
 
-from torchspec._atomic import write_json
+from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
 from torchspec.lights import Kernel, Lights

@@ -7,7 +7,7 @@ perfect Ward fit; rendering them with the Beckmann lobe (``render(..., lobe="bec
 removes the model difference and leaves what the integration and the path tracer's Monte Carlo
 noise leave. Per capture: PSNR (peak = the capture's maximum) and relative RMS error per lobe.
 
-    python experiments/render_shared.py [--config configs/render_shared.yaml] [--output experiments/results]
+    python experiments/render_shared.py [--config experiments/configs/render_shared.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from _common import ROOT, parse_args
 
-from torchspec._atomic import save_figure, write_json
+from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
 from torchspec.relight import render_capture
 

@@ -36,7 +36,7 @@ a second facet's tilt and ``k_s``) mapped to the peak by ``d peak / d angles``. 
 false alarms (good estimates flagged) over every trial of every cell; :func:`search_rules` lists
 the best thresholds of a grid.
 
-    python experiments/stability.py [--config configs/stability.yaml] [--output experiments/results]
+    python experiments/stability.py [--config experiments/configs/stability.yaml] [--output experiments/results]
 
 Writes <stem>.json, <stem>.png (heat maps per axis), <stem>_maps.png (SNR x samples) and <stem>.md.
 """
@@ -56,7 +56,7 @@ from _common import parse_args
 from torch import Tensor
 
 import torchspec as ts
-from torchspec._atomic import atomic_path, save_figure, write_json
+from torchspec.atomic import atomic_path, save_figure, write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
 from torchspec.fit import MODEL_CODES, FitConfig, fit
@@ -1216,7 +1216,7 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(stem.with_suffix(".json"), result)
     _heatmaps(rows, stem.with_suffix(".png"))
     _maps(rows, stem.parent / f"{stem.name}_maps.png")
-    command = f"python experiments/stability.py --config configs/{args.config.name}"
+    command = f"python experiments/stability.py --config experiments/configs/{args.config.name}"
     with atomic_path(stem.with_suffix(".md")) as tmp:
         tmp.write_text(_markdown(result, settings, command), encoding="utf-8")
     for family, summary in result["flags"].items():

@@ -18,7 +18,7 @@ of their standard deviations, per parameter (a Gaussian estimate: 95 %); and per
 ``scipy.optimize.least_squares`` on ``scipy_pixels`` of them, against the fit's batched solver on all
 of them at once: the same model (``ward-dual``), quadrature, weights and start (time per pixel, errors).
 
-    python experiments/two_lobes.py [--config configs/two_lobes.yaml] [--output experiments/results]
+    python experiments/two_lobes.py [--config experiments/configs/two_lobes.yaml] [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 from _common import parse_args, scipy_fit
 
-from torchspec._atomic import write_json
+from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
 from torchspec.fit import MODEL_CODES, QUADRATURES, FitConfig, _lm_stage, fit, select_frames, start

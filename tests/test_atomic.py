@@ -5,7 +5,7 @@ import stat
 
 import pytest
 
-from torchspec._atomic import atomic_path, write_json
+from torchspec.atomic import atomic_path, write_json
 
 
 def test_written_files_get_the_mode_of_a_new_file(tmp_path):

@@ -41,7 +41,7 @@ def test_fig2_runs(tmp_path):
 
 def test_fig2_rejects_unknown_keys(tmp_path):
     config = tmp_path / "typo.yaml"
-    config.write_text((ROOT / "configs" / "fig2.yaml").read_text() + "repetitons: 5\n")
+    config.write_text((ROOT / "experiments" / "configs" / "fig2.yaml").read_text() + "repetitons: 5\n")
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['repetitons'\]"):
         _load("fig2_crb").main(["--config", str(config), "--output", str(tmp_path)])
 

@@ -65,9 +65,12 @@ def test_unknown_light_is_written_as_unknown(unknown_light_capture):
     assert (unknown_light_capture / "truth" / "light.json").exists()
 
 
-@pytest.mark.parametrize("name", ["sim_painting", "sim_mirror", "sim_paper_1d", "sim_paper_2d"])
-def test_shipped_configs_load(name):
-    config = load_config(CONFIGS / f"{name}.yaml", SimulationConfig)
+@pytest.mark.parametrize(
+    "path", ["sim_painting.yaml", "sim_mirror.yaml", "../experiments/configs/sim_paper_1d.yaml",
+             "../experiments/configs/sim_paper_2d.yaml"]
+)
+def test_shipped_configs_load(path):
+    config = load_config(CONFIGS / path, SimulationConfig)
     assert layout(config.layout).shape[0] > 0
 
 

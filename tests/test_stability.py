@@ -1,4 +1,4 @@
-"""experiments/stability.py on its small config (configs/stability_small.yaml): the flag rules'
+"""experiments/stability.py on its small config (experiments/configs/stability_small.yaml): the flag rules'
 catch and false-alarm rates, and the study's sanity (errors at the bound at high SNR, failures where
 the methods' assumptions break)."""
 
@@ -24,7 +24,7 @@ def _stability():
 def small(tmp_path_factory):
     """The small config (~15 s): the location methods on fewer trials, and the fit on every axis."""
     out = tmp_path_factory.mktemp("stability")
-    config = ROOT / "configs" / "stability_small.yaml"
+    config = ROOT / "experiments" / "configs" / "stability_small.yaml"
     return _stability().main(["--config", str(config), "--output", str(out)]), out
 
 
@@ -92,7 +92,7 @@ def test_outputs(small):
     assert saved["flags"]["location"]["all_cells"] == result["flags"]["location"]["all_cells"]
     assert (out / "stability_small.png").stat().st_size > 10000
     text = (out / "stability_small.md").read_text()
-    assert "python experiments/stability.py --config configs/stability_small.yaml" in text
+    assert "python experiments/stability.py --config experiments/configs/stability_small.yaml" in text
     assert "| coherent |" in text and "## Quality flags" in text
 
 
@@ -113,6 +113,6 @@ def test_local_asymmetry_sees_a_merged_lobe_not_noise():
 
 def test_config_keys_are_checked(tmp_path):
     config = tmp_path / "typo.yaml"
-    config.write_text((ROOT / "configs" / "stability_small.yaml").read_text() + "trails: 5\n")
+    config.write_text((ROOT / "experiments" / "configs" / "stability_small.yaml").read_text() + "trails: 5\n")
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['trails'\]"):
         _stability().main(["--config", str(config), "--output", str(tmp_path)])

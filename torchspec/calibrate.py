@@ -527,7 +527,7 @@ def write_kernel(path: str | Path, calibration: Calibration) -> dict:
     Returns:
         The ``light`` entry for a capture whose manifest sits in the same folder as ``path``.
     """
-    from ._atomic import write_json
+    from .atomic import write_json
     from .io import write_exr
 
     path = Path(path)

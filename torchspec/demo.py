@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from ._atomic import save_figure, write_json
+from .atomic import save_figure, write_json
 from .fit import FitConfig, fit, select_frames, write_fit
 from .io import read_capture
 from .relight import lights_of

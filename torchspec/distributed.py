@@ -39,7 +39,7 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from ._atomic import read_json, write_json
+from .atomic import read_json, write_json
 from .fit import (
     MASK_KINDS,
     RUNTIME_BYTES,

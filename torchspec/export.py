@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_path, write_json
+from .atomic import atomic_path, write_json
 from ._version import __version__
 from .brdf import SVBRDF
 from .errors import TorchspecError

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ._atomic import atomic_path, read_json, write_json
+from .atomic import atomic_path, read_json, write_json
 from ._version import __version__
 from .brdf import SVBRDF
 from .flags import FLAGS, UNTRUSTED, WEAK_LOBE_SNR, bit, describe, peak_checks, untrusted

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._atomic import atomic_path, save_figure
+from .atomic import atomic_path, save_figure
 from .brdf import SVBRDF
 from .geometry import angle, from_plane
 from .lights import Kernel, Lights

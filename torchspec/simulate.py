@@ -189,7 +189,7 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".") -> Simulation:
 
 def write_simulation(path: Path | str, simulation: Simulation) -> Capture:
     """Write the capture, its ``truth/`` maps (with ``regions`` and the true ``light.json``)."""
-    from ._atomic import write_json
+    from .atomic import write_json
 
     path = Path(path)
     maps = Maps(simulation.truth, {"model": "ward", "source": "torchspec simulate"}, {"regions": simulation.regions})

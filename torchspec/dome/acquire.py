@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .._atomic import read_json, write_json
+from ..atomic import read_json, write_json
 from .._version import __version__
 from ..errors import TorchspecError
 from ..io import Capture, ExrError, Frame, LightSpec, read_capture, read_exr, write_exr
@@ -64,7 +64,7 @@ PLAN = "acquire.json"
 """The plan of an acquisition, beside its ``capture.json``."""
 _PLAN_FORMAT = "torchspec.acquire"
 _TEMPORARY = re.compile(r"\..+\.part(\.[^.]+)?$")
-"""The names :func:`torchspec._atomic.atomic_path` writes to before its rename."""
+"""The names :func:`torchspec.atomic.atomic_path` writes to before its rename."""
 
 
 class AcquisitionStopped(OSError):

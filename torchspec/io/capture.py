@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._atomic import read_json, write_json
+from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
 from ._manifest import (
     FORMAT,

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from .._atomic import atomic_path
+from ..atomic import atomic_path
 from ..errors import TorchspecError
 
 __all__ = ["ExrError", "read_exr", "write_exr"]

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._atomic import read_json, write_json
+from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from .exr import ExrError, _read, write_exr
