@@ -3,7 +3,7 @@ functions, and every import of an underscore name across module boundaries outsi
 
 Run ``python experiments/layout.py`` (``--json`` for the numbers as JSON); it exits 1 when a module
 is over ``MODULE_LINES`` lines, a function over ``FUNCTION_LINES`` or an underscore name crosses a
-boundary, so ``tests/test_layout.py`` keeps the layout as it is.
+boundary, so ``tests/test_architecture.py`` keeps the layout as it is.
 """
 
 from __future__ import annotations
