@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
-from .photometric import _peak, _saturation_level, sample_masks
+from .photometric import peak_of, sample_masks, saturation_level
 from .specular import layout_of
 
 __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
@@ -148,7 +148,7 @@ def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[l
                 row["min"], row["max"] = float(image[finite].min()), float(image[finite].max())
             # The fit detects one level for the whole stack; a frame clips at it only when its own
             # top is that level, so each frame's count at its own top is kept until the level is known.
-            top, repeats = _peak(image)
+            top, repeats = peak_of(image)
             peaks.append((top, repeats))
             tops.append((row, float(top)))
             clip = top if saturation is None else saturation
@@ -157,7 +157,7 @@ def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[l
             bar.update()
     if saturation is not None:
         return rows, float(saturation)
-    level = float(_saturation_level(peaks)) if peaks else math.inf
+    level = float(saturation_level(peaks)) if peaks else math.inf
     for row, top in tops:
         if top != level:
             row["saturated"] = 0
