@@ -22,7 +22,7 @@ class CalibrationError(TorchspecError):
 
 
 @dataclass(frozen=True)
-class _Design:
+class Design:
     """Rows of the B-spline design: each sample's 16 taps into the ``S x S`` table and their weights."""
 
     index: Tensor  # (M, 16) long, flat table indices (clamped; weight 0 where off the table)
@@ -45,7 +45,7 @@ class _Design:
         return matrix.reshape(cells, cells), rhs
 
 
-def _design(u: Tensor, extent: float, size: int) -> _Design:
+def spline_design(u: Tensor, extent: float, size: int) -> Design:
     """The design of density samples at offsets ``u (M, 2)`` for the table of :class:`Kernel`:
     its cubic B-spline surface, control point ``(row, col)`` at ``(x, y) = ((col + 1/2) 2 e / S - e,
     e - (row + 1/2) 2 e / S)`` and zero beyond the table."""
@@ -58,10 +58,10 @@ def _design(u: Tensor, extent: float, size: int) -> _Design:
     ok = ((row >= 0) & (row < size))[:, :, None] & ((col >= 0) & (col < size))[:, None, :]  # (M, 4, 4)
     weight = wy[:, :, None] * wx[:, None, :] * ok.to(u.dtype)
     index = row.clamp(0, size - 1)[:, :, None] * size + col.clamp(0, size - 1)[:, None, :]
-    return _Design(index.reshape(-1, 16), weight.reshape(-1, 16), size)
+    return Design(index.reshape(-1, 16), weight.reshape(-1, 16), size)
 
 
-def _blur_taps(sigma: float, like: Tensor) -> Tensor:
+def blur_taps(sigma: float, like: Tensor) -> Tensor:
     """A symmetric discrete kernel of variance ``sigma^2`` (table pixels): ``[a, 1 - 2a, a]`` for a
     small one, a sampled Gaussian (its variance within 1e-3 of ``sigma^2`` from sigma = 0.7) beyond."""
     if sigma * sigma <= 0.5:
@@ -73,7 +73,7 @@ def _blur_taps(sigma: float, like: Tensor) -> Tensor:
     return g / g.sum()
 
 
-def _blur(images: Tensor, taps: Tensor) -> Tensor:
+def separable_blur(images: Tensor, taps: Tensor) -> Tensor:
     """Separable convolution of ``(B, S, S)`` with ``taps``, zero outside (the spline's padding)."""
     size, pad = images.shape[-1], taps.numel() // 2
     k = torch.arange(size, device=images.device)
@@ -82,7 +82,7 @@ def _blur(images: Tensor, taps: Tensor) -> Tensor:
     return g @ images @ g.T
 
 
-def _laplacian_matrix(size: int, like: Tensor) -> Tensor:
+def laplacian_matrix(size: int, like: Tensor) -> Tensor:
     """``L^T L`` ``(S^2, S^2)`` of the 5-point Laplacian with zero outside the table: ``L = I (x) D + D (x) I``
     with ``D`` the 1D second difference, so ``L^2 = I (x) D^2 + 2 D (x) D + D^2 (x) I``."""
     eye = torch.eye(size, dtype=like.dtype, device=like.device)
@@ -91,8 +91,8 @@ def _laplacian_matrix(size: int, like: Tensor) -> Tensor:
     return torch.kron(eye, d2) + 2.0 * torch.kron(d, d) + torch.kron(d2, eye)
 
 
-def _solve(
-    design: _Design,
+def solve_table(
+    design: Design,
     target: Tensor,
     weight: Tensor,
     prior: Tensor,
@@ -109,9 +109,9 @@ def _solve(
     cells = size * size
     matrix, rhs = design.normal(weight, target)
     if taps is not None:  # G^T N G for the symmetric convolution G
-        matrix = _blur(matrix.reshape(cells, size, size), taps).reshape(cells, cells).T.contiguous()
-        matrix = _blur(matrix.reshape(cells, size, size), taps).reshape(cells, cells)
-        rhs = _blur(rhs.reshape(1, size, size), taps).reshape(-1)
+        matrix = separable_blur(matrix.reshape(cells, size, size), taps).reshape(cells, cells).T.contiguous()
+        matrix = separable_blur(matrix.reshape(cells, size, size), taps).reshape(cells, cells)
+        rhs = separable_blur(rhs.reshape(1, size, size), taps).reshape(-1)
     diagonal = matrix.diagonal()
     covered = diagonal > 1e-12 * diagonal.max()
     scale = float(diagonal[covered].mean())
@@ -136,7 +136,7 @@ def _solve(
     return table.clamp(min=0.0).reshape(size, size), free
 
 
-def _bin(u: Tensor, y: Tensor, w: Tensor, cell: float) -> tuple[Tensor, Tensor, Tensor]:
+def bin_samples(u: Tensor, y: Tensor, w: Tensor, cell: float) -> tuple[Tensor, Tensor, Tensor]:
     """Samples merged per square cell of side ``cell``: weighted mean offset and value, summed weight."""
     key = torch.round(u / cell).long()
     _, inverse = torch.unique(key, dim=0, return_inverse=True)
@@ -149,7 +149,7 @@ def _bin(u: Tensor, y: Tensor, w: Tensor, cell: float) -> tuple[Tensor, Tensor, 
     return mean_u[keep], mean_y[keep], total[keep]
 
 
-def _radial(rho: Tensor, y: Tensor, w: Tensor, step: float) -> tuple[Tensor, Tensor, Tensor]:
+def radial_samples(rho: Tensor, y: Tensor, w: Tensor, step: float) -> tuple[Tensor, Tensor, Tensor]:
     """A radially symmetric kernel's samples at radii ``rho``: binned on the radius, then copied
     around their ring (``ANGLES`` copies per table pixel of arc), each with its share of the weight."""
     key = torch.round(rho / (0.25 * step)).long()
@@ -168,7 +168,7 @@ def _radial(rho: Tensor, y: Tensor, w: Tensor, step: float) -> tuple[Tensor, Ten
     return u, value[ring], total[ring] / copies[ring].to(w.dtype)
 
 
-def _moments(table: Tensor, extent: float) -> tuple[Tensor, Tensor]:
+def table_moments(table: Tensor, extent: float) -> tuple[Tensor, Tensor]:
     """Centroid ``(2,)`` and covariance ``(2, 2)`` of the spline density (the table's point masses
     plus the cubic B-spline's own variance of 1/3 pixel^2 per axis)."""
     kernel = Kernel("tabulated", table=table, extent=extent)
@@ -176,7 +176,7 @@ def _moments(table: Tensor, extent: float) -> tuple[Tensor, Tensor]:
     return kernel.offset(zenith), kernel.covariance(zenith)
 
 
-def _asymmetry(table: Tensor, extent: float, centroid: Tensor) -> float:
+def asymmetry(table: Tensor, extent: float, centroid: Tensor) -> float:
     """``|D(u) - D(2 mu - u)| / |D|`` (L2) of the spline density over a fine grid: 0 for a kernel
     symmetric about its centroid."""
     kernel = Kernel("tabulated", table=table, extent=extent)

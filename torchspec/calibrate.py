@@ -50,15 +50,15 @@ from torch import Tensor
 
 from ._kernel_table import (
     CalibrationError,
-    _asymmetry,
-    _bin,
-    _blur,
-    _blur_taps,
-    _design,
-    _laplacian_matrix,
-    _moments,
-    _radial,
-    _solve,
+    asymmetry,
+    bin_samples,
+    blur_taps,
+    laplacian_matrix,
+    radial_samples,
+    separable_blur,
+    solve_table,
+    spline_design,
+    table_moments,
 )
 from .geometry import reflect
 from .lights import _PAD, Kernel
@@ -86,10 +86,8 @@ WIDTH = 0.25
 """A pixel whose response's RMS width is off the lit pixels' median by more than this share is left
 out (dust, a scratch, a diffuse patch); fewer than half alike: the capture is not of a mirror."""
 DEFAULT_SMOOTHING = 0.03
-"""The Laplacian prior's weight relative to the data's. Measured over flat and curved mirrors, Gaussian
-and disk kernels, with and without shot noise, and mirror-dev-1d: 0.03 is within 10 % of the best
-weight's error on 8 of the 9 cases (29 % on a noise-free one, 0.36 % against 0.28 %); 1e-3 lets noise
-through a deconvolution (1.3 % against 0.8 % on mirror-dev-1d), 1 starts to round a disk's edge."""
+"""The Laplacian prior's weight relative to the data's: much lower lets noise through a
+deconvolution, much higher rounds a disk kernel's edge."""
 MAX_SIZE = 64
 
 
@@ -315,17 +313,17 @@ def _fit(
     reach = extent + _PAD * step
     keep = ((radius < reach) if radial else (offsets.abs().amax(-1) < reach)) & (weight > 0)  # (P, K)
     at = torch.stack([radius, torch.zeros_like(radius)], -1) if radial else offsets
-    taps = _blur_taps(blur / step, s) if blur > 0 else None
-    design = _design(at[keep], extent, size)
+    taps = blur_taps(blur / step, s) if blur > 0 else None
+    design = spline_design(at[keep], extent, size)
     predicted = torch.zeros_like(target)
-    free, prior = None, _laplacian_matrix(size, s)
+    free, prior = None, laplacian_matrix(size, s)
     for rounds in range(3):  # the fit, then each pixel's scale against it (twice)
         if radial:
-            bu, bt, bw = _radial(radius[keep], target[keep], weight[keep], step)
+            bu, bt, bw = radial_samples(radius[keep], target[keep], weight[keep], step)
         else:
-            bu, bt, bw = _bin(offsets[keep], target[keep], weight[keep], 0.25 * step)
-        table, free = _solve(_design(bu, extent, size), bt, bw / bw.mean(), prior, smoothing, taps, free)
-        predicted[keep] = design.apply(table if taps is None else _blur(table[None], taps)[0])
+            bu, bt, bw = bin_samples(offsets[keep], target[keep], weight[keep], 0.25 * step)
+        table, free = solve_table(spline_design(bu, extent, size), bt, bw / bw.mean(), prior, smoothing, taps, free)
+        predicted[keep] = design.apply(table if taps is None else separable_blur(table[None], taps)[0])
         if rounds == 2:
             break
         w = weight * keep
@@ -375,28 +373,15 @@ def recover_kernel(
         CalibrationError: no pixel shows a peak (not a mirror, or the light never reflects into
             the camera), every pixel's response is cut off by the layout's edge, or the frames
             cover the kernel's footprint too sparsely (the message gives the counts).
-        ValueError: malformed shapes or settings.
+            Also: malformed shapes or settings (the message names the argument).
 
     Example:
         >>> calibration = recover_kernel(values, centres, view=torch.tensor([0.0, 0, 1]))  # doctest: +SKIP
         >>> calibration.kernel().density(offsets, centre)  # doctest: +SKIP
     """
-    if values.dim() != 2 or centres.dim() != 2 or centres.shape != (values.shape[1], 3):
-        raise ValueError(
-            f"values must have shape (N, K) and centres (K, 3); got {tuple(values.shape)} and {tuple(centres.shape)}."
-        )
-    if values.shape[1] < 3:
-        raise CalibrationError(f"a calibration needs at least 3 frames; got {values.shape[1]}.")
-    if symmetry not in SYMMETRIES:
-        raise ValueError(f"symmetry must be one of {SYMMETRIES}; got {symmetry!r}.")
-    if not 8 <= size <= MAX_SIZE:
-        raise ValueError(
-            f"size must be in 8..{MAX_SIZE} table pixels per side (the solve is dense in size^2 unknowns); got {size}."
-        )
-    if extent is not None and not 0 < extent < 1:
-        raise ValueError(f"extent must be in (0, 1) (l units); got {extent!r}.")
-    if not mirror_alpha >= 0 or not smoothing >= 0:
-        raise ValueError(f"mirror_alpha and smoothing must be >= 0; got {mirror_alpha!r}, {smoothing!r}.")
+    _check_arguments(
+        values, centres, size=size, extent=extent, symmetry=symmetry, mirror_alpha=mirror_alpha, smoothing=smoothing
+    )
     like = dict(dtype=values.dtype, device=values.device)
     centres, view = centres.to(**like), view.to(**like)
     layout = layout_of(centres[:, :2])
@@ -421,20 +406,9 @@ def recover_kernel(
         responses, used, offsets, layout, radial=radial, size=size, extent=extent, blur=blur, smoothing=smoothing
     )
 
-    centroid, covariance = _moments(table, extent)
+    centroid, covariance = table_moments(table, extent)
     if radial:
         centroid = torch.zeros_like(centroid)
-    std = torch.linalg.eigvalsh(covariance).clamp(min=0.0).sqrt().flip(0)
-    notes = []
-    if radial:
-        notes.append("radial symmetry imposed: the table is the rotation of the samples' radial profile")
-    if mirror_alpha > 0:
-        notes.append(f"the mirror's lobe (alpha {mirror_alpha:g}, std {blur:.3g} in l) is deconvolved")
-    else:
-        notes.append(
-            "a perfect mirror is assumed: the table is the kernel blurred by the mirror's lobe (variance "
-            "2 alpha^2 per axis; pass mirror_alpha to remove it)"
-        )
     stats = {
         "size": size,
         "extent": extent,
@@ -450,17 +424,62 @@ def recover_kernel(
         "reflection": how,
         "mirror_alpha": mirror_alpha,
         "smoothing": smoothing,
-        "centroid": [float(v) for v in centroid],
-        "covariance": [[float(v) for v in row] for row in covariance],
-        "std": [float(v) for v in std],
-        "anisotropy": float(std[0] / std[1].clamp(min=torch.finfo(std.dtype).tiny)),
-        "asymmetry": _asymmetry(table, extent, centroid),
+        **_shape_stats(table, extent, centroid, covariance),
         "residual": residual,
-        "notes": notes,
+        "notes": _notes(radial, mirror_alpha, blur),
     }
     out = torch.full_like(values[:, :2], math.nan)
     out[used] = reflection[used]
     return Calibration(table, extent, out, used, stats)
+
+
+def _check_arguments(
+    values: Tensor, centres: Tensor, *, size: int, extent, symmetry: str, mirror_alpha: float, smoothing: float
+) -> None:
+    """Raise :class:`CalibrationError` naming the argument of :func:`recover_kernel` at fault."""
+    if values.dim() != 2 or centres.dim() != 2 or centres.shape != (values.shape[1], 3):
+        raise CalibrationError(
+            f"values must have shape (N, K) and centres (K, 3); got {tuple(values.shape)} and {tuple(centres.shape)}."
+        )
+    if values.shape[1] < 3:
+        raise CalibrationError(f"a calibration needs at least 3 frames; got {values.shape[1]}.")
+    if symmetry not in SYMMETRIES:
+        raise CalibrationError(f"symmetry must be one of {SYMMETRIES}; got {symmetry!r}.")
+    if not 8 <= size <= MAX_SIZE:
+        raise CalibrationError(
+            f"size must be in 8..{MAX_SIZE} table pixels per side (the solve is dense in size^2 unknowns); got {size}."
+        )
+    if extent is not None and not 0 < extent < 1:
+        raise CalibrationError(f"extent must be in (0, 1) (l units); got {extent!r}.")
+    if not mirror_alpha >= 0 or not smoothing >= 0:
+        raise CalibrationError(f"mirror_alpha and smoothing must be >= 0; got {mirror_alpha!r}, {smoothing!r}.")
+
+
+def _shape_stats(table: Tensor, extent: float, centroid: Tensor, covariance: Tensor) -> dict:
+    """The kernel's centroid, covariance, principal stds (largest first), anisotropy and asymmetry."""
+    std = torch.linalg.eigvalsh(covariance).clamp(min=0.0).sqrt().flip(0)
+    return {
+        "centroid": [float(v) for v in centroid],
+        "covariance": [[float(v) for v in row] for row in covariance],
+        "std": [float(v) for v in std],
+        "anisotropy": float(std[0] / std[1].clamp(min=torch.finfo(std.dtype).tiny)),
+        "asymmetry": asymmetry(table, extent, centroid),
+    }
+
+
+def _notes(radial: bool, mirror_alpha: float, blur: float) -> list[str]:
+    """The assumptions a calibration made, in words."""
+    notes = []
+    if radial:
+        notes.append("radial symmetry imposed: the table is the rotation of the samples' radial profile")
+    if mirror_alpha > 0:
+        notes.append(f"the mirror's lobe (alpha {mirror_alpha:g}, std {blur:.3g} in l) is deconvolved")
+    else:
+        notes.append(
+            "a perfect mirror is assumed: the table is the kernel blurred by the mirror's lobe (variance "
+            "2 alpha^2 per axis; pass mirror_alpha to remove it)"
+        )
+    return notes
 
 
 def calibrate(

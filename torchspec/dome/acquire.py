@@ -21,7 +21,9 @@ import math
 import re
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -31,15 +33,15 @@ from ..atomic import read_json, write_json
 from .._version import __version__
 from ..errors import TorchspecError
 from ..io import Capture, ExrError, Frame, LightSpec, read_capture, read_exr, write_exr
-from ..io._manifest import MANIFEST, _parse, _to_manifest
+from ..io._manifest import MANIFEST, parse_manifest, to_manifest
 from .camera import Camera, FolderCamera, SimulatedCamera, SimulatedCameraConfig, command_trigger
 from .client import DomeDisconnected, DomeTimeout
 from .plan import (
-    _KERNEL_FILE,
+    KERNEL_FILE,
     AcquisitionError,
     LightSettings,
-    _as_tuple,
-    _direction,
+    as_tuple,
+    dome_direction,
     dome_angles,
     load_light,
     parse_layout,
@@ -238,8 +240,8 @@ def _write_manifest(output: Path, job: dict, frames: list[Frame], size: tuple[in
         extra={"generator": generator},
     )
     path = output / MANIFEST
-    data = _to_manifest(capture, path)
-    _parse(data, path, [], extra_known=True)
+    data = to_manifest(capture, path)
+    parse_manifest(data, path, [], extra_known=True)
     write_json(path, data)
 
 
@@ -327,18 +329,8 @@ def acquire(
     directions = plan_directions(layout, radius)
     job = _job(layout, radius, directions, light, camera)
     saved = _open_output(output, job, resume)
-    if saved is not None:
-        _remove_temporaries(output)
-    done, size = _frames_done(output, job) if saved is not None else (0, None)
+    done, size = _resume_state(output, job, saved, camera)
     total = len(job["frames"])
-    frames = [_frame(job, k) for k in range(done)]
-    if camera.size is not None:
-        if size is not None and tuple(camera.size) != size:
-            raise AcquisitionError(
-                f"the camera's frames must be {size[0]}x{size[1]} (height x width) like the {done} saved in "
-                f"{output}; got a {camera.size[0]}x{camera.size[1]} camera. Resume with the same camera settings."
-            )
-        size = tuple(camera.size)
     generator = {
         "name": "torchspec acquire",
         "torchspec": __version__,
@@ -347,72 +339,19 @@ def acquire(
         "intensity": job["intensity"],
         "planned": total,
     }
-    step, k = "identify", done
     bar = tqdm(total=total, initial=done, desc="acquire", unit="frame", disable=not progress, leave=False)
+    run = _Run(output, job, [_frame(job, k) for k in range(done)], done, size, generator, bar)
     try:
-        identity = client.identify()
-        dome = {"model": identity.model, "firmware": identity.firmware, "protocol": identity.protocol}
-        if saved is not None and saved.get("dome") != dome:
-            raise AcquisitionError(
-                f"{output / PLAN} was acquired with the dome {saved.get('dome')}; got {dome}. Resume with the same "
-                "dome (model and firmware), or acquire into another folder."
-            )
-        generator["dome"] = dome
-        if saved is None:
-            output.mkdir(parents=True, exist_ok=True)
-            write_json(output / PLAN, {**job, "dome": dome})
-        if light.table is not None and not (output / _KERNEL_FILE).is_file():
-            write_exr(output / _KERNEL_FILE, light.table, ["Y"])
-        adopted = _adoptable(output, job, k, size) if k < total else None
-        if adopted is not None:
-            size = tuple(adopted.shape[1:])
-            _write_manifest(output, job, [*frames, _frame(job, k)], size, generator)
-            frames.append(_frame(job, k))  # counted once listed
-            k += 1
-            bar.update()
-        if k < total:
-            step = "home"
-            client.home()
-            step = "light on"
-            client.light(True, job["intensity"])
-        while k < total:
-            planned = job["frames"][k]
-            step = f"move to theta={planned['theta']:.6f}, phi={planned['phi']:.6f} rad"
-            client.move(planned["theta"], planned["phi"])
-            if tolerance is not None:
-                step = "status after the move"
-                _check_position(client, k, planned, tolerance)
-            step = "capture"
-            image = _checked(camera.capture(directions[k], index=k), k, job, size)
-            size = tuple(image.shape[1:])
-            step = f"write {planned['file']}"
-            write_exr(output / planned["file"], image.permute(1, 2, 0), job["channels"])
-            _write_manifest(output, job, [*frames, _frame(job, k)], size, generator)
-            frames.append(_frame(job, k))  # counted once listed
-            k += 1
-            bar.update()
+        _identify(client, run, saved, light)
+        _adopt(run)
+        _take_frames(client, camera, directions, run, tolerance)
     except KeyboardInterrupt as error:
         _switch_off(client, None)
-        raise AcquisitionInterrupted(len(frames), total, output) from error
+        raise AcquisitionInterrupted(len(run.frames), total, output) from error
     except (OSError, TorchspecError) as error:
-        if isinstance(error, AcquisitionError) and step == "identify":
+        if isinstance(error, AcquisitionError) and run.step == "identify":
             raise  # refused before anything moved
-        note = _switch_off(client, error) if step not in ("identify", "home") else ""
-        where = job["frames"][k]["file"] if k < total else "the end"
-        saved_note = (
-            f"{len(frames)} of {total} frames are saved in {output} (a valid capture)"
-            if frames
-            else f"no frame is saved yet in {output}"
-        )
-        raise AcquisitionStopped(
-            f"the acquisition stopped at frame {k} ({where}) of {total}, at {step}: {type(error).__name__}: "
-            f"{str(error).rstrip('.')}. "
-            f"{saved_note}.{note}",
-            done=len(frames),
-            total=total,
-            output=output,
-            frame=k,
-        ) from error
+        raise _stopped(client, run, error) from error
     finally:
         bar.close()
     note = _switch_off(client, None)
@@ -421,10 +360,125 @@ def acquire(
     return read_capture(output)
 
 
+@dataclass
+class _Run:
+    """An acquisition in progress: the step being taken at frame ``k``, the frames the manifest
+    lists, and the frames' ``(H, W)`` once known."""
+
+    output: Path
+    job: dict
+    frames: list[Frame]
+    k: int
+    size: tuple[int, int] | None
+    generator: dict
+    bar: Any
+    step: str = "identify"
+
+    @property
+    def total(self) -> int:
+        return len(self.job["frames"])
+
+    def list_frame(self) -> None:
+        """Rewrite the manifest with frame ``k`` (on disk) listed, and count it."""
+        frame = _frame(self.job, self.k)
+        _write_manifest(self.output, self.job, [*self.frames, frame], self.size, self.generator)
+        self.frames.append(frame)  # counted once listed
+        self.k += 1
+        self.bar.update()
+
+
+def _resume_state(output: Path, job: dict, saved: dict | None, camera: Camera) -> tuple[int, tuple[int, int] | None]:
+    """The frames already done and the frames' ``(H, W)`` (``None`` while unknown), after removing
+    the temporary files of a resumed acquisition and checking the camera's size against them."""
+    if saved is not None:
+        _remove_temporaries(output)
+    done, size = _frames_done(output, job) if saved is not None else (0, None)
+    if camera.size is not None:
+        if size is not None and tuple(camera.size) != size:
+            raise AcquisitionError(
+                f"the camera's frames must be {size[0]}x{size[1]} (height x width) like the {done} saved in "
+                f"{output}; got a {camera.size[0]}x{camera.size[1]} camera. Resume with the same camera settings."
+            )
+        size = tuple(camera.size)
+    return done, size
+
+
+def _identify(client, run: _Run, saved: dict | None, light: LightSettings) -> None:
+    """Check the dome against a resumed plan, then write the plan (with the dome's identity) and
+    the light's table."""
+    identity = client.identify()
+    dome = {"model": identity.model, "firmware": identity.firmware, "protocol": identity.protocol}
+    if saved is not None and saved.get("dome") != dome:
+        raise AcquisitionError(
+            f"{run.output / PLAN} was acquired with the dome {saved.get('dome')}; got {dome}. Resume with the same "
+            "dome (model and firmware), or acquire into another folder."
+        )
+    run.generator["dome"] = dome
+    if saved is None:
+        run.output.mkdir(parents=True, exist_ok=True)
+        write_json(run.output / PLAN, {**run.job, "dome": dome})
+    if light.table is not None and not (run.output / KERNEL_FILE).is_file():
+        write_exr(run.output / KERNEL_FILE, light.table, ["Y"])
+
+
+def _adopt(run: _Run) -> None:
+    """List frame ``k`` when its file was written but not listed and reads completely."""
+    adopted = _adoptable(run.output, run.job, run.k, run.size) if run.k < run.total else None
+    if adopted is not None:
+        run.size = tuple(adopted.shape[1:])
+        run.list_frame()
+
+
+def _take_frames(client, camera: Camera, directions: Tensor, run: _Run, tolerance: float | None) -> None:
+    """Home the dome, switch the light on and take the frames from ``k`` on, each listed once written."""
+    job = run.job
+    if run.k < run.total:
+        run.step = "home"
+        client.home()
+        run.step = "light on"
+        client.light(True, job["intensity"])
+    while run.k < run.total:
+        k = run.k
+        planned = job["frames"][k]
+        run.step = f"move to theta={planned['theta']:.6f}, phi={planned['phi']:.6f} rad"
+        client.move(planned["theta"], planned["phi"])
+        if tolerance is not None:
+            run.step = "status after the move"
+            _check_position(client, k, planned, tolerance)
+        run.step = "capture"
+        image = _checked(camera.capture(directions[k], index=k), k, job, run.size)
+        run.size = tuple(image.shape[1:])
+        run.step = f"write {planned['file']}"
+        write_exr(run.output / planned["file"], image.permute(1, 2, 0), job["channels"])
+        run.list_frame()
+
+
+def _stopped(client, run: _Run, error: BaseException) -> AcquisitionStopped:
+    """The :class:`AcquisitionStopped` for ``error`` at the run's step, after switching the light off
+    when it may be on."""
+    note = _switch_off(client, error) if run.step not in ("identify", "home") else ""
+    k, total = run.k, run.total
+    where = run.job["frames"][k]["file"] if k < total else "the end"
+    saved_note = (
+        f"{len(run.frames)} of {total} frames are saved in {run.output} (a valid capture)"
+        if run.frames
+        else f"no frame is saved yet in {run.output}"
+    )
+    return AcquisitionStopped(
+        f"the acquisition stopped at frame {k} ({where}) of {total}, at {run.step}: {type(error).__name__}: "
+        f"{str(error).rstrip('.')}. "
+        f"{saved_note}.{note}",
+        done=len(run.frames),
+        total=total,
+        output=run.output,
+        frame=k,
+    )
+
+
 def _check_position(client, k: int, planned: dict, tolerance: float) -> None:
     status = client.status()
-    want = _direction(planned["theta"], planned["phi"])
-    got = _direction(status.theta, status.phi)
+    want = dome_direction(planned["theta"], planned["phi"])
+    got = dome_direction(status.theta, status.phi)
     cosine = max(-1.0, min(1.0, sum(a * b for a, b in zip(want, got, strict=True))))
     off = math.acos(cosine)
     problems = []
@@ -480,7 +534,7 @@ def open_camera(
     kind, _, where = spec.partition(":")
     if kind == "sim" and where:
         config = load_config(where, SimulatedCameraConfig)
-        return SimulatedCamera.from_config(config, light.kernel(), irradiance=_as_tuple(light.irradiance))
+        return SimulatedCamera.from_config(config, light.kernel(), irradiance=as_tuple(light.irradiance))
     if kind == "folder" and where:
         fire = command_trigger(trigger) if trigger else None
         return FolderCamera(where, channels=channels, pattern=pattern, timeout=timeout, trigger=fire)

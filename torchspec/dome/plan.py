@@ -22,14 +22,15 @@ from torch import Tensor
 from ..config import read_yaml
 from ..errors import TorchspecError
 from ..io import ExrError, LightSpec, read_exr
-from ..io._manifest import _light, _Where
+from ..io._manifest import Where, parse_light
 from ..lights import Kernel
 from ..simulate import LayoutConfig, layout
 
 __all__ = ["AcquisitionError", "LightSettings", "load_light", "parse_layout", "plan_directions", "dome_angles"]
 
 _LIGHT_KEYS = ("light", "intensity", "irradiance", "exposure")
-_KERNEL_FILE = "kernel.exr"
+KERNEL_FILE = "kernel.exr"
+"""A tabulated light's table, copied into the capture folder under this name."""
 
 
 class AcquisitionError(TorchspecError):
@@ -70,7 +71,7 @@ class LightSettings:
         checks = [
             (_number(self.intensity) and 0 <= self.intensity <= 1, "intensity must be in [0, 1]", self.intensity),
             (
-                all(_number(v) and v > 0 for v in _as_tuple(self.irradiance)) and _as_tuple(self.irradiance),
+                all(_number(v) and v > 0 for v in as_tuple(self.irradiance)) and as_tuple(self.irradiance),
                 "irradiance must be a positive number or one per channel",
                 self.irradiance,
             ),
@@ -103,7 +104,7 @@ class LightSettings:
 
     def irradiance_for(self, channels: Sequence[str]) -> tuple[float, ...]:
         """One irradiance per channel."""
-        values = _as_tuple(self.irradiance)
+        values = as_tuple(self.irradiance)
         if len(values) == 1:
             return values * len(channels)
         if len(values) != len(channels):
@@ -118,14 +119,15 @@ def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _as_tuple(value) -> tuple:
+def as_tuple(value) -> tuple:
+    """A list or tuple as a tuple; any other value as a 1-tuple (one irradiance for every channel)."""
     return tuple(value) if isinstance(value, (list, tuple)) else (value,)
 
 
 def _light_block(block, source: Path) -> LightSpec:
     """The format's light block validated as the manifest reader does; unknown keys are errors."""
     notes: list[str] = []
-    spec = _light(_Where(source), block, notes)
+    spec = parse_light(Where(source), block, notes)
     if notes:
         raise AcquisitionError(notes[0].replace("are ignored", "are not light keys") + " Remove them.")
     return spec
@@ -170,7 +172,7 @@ def load_light(path: str | Path) -> LightSettings:
             table = torch.from_numpy(read_exr(file, ["Y"])[:, :, 0])
         except ExrError as error:
             raise AcquisitionError(f"{path}: light.file must be a readable kernel image; got: {error}") from error
-        spec = LightSpec(kernel="tabulated", file=_KERNEL_FILE, extent=spec.extent)
+        spec = LightSpec(kernel="tabulated", file=KERNEL_FILE, extent=spec.extent)
     values = {key: data[key] for key in ("intensity", "irradiance", "exposure") if key in data}
     try:
         return LightSettings(spec, table=table, **values)
@@ -229,5 +231,7 @@ def dome_angles(directions: Tensor) -> Tensor:
     return torch.stack([theta, phi], -1)
 
 
-def _direction(theta: float, phi: float) -> tuple[float, float, float]:
+def dome_direction(theta: float, phi: float) -> tuple[float, float, float]:
+    """The unit direction of the dome angles ``theta`` (from the zenith) and ``phi`` (from ``+x``),
+    radians: the inverse of :func:`dome_angles`."""
     return (math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta))

@@ -97,8 +97,8 @@ class _Text(str):
     """A description shown as it is in an error, where a value would be shown as JSON."""
 
 
-class _Where:
-    """Builds errors that name the manifest and a key."""
+class Where:
+    """Builds the :class:`CaptureError` of a manifest (or config) file ``source``, naming the key at fault."""
 
     def __init__(self, source: Path):
         self.source = source
@@ -107,11 +107,11 @@ class _Where:
         return CaptureError(f"{self.source}: {key} must {condition}; got {_show(got)}." + (f" {fix}" if fix else ""))
 
 
-def _parse(data: Any, source: Path, notes: list[str], *, extra_known: bool = False) -> dict[str, Any]:
+def parse_manifest(data: Any, source: Path, notes: list[str], *, extra_known: bool = False) -> dict[str, Any]:
     """Validate a manifest; the fields of :class:`Capture` but ``root``. Warnings go to ``notes``;
     with ``extra_known`` (a manifest made from :attr:`Capture.extra`) unknown top-level keys are
     not warned about."""
-    where = _Where(source)
+    where = Where(source)
     if not isinstance(data, dict):
         raise where.error("the manifest", "be a JSON object", data)
     if data.get("format") != FORMAT:
@@ -150,13 +150,13 @@ def _parse(data: Any, source: Path, notes: list[str], *, extra_known: bool = Fal
         "height": height,
         "channels": tuple(channels),
         "view": _camera(where, data["camera"], notes),
-        "light": _light(where, data["light"], notes),
+        "light": parse_light(where, data["light"], notes),
         "frames": _frames(where, data["frames"], len(channels), notes),
         "extra": {key: data[key] for key in unknown},
     }
 
 
-def _camera(where: _Where, camera: Any, notes: list[str]) -> tuple[float, float, float]:
+def _camera(where: Where, camera: Any, notes: list[str]) -> tuple[float, float, float]:
     if not isinstance(camera, dict):
         raise where.error("camera", "be an object", camera, 'E.g. {"model": "orthographic", "view": [0, 0, 1]}.')
     if camera.get("model") != "orthographic":
@@ -169,7 +169,9 @@ def _camera(where: _Where, camera: Any, notes: list[str]) -> tuple[float, float,
     return _direction(where, "camera.view", camera["view"], notes)
 
 
-def _light(where: _Where, light: Any, notes: list[str]) -> LightSpec:
+def parse_light(where: Where, light: Any, notes: list[str]) -> LightSpec:
+    """The manifest's ``light`` block, validated; errors name ``where``'s file and the key, warnings
+    (unknown keys) go to ``notes``."""
     if not isinstance(light, dict):
         raise where.error("light", "be an object", light, 'E.g. {"kernel": "point"}.')
     kernel = light.get("kernel")
@@ -197,7 +199,7 @@ def _light(where: _Where, light: Any, notes: list[str]) -> LightSpec:
     return LightSpec(kernel=kernel, **values)
 
 
-def _frames(where: _Where, frames: Any, count: int, notes: list[str]) -> tuple[Frame, ...]:
+def _frames(where: Where, frames: Any, count: int, notes: list[str]) -> tuple[Frame, ...]:
     if not isinstance(frames, list) or not frames:
         raise where.error("frames", "be a non-empty list of frame objects", frames)
     seen: dict[str, int] = {}
@@ -236,7 +238,7 @@ def _frames(where: _Where, frames: Any, count: int, notes: list[str]) -> tuple[F
     return tuple(out)
 
 
-def _distinct_directions(where: _Where, frames: Sequence[Frame]) -> None:
+def _distinct_directions(where: Where, frames: Sequence[Frame]) -> None:
     """Refuse two frames under the same light (directions within :data:`_SAME_DIRECTION` in every
     coordinate): a light position is one sample of the layout, and a repeated one is most often a
     slip in the manifest. Cells of that size in a dict keep this linear in the frame count."""
@@ -258,7 +260,7 @@ def _distinct_directions(where: _Where, frames: Sequence[Frame]) -> None:
         cells.setdefault(cell, []).append(k)
 
 
-def _direction(where: _Where, key: str, value: Any, notes: list[str]) -> tuple[float, float, float]:
+def _direction(where: Where, key: str, value: Any, notes: list[str]) -> tuple[float, float, float]:
     if not isinstance(value, list) or len(value) != 3 or not all(_is_number(v) for v in value):
         raise where.error(key, "be a list of 3 finite numbers", value)
     norm = math.sqrt(sum(v * v for v in value))
@@ -279,7 +281,7 @@ def _direction(where: _Where, key: str, value: Any, notes: list[str]) -> tuple[f
     return (float(value[0]), float(value[1]), float(value[2]))
 
 
-def _unknown(where: _Where, key: str, obj: dict, known: Sequence[str], notes: list[str]) -> None:
+def _unknown(where: Where, key: str, obj: dict, known: Sequence[str], notes: list[str]) -> None:
     unknown = [name for name in obj if name not in known]
     if unknown:
         notes.append(f"{where.source}: unknown key(s) {unknown} in {key} are ignored.")
@@ -294,19 +296,19 @@ def _is_number(value: Any) -> bool:
         return False
 
 
-def _positive(where: _Where, key: str, value: Any) -> float:
+def _positive(where: Where, key: str, value: Any) -> float:
     if not _is_number(value) or not value > 0:
         raise where.error(key, "be a positive number", value)
     return float(value)
 
 
-def _positive_int(where: _Where, key: str, value: Any) -> int:
+def _positive_int(where: Where, key: str, value: Any) -> int:
     if type(value) is not int or value <= 0:
         raise where.error(key, "be a positive integer", value)
     return value
 
 
-def _relative_file(where: _Where, key: str, value: Any) -> str:
+def _relative_file(where: Where, key: str, value: Any) -> str:
     if not isinstance(value, str) or not value or "\0" in value:
         raise where.error(key, "be a file name (a non-empty string without NUL characters)", value)
     if PurePosixPath(value).is_absolute() or PureWindowsPath(value).is_absolute():
@@ -314,8 +316,8 @@ def _relative_file(where: _Where, key: str, value: Any) -> str:
     return value
 
 
-def _to_manifest(capture: Capture, source: Path) -> dict[str, Any]:
-    """The JSON manifest of ``capture`` (validated by :func:`_parse`, not here)."""
+def to_manifest(capture: Capture, source: Path) -> dict[str, Any]:
+    """The JSON manifest of ``capture`` (validated by :func:`parse_manifest`, not here)."""
     clash = [key for key in capture.extra if key in _KNOWN]
     if clash:
         raise CaptureError(f"Capture.extra for {source} must not hold the format's keys; got {clash}. Set the fields.")

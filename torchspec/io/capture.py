@@ -31,8 +31,8 @@ from ._manifest import (
     _as_list,
     _floats,
     _numpy,
-    _parse,
-    _to_manifest,
+    parse_manifest,
+    to_manifest,
 )
 from .exr import ExrError, _read_rows, read_exr, write_exr
 from .svbrdf import Maps, write_svbrdf
@@ -273,7 +273,7 @@ def read_capture(path: str | Path) -> Capture:
     manifest = path if path.suffix.lower() == ".json" or path.is_file() else path / MANIFEST
     data = read_json(manifest, CaptureError, f"Pass a capture directory that holds {MANIFEST}.")
     notes: list[str] = []
-    capture = Capture(root=manifest.parent, **_parse(data, manifest, notes))
+    capture = Capture(root=manifest.parent, **parse_manifest(data, manifest, notes))
     for note in notes:
         warnings.warn(note, stacklevel=2)
     for k, frame in enumerate(capture.frames):
@@ -341,10 +341,11 @@ def write_capture(
         root = root.parent
     manifest_path = root / MANIFEST
     notes: list[str] = []
-    result = Capture(root=root, **_parse(_to_manifest(capture, manifest_path), manifest_path, notes, extra_known=True))
+    data = to_manifest(capture, manifest_path)
+    result = Capture(root=root, **parse_manifest(data, manifest_path, notes, extra_known=True))
     for note in notes:
         warnings.warn(note, stacklevel=2)
-    manifest = _to_manifest(result, manifest_path)
+    manifest = to_manifest(result, manifest_path)
     size = (len(result.frames), len(result.channels), result.height, result.width)
     images = frames if isinstance(frames, torch.Tensor) else np.asarray(frames)
     if tuple(images.shape) != size:
