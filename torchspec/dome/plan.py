@@ -148,7 +148,7 @@ def load_light(path: str | Path) -> LightSettings:
     Example:
         >>> import pathlib, tempfile
         >>> path = pathlib.Path(tempfile.mkdtemp()) / "light.yaml"
-        >>> _ = path.write_text("light: {kernel: gaussian, domain: projected, sigma: 0.08}\n")
+        >>> _ = path.write_text("light: {kernel: gaussian, domain: projected, sigma: 0.08}")
         >>> settings = load_light(path)
         >>> settings.light.kernel, settings.intensity
         ('gaussian', 1.0)
