@@ -105,8 +105,17 @@ class Simulation:
 
 
 def layout(config: LayoutConfig) -> Tensor:
-    """Unit light centres ``(K, 3)``, float64, in the order frames are numbered."""
+    """Unit light centres ``(K, 3)``, float64, in the order frames are numbered.
+
+    Raises:
+        ConfigError: ``kind`` is unknown, a count of its kind is below 1, or the layout gives no
+            direction or reaches the horizon (the message names the key).
+    """
     like = dict(dtype=torch.float64)
+    counts = {"grid": ("nx", "ny"), "line": ("n",), "scattered": ("n",)}.get(config.kind, ())
+    for key in counts:
+        if getattr(config, key) < 1:
+            raise ConfigError(f"layout.{key} must be >= 1 for a {config.kind} layout; got {getattr(config, key)}.")
     if config.kind == "grid":
         x = torch.linspace(-config.extent, config.extent, config.nx, **like)
         y = torch.linspace(config.extent, -config.extent, config.ny, **like)  # row by row from the top
