@@ -18,7 +18,7 @@ def test_demo_writes_maps_previews_and_a_report(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path), "--size", "24", "--quiet"]) == 0
     report = json.loads((tmp_path / "report.json").read_text())
     scores = report["scores"]
-    # The fit's targets (issue 4) on the demo's own simulated painting, against its truth.
+    # The fit's targets on the demo's own simulated painting, against its truth.
     assert scores["normal_deg"] < 0.5 and scores["kd"] < 0.03, scores
     assert scores["varnished_alpha"] < 0.1 and scores["matte_share_ks0"] > 0.95, scores
     assert scores["heldout_psnr_db"] > 40, scores

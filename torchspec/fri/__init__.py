@@ -37,8 +37,8 @@ locate one pulse only."""
 
 SNR_HALF_QUALITY = 20.0
 """The SNR of the fitted spectrum (its energy over the residual noise variance) at which quality
-is 1/2. Measured on the paper's setups (Gaussian kernels, M = 2 and 8): outliers (error above a
-tenth of the period) run at 2-10 % near an SNR of 12 and below 0.2 % above 40."""
+is 1/2: below it, outliers (error above a tenth of the period) become common on the paper's setups
+(Gaussian kernels, M = 2 and 8)."""
 
 
 @dataclass(frozen=True)
@@ -51,8 +51,8 @@ class Location:
         quality: ``(*)`` in ``[0, 1]``: 1 for a clean, well-conditioned problem, falling as the
             residual that a symmetric pulse cannot explain grows against the explained part
             (noise, an asymmetric kernel, a second peak) or as a scattered layout loses
-            conditioning; 0 for non-finite samples. Mask with e.g. ``quality > 0.5``: on the
-            paper's setups that flags ~90 % of the outliers (error > period / 10) when M = 8.
+            conditioning; 0 for non-finite samples. Mask with e.g. ``quality > 0.5``, which flags
+            most outliers (error > period / 10) on the paper's setups with M = 8.
             With a single coefficient per axis (N <= 4) nothing is left over to measure the
             noise, so quality then only reflects conditioning. For K >= 2 it is
             ``(1 - s_{K+1} / s_K)^2`` from the singular values of the Hankel matrix.
