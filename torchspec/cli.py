@@ -156,6 +156,7 @@ def _add_dome_commands(commands) -> None:
     acquire.add_argument("--resume", action="store_true", help="continue an interrupted acquisition in OUTPUT")
     acquire.add_argument("--quiet", action="store_true", help="no progress bar")
 
+
 def main(argv: list[str] | None = None) -> int:
     """Run the ``torchspec`` command line ``argv`` (default: ``sys.argv[1:]``).
 
