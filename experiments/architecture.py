@@ -1,7 +1,7 @@
 """The package's layout against the style guide (``docs/architecture.md``): the longest modules and
 functions, and every import of an underscore name across module boundaries outside its own subpackage.
 
-Run ``python experiments/layout.py`` (``--json`` for the numbers as JSON); it exits 1 when a module
+Run ``python experiments/architecture.py`` (``--json`` for the numbers as JSON); it exits 1 when a module
 is over ``MODULE_LINES`` lines, a function over ``FUNCTION_LINES`` or an underscore name crosses a
 boundary, so ``tests/test_architecture.py`` keeps the layout as it is.
 """

@@ -7,7 +7,7 @@ capture (cached between runs). ``torchspec fit`` then runs on it in a fresh proc
 reading the frames to the maps; peak memory is that process's own peak RSS, VmHWM), with ``threads`` torch
 threads (and, from ``COMPILE_PIXELS`` pixels, torch.compile: its compilation is in the time, and
 the graphs it found in its on-disk cache are counted; a first run on a machine compiles them all,
-~50 s more). Run with ``TORCHINDUCTOR_CACHE_DIR`` set to an empty folder for a first run's time.
+which takes longer). Run with ``TORCHINDUCTOR_CACHE_DIR`` set to an empty folder for a first run's time.
 The baseline fits a random sample of the lobed pixels one by one with
 ``scipy.optimize.least_squares`` (trust region reflective, bounds as in the fit, the analytic
 Jacobian of :func:`torchspec.jacobian.jacobian` with the fit's quadrature), from the same FRI

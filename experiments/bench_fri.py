@@ -6,7 +6,7 @@ every method of :func:`torchspec.fri.locate` and for the baselines a user would 
 - ``scipy least_squares``: a per-pixel fit of the exact model (lowpass Gaussian pulse: location,
   amplitude, width, offset) with ``scipy.optimize.least_squares``, started from the parabola.
 
-The first points of the speed-vs-accuracy chart (issue 6 adds the rest). Each row runs in a fresh
+Its rows are points of the speed-vs-accuracy chart (``speed_accuracy.py``). Each row runs in a fresh
 process, so its peak memory (the rise of ``ru_maxrss`` during the call) is its own.
 
     python experiments/bench_fri.py [--config experiments/configs/bench_fri.yaml] [--output experiments/results]

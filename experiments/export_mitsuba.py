@@ -8,7 +8,7 @@ maximum) and over the frames (peak: their maximum), the relative RMS error. Twic
 default (the material exactly ``k_d / pi + k_s Beckmann``) and with ``shadowing=True`` (Mitsuba's
 default normal-map shadowing function kept, as the captures were rendered). For context, the same
 frames predicted by ``torchspec render`` from the same maps with the format's Ward lobe (the data
-README's ceiling of a perfect Ward fit: 65.2 dB on painting-dev-relight) and the Beckmann lobe.
+README's ceiling of a perfect Ward fit) and the Beckmann lobe.
 
     python experiments/export_mitsuba.py [--config experiments/configs/export_mitsuba.yaml] [--output experiments/results]
 """

@@ -1,4 +1,4 @@
-"""Per-pixel model selection on the development painting (issue 6): ``--model auto`` against every
+"""Per-pixel model selection on the development painting: ``--model auto`` against every
 model forced on every pixel, and the coverage of the per-pixel standard deviations.
 
 On ``../shared/data/painting-dev`` (truth in ``truth/``, regions matte / varnished / gilded), per
@@ -10,7 +10,7 @@ model's.
 
 Then, on simulated paintings with shot noise (the model the data were made with, ward-iso on the
 varnish): the share of pixels whose truth lies within 2 standard deviations, per parameter
-(a Gaussian estimate: 95 %; the issue asks 90-98 %), and the sensor noise fitted against the
+(a Gaussian estimate: 95 %; the target is 90-98 %), and the sensor noise fitted against the
 simulated one.
 
 ``runs`` adds fits with other settings (:class:`torchspec.fit.FitConfig`, by label): ``auto`` without

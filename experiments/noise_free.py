@@ -1,4 +1,4 @@
-"""Exactness of FRI location without noise (issue 2's first "must show").
+"""Exactness of FRI location without noise.
 
 For every kernel of the config, number of samples (1D) or grid (2D, the same kernel on both
 axes), dtype and method: the largest |error| over random locations of lowpass samples with a
@@ -7,7 +7,7 @@ negative DC level. Float64 should stay below 1e-10 of the period, float32 below 
     python experiments/noise_free.py [--config experiments/configs/noise_free.yaml] [--output experiments/results]
 
 Writes noise_free.json and noise_free.png (log10 of the worst error per kernel and size).
-Takes ~12 minutes on 2 cores, most of it Cadzow on the 64 x 64 grids.
+Most of its time goes to Cadzow on the 64 x 64 grids.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Speed against accuracy (issue 6): time per pixel (log) against error (log) for every method and
+"""Speed against accuracy: time per pixel (log) against error (log) for every method and
 setting of the fit, with the Pareto front marked, and the baselines a user would otherwise pick.
 
 A simulated painting (the capture of ``bench_fit``, smaller: ``size x size`` pixels, a full

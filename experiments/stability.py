@@ -1,4 +1,4 @@
-"""Issue 6's stability study: where each way of locating a specular peak breaks, and whether its
+"""The stability study: where each way of locating a specular peak breaks, and whether its
 quality flags say so.
 
 Two families of methods locate the peak of a specular lobe seen through an extended light, in the

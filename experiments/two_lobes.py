@@ -1,4 +1,4 @@
-"""Two lobes where the data demand them (issue 6): ``ward-dual`` chosen by ``--model auto`` on a box of
+"""Two lobes where the data demand them: ``ward-dual`` chosen by ``--model auto`` on a box of
 two-lobed gloss, and nowhere else; what a single lobe costs there; and the per-pixel baseline.
 
 A simulated painting (pigments, varnish, the gilded patch, and a box of two-lobed gloss: a sharp

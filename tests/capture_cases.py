@@ -9,16 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import SHARED
 from torchspec.io import Capture, Frame, LightSpec
 
 
-def _shared_data() -> Path:
-    beside = Path(__file__).resolve().parents[2] / "shared" / "data"
-    return beside if beside.is_dir() else Path("/work/shared/data")
-
-
-DATA = _shared_data()
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"no shared captures at {DATA}")
+DATA = SHARED
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"needs the shared development data {DATA}; absent here")
 
 H, W = 4, 5
 

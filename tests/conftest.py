@@ -1,5 +1,26 @@
+from pathlib import Path
+
 import pytest
 import torch
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+"""The development captures: ``shared/data`` beside the checkout (``../shared/data`` from its root).
+A fresh clone without it skips the tests that read a capture (:func:`shared_capture`)."""
+
+
+def shared_capture(name: str) -> Path:
+    """The folder ``SHARED / name`` (a capture, or a file or folder inside one); skips the calling
+    test, saying what is missing, when it is absent."""
+    path = SHARED / name
+    if not path.exists():
+        pytest.skip(f"needs the shared development data {path} (shared/data beside the checkout); absent here")
+    return path
+
+
+@pytest.fixture
+def shared():
+    """:func:`shared_capture` for a test: ``shared("painting-dev")`` is that capture's folder, or a skip."""
+    return shared_capture
 
 TOLERANCE = {torch.float32: 1e-5, torch.float64: 1e-10}
 """Noise-free location error allowed, in periods."""

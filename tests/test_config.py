@@ -1,3 +1,4 @@
+import re
 from dataclasses import dataclass, field
 
 import pytest
@@ -51,3 +52,29 @@ def test_errors_name_file_and_key(tmp_path, text, match):
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot read config .*nope.yaml"):
         load_config(tmp_path / "nope.yaml", Outer)
+
+
+def test_a_value_the_settings_refuse_names_the_file_and_the_key(tmp_path):
+    from torchspec import FitConfig
+
+    path = tmp_path / "fit.yaml"
+    path.write_text("smooth: -1\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, FitConfig)
+    assert str(caught.value).startswith(f"{path}: smooth must be >= 0")
+
+
+@dataclass(frozen=True)
+class Checked:
+    width: int = 1
+
+    def __post_init__(self):
+        if self.width < 1:
+            raise ValueError(f"width of the box must be >= 1; got {self.width}.")
+
+
+def test_a_refusal_without_a_field_name_still_names_the_file(tmp_path):
+    path = tmp_path / "box.yaml"
+    path.write_text("width: 0\n")
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: width of the box must be >= 1; got 0\.$"):
+        load_config(path, Checked)

@@ -94,11 +94,11 @@ def test_fig3_runs(tmp_path):
     assert len(rows) == 6 and (tmp_path / "tiny.png").stat().st_size > 10000
 
 
-def test_fit_painting_runs(tmp_path):
+def test_fit_painting_runs(tmp_path, shared):
     rows = _main(
         "fit_painting",
         tmp_path,
-        "capture: ../shared/data/painting-dev\nmatte_ks: 0.001\n"
+        f"capture: {shared('painting-dev')}\nmatte_ks: 0.001\n"
         "runs: [{label: fri, frames: '::2', fit: {init: fri, model: ward-aniso}}]\n",
     )
     bound, row = rows

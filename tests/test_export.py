@@ -12,6 +12,7 @@ import png
 import pytest
 import torch
 
+from conftest import SHARED
 from torchspec.brdf import SVBRDF
 from torchspec.cli import main
 from torchspec.export import ExportError, ExportWarning, export, export_gltf, export_mitsuba, export_png16
@@ -21,14 +22,8 @@ from torchspec.relight import psnr
 from torchspec.render import render
 
 
-def _shared_data() -> Path:
-    beside = Path(__file__).resolve().parents[2] / "shared" / "data"
-    return beside if beside.is_dir() else Path("/work/shared/data")
-
-
-DATA = _shared_data()
-RELIGHT = DATA / "painting-dev-relight"
-needs_data = pytest.mark.skipif(not RELIGHT.is_dir(), reason=f"no shared captures at {DATA}")
+RELIGHT = SHARED / "painting-dev-relight"
+needs_data = pytest.mark.skipif(not RELIGHT.is_dir(), reason=f"needs the shared development data {RELIGHT}; absent here")
 F64 = torch.float64
 
 

@@ -1,7 +1,6 @@
 import dataclasses
 import json
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -23,8 +22,6 @@ from torchspec.synth import (
 )
 
 F64 = torch.float64
-SCENE = Path("/work/shared/data/painting-dev/truth/scene.json")
-MIRROR_SCENE = Path("/work/shared/data/mirror-dev-1d/truth/scene.json")
 
 
 def tilt_deg(normal):
@@ -273,16 +270,14 @@ def test_yaml_configs(tmp_path):
             load_config(bad, cls)
 
 
-@pytest.mark.skipif(not SCENE.exists(), reason="painting-dev is not available")
-def test_defaults_match_painting_dev_scene():
-    material = json.loads(SCENE.read_text())["material"]
+def test_defaults_match_painting_dev_scene(shared):
+    material = json.loads(shared("painting-dev/truth/scene.json").read_text())["material"]
     material.pop("generator")
     assert from_mapping(material, PaintingConfig) == PaintingConfig()
 
 
-@pytest.mark.skipif(not MIRROR_SCENE.exists(), reason="mirror-dev-1d is not available")
-def test_defaults_match_mirror_dev_scene():
-    material = json.loads(MIRROR_SCENE.read_text())["material"]
+def test_defaults_match_mirror_dev_scene(shared):
+    material = json.loads(shared("mirror-dev-1d/truth/scene.json").read_text())["material"]
     material.pop("generator")
     assert from_mapping(material, MirrorConfig) == MirrorConfig()
 

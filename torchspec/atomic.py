@@ -18,8 +18,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it replaces ``path`` in one rename.
 
     Example:
-        >>> with atomic_path("out.txt") as tmp:  # doctest: +SKIP
-        ...     tmp.write_text("done")
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> with atomic_path(folder / "out.txt") as tmp:
+        ...     _ = tmp.write_text("done")
+        >>> [path.name for path in folder.iterdir()], (folder / "out.txt").read_text()
+        (['out.txt'], 'done')
+        >>> (folder / "out.txt").unlink(); folder.rmdir()
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -6,24 +6,40 @@ import argparse
 import shlex
 import shutil
 import sys
+import traceback
 from dataclasses import replace
 from pathlib import Path
 
 from ._version import __version__
+from .errors import TorchspecError
 
-__all__ = ["main"]
+__all__ = ["BUG", "COMMANDS", "build_parser", "main"]
 
 CHECKPOINT = ".torchspec-fit"
 """The folder, inside a fit's output, of its finished tiles until the maps are written."""
 
+BUG = 70
+"""The exit status of an internal error (a bug in torchspec): ``EX_SOFTWARE`` of ``sysexits.h``."""
 
-def _parser() -> argparse.ArgumentParser:
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of the ``torchspec`` command line: one subcommand per entry of :data:`COMMANDS`."""
     parser = argparse.ArgumentParser(
         prog="torchspec",
         description="Reflectance of nearly flat objects from a few HDR photographs under an extended light.",
     )
     parser.add_argument("--version", action="version", version=f"torchspec {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_simulation_commands(commands)
+    _add_fit_command(commands)
+    _add_map_commands(commands)
+    _add_capture_commands(commands)
+    _add_dome_commands(commands)
+    return parser
+
+
+def _add_simulation_commands(commands) -> None:
+    """``demo`` and ``simulate``."""
     demo = commands.add_parser(
         "demo", help="simulate a small painting, fit it, and write maps, previews, relit renders and a report"
     )
@@ -36,6 +52,9 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument("config", type=Path, help="a simulation config (YAML), e.g. configs/sim_painting.yaml")
     simulate.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
 
+
+def _add_fit_command(commands) -> None:
+    """``fit``."""
     fit = commands.add_parser("fit", help="fit SVBRDF maps (normal, diffuse, specular, roughness) to a capture")
     fit.add_argument("capture", type=Path, help="the capture folder (with capture.json)")
     fit.add_argument("-o", "--output", type=Path, required=True, help="the folder of maps to write")
@@ -58,6 +77,9 @@ def _parser() -> argparse.ArgumentParser:
                          help="fit the tiles on a local Dask cluster of N worker processes (needs the dask extra: "
                               "pip install 'torchspec[dask]')")
 
+
+def _add_map_commands(commands) -> None:
+    """``render`` and ``export``: commands on a folder of SVBRDF maps."""
     render = commands.add_parser("render", help="predict a capture's frames from SVBRDF maps")
     render.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
     render.add_argument("--capture", type=Path, required=True, help="the capture whose lights to render")
@@ -76,6 +98,9 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
                         help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1)")
 
+
+def _add_capture_commands(commands) -> None:
+    """``info`` and ``calibrate``: commands on a capture."""
     info = commands.add_parser("info", help="summarise and validate a capture (exit status 2 when unusable)")
     info.add_argument("capture", type=Path, help="the capture folder (with capture.json)")
     info.add_argument("--json", action="store_true", help="print the report as JSON instead of a summary")
@@ -96,6 +121,9 @@ def _parser() -> argparse.ArgumentParser:
                            help="the mirror's roughness (Ward alpha), deconvolved (default: 0, a perfect mirror)")
     calibrate.add_argument("--frames", default=None, help="frames to use, as for fit (default: all)")
 
+
+def _add_dome_commands(commands) -> None:
+    """``dome-emulator`` and ``acquire``."""
     emulator = commands.add_parser(
         "dome-emulator", help="a virtual light dome on a pseudo-terminal: prints its port, serves until Ctrl-C"
     )
@@ -127,20 +155,59 @@ def _parser() -> argparse.ArgumentParser:
     acquire.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
     acquire.add_argument("--resume", action="store_true", help="continue an interrupted acquisition in OUTPUT")
     acquire.add_argument("--quiet", action="store_true", help="no progress bar")
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = _parser()
+    """Run the ``torchspec`` command line ``argv`` (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit status: 0 on success; 2 for a usage error or input torchspec refuses (a
+        :class:`~torchspec.errors.TorchspecError`, or an ``OSError`` of a path), printed in one line
+        without a traceback; 130 for an interrupted fit or acquisition; 70 (``EX_SOFTWARE``) for a bug,
+        printed with its traceback and a request to report it.
+    """
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
     try:
-        return _run(parser, args)
-    except (ValueError, OSError) as exc:  # bad input: say what and where, no traceback
+        return COMMANDS[args.command](parser, args)
+    except (TorchspecError, OSError) as exc:  # the user's input or filesystem: say what and where, no traceback
         print(f"torchspec {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Exception:  # anything else is a bug in torchspec
+        traceback.print_exc()
+        line = " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+        print(f"torchspec {args.command}: internal error: this is a bug in torchspec {__version__}; please report it "
+              f"with the traceback above and the command line: torchspec {line}", file=sys.stderr)
+        return BUG
+
+
+def _rerun() -> str:
+    """The command line that continues the interrupted command of ``sys.argv``: the same, with ``--resume``."""
+    again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
+    return f"torchspec {again} --resume"
+
+
+def _demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if not 8 <= args.size <= 4096:
+        parser.error(f"--size must be in 8..4096; got {args.size}")
+    from . import demo
+
+    demo.run(args.output, size=args.size, progress=not args.quiet)
+    return 0
+
+
+def _simulate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .simulate import SimulationConfig, simulate, write_simulation
+
+    config = load_config(args.config, SimulationConfig)
+    result = write_simulation(args.output, simulate(config, root=args.output))
+    print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
+          f"{''.join(result.channels)}, with truth/")
+    return 0
 
 
 def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
@@ -156,112 +223,125 @@ def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
         raise OSError(str(error)) from error
 
 
-def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    if args.command == "demo":
-        if not 8 <= args.size <= 4096:
-            parser.error(f"--size must be in 8..4096; got {args.size}")
-        from . import demo
+def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .fit import FitConfig, FitInterrupted, fit, write_fit
 
-        demo.run(args.output, size=args.size, progress=not args.quiet)
-    elif args.command == "simulate":
-        from .config import load_config
-        from .simulate import SimulationConfig, simulate, write_simulation
-
-        config = load_config(args.config, SimulationConfig)
-        result = write_simulation(args.output, simulate(config, root=args.output))
-        print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
-              f"{''.join(result.channels)}, with truth/")
-    elif args.command == "fit":
-        from .config import load_config
-        from .fit import FitConfig, FitInterrupted, fit, write_fit
-
-        config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
-        if args.model is not None:
-            config = replace(config, model=args.model)
-        checkpoint = args.output / CHECKPOINT
-        if args.workers is not None and args.workers < 1:
-            parser.error(f"--workers must be >= 1; got {args.workers}")
-        try:
-            if args.scheduler is None and args.workers is None:
-                result = fit(
-                    args.capture,
-                    config=config,
-                    frames=args.frames,
-                    progress=not args.quiet,
-                    checkpoint=checkpoint,
-                    resume=args.resume,
-                )
-            else:
-                result = _fit_on_cluster(args, config, checkpoint)
-        except FitInterrupted as stop:
-            again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
-            print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
-                  f"continue with: torchspec {again} --resume", file=sys.stderr)
-            return 130
-        write_fit(args.output, result)
-        shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
-        stats = result.stats
-        print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
-              f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
-              f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
-              f"median relative residual {stats['median_residual']:.2e}")
-    elif args.command == "render":
-        from .relight import render_capture
-
-        report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path)
-        print(f"wrote {report['frames']} frames to {args.output}")
-        if report.get("psnr_db") is not None:
-            print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
-                  f"relative RMS error {100 * report['relative_rms']:.2f} %")
-    elif args.command == "export":
-        from .export import export
-
-        written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
-        print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
-    elif args.command == "info":
-        import json
-
-        from .info import UNUSABLE, format_report, inspect_capture
-
-        report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
-        print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
-        return 2 if report["verdict"] == UNUSABLE else 0
-    elif args.command == "calibrate":
-        import json
-
-        from .calibrate import calibrate, write_kernel
-
-        result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
-                           symmetry=args.symmetry, mirror_alpha=args.mirror_alpha)
-        light = write_kernel(args.output, result)
-        print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
-        print(result.summary())
-        print(f"capture manifest light entry (kernel file beside capture.json): {json.dumps(light)}")
-    elif args.command == "dome-emulator":
-        import math
-
-        from .dome.emulator import serve
-
-        return serve(speed=math.radians(args.speed), arm_speed=args.arm_speed, faults=args.fault,
-                     stall_seconds=args.stall_seconds, homed=not args.unhomed)
-    elif args.command == "acquire":
-        from .dome.acquire import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
-        from .dome.client import DomeClient
-
-        light = load_light(args.light)
-        camera = open_camera(args.camera, light, channels=args.channels.split(","), pattern=args.pattern,
-                             timeout=args.frame_timeout, trigger=args.trigger)
-        try:
-            with DomeClient(args.port, timeout=args.timeout, move_timeout=args.move_timeout) as client:
-                capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
-                                  resume=args.resume, progress=not args.quiet)
-        except (AcquisitionStopped, AcquisitionInterrupted) as stop:
-            again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
-            print(f"torchspec acquire: {stop} Continue with: torchspec {again} --resume", file=sys.stderr)
-            return 130 if isinstance(stop, AcquisitionInterrupted) else 1
-        print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
-              f"{''.join(capture.channels)}")
+    config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
+    if args.model is not None:
+        config = replace(config, model=args.model)
+    checkpoint = args.output / CHECKPOINT
+    if args.workers is not None and args.workers < 1:
+        parser.error(f"--workers must be >= 1; got {args.workers}")
+    try:
+        if args.scheduler is None and args.workers is None:
+            result = fit(
+                args.capture,
+                config=config,
+                frames=args.frames,
+                progress=not args.quiet,
+                checkpoint=checkpoint,
+                resume=args.resume,
+            )
+        else:
+            result = _fit_on_cluster(args, config, checkpoint)
+    except FitInterrupted as stop:
+        print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
+              f"continue with: {_rerun()}", file=sys.stderr)
+        return 130
+    write_fit(args.output, result)
+    shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
+    stats = result.stats
+    print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
+          f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
+          f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
+          f"median relative residual {stats['median_residual']:.2e}")
     return 0
+
+
+def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from .relight import render_capture
+
+    report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path)
+    print(f"wrote {report['frames']} frames to {args.output}")
+    if report.get("psnr_db") is not None:
+        print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
+              f"relative RMS error {100 * report['relative_rms']:.2f} %")
+    return 0
+
+
+def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from .export import export
+
+    written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
+    print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
+    return 0
+
+
+def _info(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import json
+
+    from .info import UNUSABLE, format_report, inspect_capture
+
+    report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
+    print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
+    return 2 if report["verdict"] == UNUSABLE else 0
+
+
+def _calibrate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import json
+
+    from .calibrate import calibrate, write_kernel
+
+    result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
+                       symmetry=args.symmetry, mirror_alpha=args.mirror_alpha)
+    light = write_kernel(args.output, result)
+    print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
+    print(result.summary())
+    print(f"capture manifest light entry (kernel file beside capture.json): {json.dumps(light)}")
+    return 0
+
+
+def _dome_emulator(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import math
+
+    from .dome.emulator import serve
+
+    return serve(speed=math.radians(args.speed), arm_speed=args.arm_speed, faults=args.fault,
+                 stall_seconds=args.stall_seconds, homed=not args.unhomed)
+
+
+def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from .dome.acquire import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
+    from .dome.client import DomeClient
+
+    light = load_light(args.light)
+    camera = open_camera(args.camera, light, channels=args.channels.split(","), pattern=args.pattern,
+                         timeout=args.frame_timeout, trigger=args.trigger)
+    try:
+        with DomeClient(args.port, timeout=args.timeout, move_timeout=args.move_timeout) as client:
+            capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
+                              resume=args.resume, progress=not args.quiet)
+    except (AcquisitionStopped, AcquisitionInterrupted) as stop:
+        print(f"torchspec acquire: {stop} Continue with: {_rerun()}", file=sys.stderr)
+        return 130 if isinstance(stop, AcquisitionInterrupted) else 1
+    print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
+          f"{''.join(capture.channels)}")
+    return 0
+
+
+COMMANDS = {
+    "demo": _demo,
+    "simulate": _simulate,
+    "fit": _fit,
+    "render": _render,
+    "export": _export,
+    "info": _info,
+    "calibrate": _calibrate,
+    "dome-emulator": _dome_emulator,
+    "acquire": _acquire,
+}
+"""Each subcommand's function: ``(parser, args) -> exit status``."""
 
 
 if __name__ == "__main__":

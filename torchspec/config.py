@@ -51,7 +51,34 @@ def _convert(value, kind, where: str):
 
 
 def from_mapping(data, cls, where: str = "config"):
-    """Build the frozen dataclass ``cls`` from a mapping, recursively, rejecting unknown keys."""
+    """Build the frozen dataclass ``cls`` from a mapping, recursively, rejecting unknown keys.
+
+    Args:
+        data: the mapping of keys (the fields of ``cls``) to values.
+        cls: a dataclass; a field whose type is a dataclass reads a nested mapping.
+        where: what ``data`` is (a file, or a file and a key), named by every error.
+
+    Returns:
+        ``cls(**data)``, each value converted to its field's type.
+
+    Raises:
+        ConfigError: ``data`` is not a mapping, a key is unknown or missing, a value has the wrong type,
+            or ``cls`` refuses a value (a ``ValueError`` of its ``__post_init__``); the message names
+            ``where`` and the key.
+
+    Example:
+        >>> from dataclasses import dataclass
+        >>> @dataclass(frozen=True)
+        ... class Grid:
+        ...     size: int = 8
+        ...     step: float = 1.0
+        >>> from_mapping({"size": 4}, Grid)
+        Grid(size=4, step=1.0)
+        >>> from_mapping({"sise": 4}, Grid, "grid.yaml")
+        Traceback (most recent call last):
+        ...
+        torchspec.config.ConfigError: grid.yaml has unknown key(s) ['sise']; known keys are ['size', 'step'].
+    """
     if not isinstance(data, dict):
         raise ConfigError(f"{where} must be a mapping of keys to values; got {type(data).__name__}.")
     hints = typing.get_type_hints(cls)
@@ -65,7 +92,20 @@ def from_mapping(data, cls, where: str = "config"):
             values[name] = _convert(data[name], hints[name], f"{where}.{name}")
         elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
             raise ConfigError(f"{where} is missing the key {name!r}.")
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as error:  # a value out of its domain, refused by cls (a TorchspecError is a ValueError)
+        raise ConfigError(_name_key(str(error), cls, fields, where)) from error
+
+
+def _name_key(message: str, cls, fields, where: str) -> str:
+    """``message`` of a refused value, said of ``where``: ``Cls.key must ...`` becomes ``where: key must ...``."""
+    prefix = f"{cls.__name__}."
+    if message.startswith(prefix):
+        key = message[len(prefix):].split(" ", 1)[0]
+        if key in fields:
+            return f"{where}: {message[len(prefix):]}"
+    return f"{where}: {message}"
 
 
 def load_config(path: str | Path, cls):
@@ -73,7 +113,7 @@ def load_config(path: str | Path, cls):
 
     Raises:
         ConfigError: the file is missing or not YAML, a key is unknown or missing, or a value
-            has the wrong type; the message names the file and the key.
+            has the wrong type or is refused by ``cls``; the message names the file and the key.
     """
     path = Path(path)
     data = read_yaml(path)

@@ -21,15 +21,17 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from .errors import TorchspecError
+
 __all__ = ["location_1d", "location_2d", "fisher_information", "bound"]
 
 
 def _positive(name: str, value) -> None:
     if isinstance(value, Tensor):
         if not bool((value > 0).all()):
-            raise ValueError(f"{name} must be > 0; got a tensor with values <= 0.")
+            raise TorchspecError(f"{name} must be > 0; got a tensor with values <= 0.")
     elif not value > 0:
-        raise ValueError(f"{name} must be > 0; got {value!r}.")
+        raise TorchspecError(f"{name} must be > 0; got {value!r}.")
 
 
 def location_1d(spectrum: Tensor, *, num_samples: int, noise_sigma: float | Tensor, period: float = 1.0) -> Tensor:
@@ -54,7 +56,7 @@ def location_1d(spectrum: Tensor, *, num_samples: int, noise_sigma: float | Tens
     """
     bands = spectrum.shape[-1] - 1
     if num_samples < 2 * bands + 1:
-        raise ValueError(
+        raise TorchspecError(
             f"num_samples must be >= 2M + 1 = {2 * bands + 1} for a spectrum of shape {tuple(spectrum.shape)}; "
             f"got {num_samples}."
         )
@@ -88,7 +90,7 @@ def location_2d(
     bands = ((spectrum.shape[-2] - 1) // 2, (spectrum.shape[-1] - 1) // 2)
     for axis in range(2):
         if num_samples[axis] < 2 * bands[axis] + 1:
-            raise ValueError(
+            raise TorchspecError(
                 f"num_samples[{axis}] must be >= {2 * bands[axis] + 1} for a spectrum of shape "
                 f"{tuple(spectrum.shape)}; got {num_samples[axis]}."
             )
@@ -131,7 +133,7 @@ def fisher_information(
         tensor([[5.]], dtype=torch.float64)
     """
     if params.dim() < 1:
-        raise ValueError(f"params must have shape (*, P); got shape {tuple(params.shape)}.")
+        raise TorchspecError(f"params must have shape (*, P); got shape {tuple(params.shape)}.")
     _positive("noise_sigma", noise_sigma)
     eye = torch.eye(params.shape[-1], dtype=params.dtype, device=params.device)
     columns = [torch.func.jvp(forward, (params,), (eye[j].expand_as(params),))[1] for j in range(params.shape[-1])]

@@ -1,4 +1,4 @@
-"""``torchspec demo``: the whole job on an embedded default, in well under a minute on 2 cores.
+"""``torchspec demo``: the whole job on an embedded default.
 
 Simulates a small painting (pigments, canvas weave, brush strokes, varnish, a gilded patch) under
 a 12 x 12 grid of an extended Gaussian light clipped to the l-plane radius 0.8, with shot noise;

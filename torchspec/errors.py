@@ -19,8 +19,10 @@ class TorchspecError(ValueError):
     function's contract. The message names what is at fault, why, and how to fix it.
 
     Example:
-        >>> try:  # doctest: +SKIP
-        ...     torchspec.read_capture("not-a-capture")
-        ... except torchspec.TorchspecError as error:
-        ...     print(error)
+        >>> from torchspec.io import read_capture
+        >>> try:
+        ...     read_capture("no-such-capture")
+        ... except TorchspecError as error:
+        ...     print(type(error).__name__, "names", "no-such-capture" in str(error))
+        CaptureError names True
     """

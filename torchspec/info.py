@@ -61,7 +61,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
 
     Example:
         >>> report = inspect_capture("../shared/data/painting-dev")  # doctest: +SKIP
-        >>> report["verdict"], report["layout"]["kind"], report["frames"]
+        >>> report["verdict"], report["layout"]["kind"], report["frames"]  # doctest: +SKIP
         ('ok', 'grid', 88)
     """
     report: dict[str, Any] = {"capture": str(path), "verdict": UNUSABLE, "reason": None, "warnings": []}
@@ -234,10 +234,10 @@ def format_report(report: dict[str, Any]) -> str:
     """A report of :func:`inspect_capture` as lines of text for a terminal.
 
     Example:
-        >>> print(format_report(inspect_capture("capture")))  # doctest: +SKIP
-        capture   capture
-        verdict   ok
-        ...
+        >>> print(format_report(inspect_capture("no-such-capture")))  # doctest: +ELLIPSIS
+        capture   no-such-capture
+        verdict   unusable
+        reason    no-such-capture/capture.json must exist; got no such file. ...
     """
     lines = [f"capture   {report['capture']}", f"verdict   {report['verdict']}"]
     if report["reason"]:

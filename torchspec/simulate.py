@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
+from .config import ConfigError
 from .geometry import from_plane
 from .io import Capture, Frame, LightSpec, Maps, write_capture
 from .lights import Kernel, Lights
@@ -104,8 +105,17 @@ class Simulation:
 
 
 def layout(config: LayoutConfig) -> Tensor:
-    """Unit light centres ``(K, 3)``, float64, in the order frames are numbered."""
+    """Unit light centres ``(K, 3)``, float64, in the order frames are numbered.
+
+    Raises:
+        ConfigError: ``kind`` is unknown, a count of its kind is below 1, or the layout gives no
+            direction or reaches the horizon (the message names the key).
+    """
     like = dict(dtype=torch.float64)
+    counts = {"grid": ("nx", "ny"), "line": ("n",), "scattered": ("n",)}.get(config.kind, ())
+    for key in counts:
+        if getattr(config, key) < 1:
+            raise ConfigError(f"layout.{key} must be >= 1 for a {config.kind} layout; got {getattr(config, key)}.")
     if config.kind == "grid":
         x = torch.linspace(-config.extent, config.extent, config.nx, **like)
         y = torch.linspace(config.extent, -config.extent, config.ny, **like)  # row by row from the top
@@ -123,11 +133,11 @@ def layout(config: LayoutConfig) -> Tensor:
         psi = 2 * math.pi * torch.rand(config.n, generator=g, **like)
         l = torch.stack([r * torch.cos(psi), r * torch.sin(psi)], -1)
     else:
-        raise ValueError(f"layout.kind must be 'grid', 'line' or 'scattered'; got {config.kind!r}.")
+        raise ConfigError(f"layout.kind must be 'grid', 'line' or 'scattered'; got {config.kind!r}.")
     if l.shape[0] == 0:
-        raise ValueError("layout gives no light direction; widen its radius or add points.")
+        raise ConfigError("layout gives no light direction; widen its radius or add points.")
     if bool(((l * l).sum(-1) >= 1.0).any()):
-        raise ValueError("layout reaches the horizon (|l| >= 1); lower its extent or theta.")
+        raise ConfigError("layout reaches the horizon (|l| >= 1); lower its extent or theta.")
     return from_plane(l)
 
 
@@ -145,10 +155,10 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".") -> Simulation:
     elif config.scene.kind == "mirror":
         truth, regions = mirror(config.scene.mirror, dtype=dtype)
     else:
-        raise ValueError(f"scene.kind must be 'painting' or 'mirror'; got {config.scene.kind!r}.")
+        raise ConfigError(f"scene.kind must be 'painting' or 'mirror'; got {config.scene.kind!r}.")
     count = len(config.channels)
     if truth.diffuse.shape[-1] != count:
-        raise ValueError(f"channels names {count} channels but the scene has {truth.diffuse.shape[-1]}.")
+        raise ConfigError(f"channels: the list names {count} channels but the scene has {truth.diffuse.shape[-1]}.")
     truth = replace(truth, channels=tuple(config.channels))
     centres = layout(config.layout)
     k = centres.shape[0]

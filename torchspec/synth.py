@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
+from .config import ConfigError
 
 __all__ = [
     "GildedConfig",
@@ -184,10 +185,11 @@ class SensorConfig:
 
 
 def _require(checks: list[tuple[bool, str]]) -> None:
-    """Raises ``ValueError`` with the message of the first failed ``(ok, message)`` check."""
+    """Raises :class:`~torchspec.config.ConfigError` with the message of the first failed ``(ok, message)``
+    check."""
     for ok, message in checks:
         if not ok:
-            raise ValueError(message)
+            raise ConfigError(message)
 
 
 def _size_checks(config: PaintingConfig | MirrorConfig) -> list[tuple[bool, str]]:
@@ -423,7 +425,7 @@ def painting(
         (``specular2 (H, W, 1)``, ``roughness2 (H, W, 2)``, 0 outside the dual box).
 
     Raises:
-        ValueError: a setting is out of its domain (the message names it).
+        ConfigError: a setting is out of its domain (the message names it).
 
     Example:
         >>> svbrdf, regions = painting(PaintingConfig(width=32, height=24), dtype=torch.float32)
@@ -496,7 +498,7 @@ def mirror(
         :data:`VARNISHED` (1: a single isotropic or anisotropic lobe, no gilding).
 
     Raises:
-        ValueError: a setting is out of its domain (the message names it).
+        ConfigError: a setting is out of its domain (the message names it).
 
     Example:
         >>> svbrdf, _ = mirror(MirrorConfig(), dtype=torch.float64)
@@ -548,7 +550,7 @@ def sense(
         and a ``(*)`` bool mask of the clipped ones.
 
     Raises:
-        ValueError: a setting is negative.
+        ConfigError: a setting is negative.
 
     Example:
         >>> recorded, saturated = sense(torch.tensor([0.5, 3.0]), SensorConfig(exposure=2.0, saturation=4.0))

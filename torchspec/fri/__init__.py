@@ -22,6 +22,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..errors import TorchspecError
+
 from . import pulses
 from ._coefficients import frequency_list, scattered, uniform
 from ._multi import locate_multi
@@ -35,8 +37,8 @@ locate one pulse only."""
 
 SNR_HALF_QUALITY = 20.0
 """The SNR of the fitted spectrum (its energy over the residual noise variance) at which quality
-is 1/2. Measured on the paper's setups (Gaussian kernels, M = 2 and 8): outliers (error above a
-tenth of the period) run at 2-10 % near an SNR of 12 and below 0.2 % above 40."""
+is 1/2: below it, outliers (error above a tenth of the period) become common on the paper's setups
+(Gaussian kernels, M = 2 and 8)."""
 
 
 @dataclass(frozen=True)
@@ -49,8 +51,8 @@ class Location:
         quality: ``(*)`` in ``[0, 1]``: 1 for a clean, well-conditioned problem, falling as the
             residual that a symmetric pulse cannot explain grows against the explained part
             (noise, an asymmetric kernel, a second peak) or as a scattered layout loses
-            conditioning; 0 for non-finite samples. Mask with e.g. ``quality > 0.5``: on the
-            paper's setups that flags ~90 % of the outliers (error > period / 10) when M = 8.
+            conditioning; 0 for non-finite samples. Mask with e.g. ``quality > 0.5``, which flags
+            most outliers (error > period / 10) on the paper's setups with M = 8.
             With a single coefficient per axis (N <= 4) nothing is left over to measure the
             noise, so quality then only reflects conditioning. For K >= 2 it is
             ``(1 - s_{K+1} / s_K)^2`` from the singular values of the Hankel matrix.
@@ -74,10 +76,10 @@ def _is_real(value) -> bool:
 def _periods(period) -> tuple[float, ...]:
     values = tuple(period) if isinstance(period, Sequence) else (period,)
     if len(values) not in (1, 2):
-        raise ValueError(f"period must be a number (1D) or a pair (2D); got {period!r}.")
+        raise TorchspecError(f"period must be a number (1D) or a pair (2D); got {period!r}.")
     for p in values:
         if not _is_real(p) or not math.isfinite(float(p)) or float(p) <= 0:
-            raise ValueError(f"period must be finite and > 0; got {period!r}.")
+            raise TorchspecError(f"period must be finite and > 0; got {period!r}.")
     return tuple(float(p) for p in values)
 
 
@@ -96,19 +98,19 @@ def _bands(num_coefficients, dims: int, *, grid: tuple[int, ...] | None, scatter
 
     values = (num_coefficients,) * dims if integral(num_coefficients) else tuple(num_coefficients)
     if len(values) != dims or not all(integral(v) for v in values):
-        raise ValueError(
+        raise TorchspecError(
             f"num_coefficients must be an int or {dims} ints for a {dims}D problem; got {num_coefficients!r}."
         )
     values = tuple(int(v) for v in values)
     if min(values) < 1:
-        raise ValueError(f"num_coefficients must be >= 1; got {num_coefficients!r}.")
+        raise TorchspecError(f"num_coefficients must be >= 1; got {num_coefficients!r}.")
     return values
 
 
 def _check_samples(samples) -> Tensor:
     samples = torch.as_tensor(samples)
     if samples.is_complex() or samples.dtype not in (torch.float32, torch.float64):
-        raise ValueError(
+        raise TorchspecError(
             f"samples must be a real float32 or float64 tensor; got {samples.dtype}. "
             "Convert with .float() or .double()."
         )
@@ -151,7 +153,7 @@ def locate(
         :class:`Location` with ``position``, ``quality`` and ``std``.
 
     Raises:
-        ValueError: a malformed call, naming the argument and shape at fault. Per-problem
+        TorchspecError: a malformed call, naming the argument and shape at fault. Per-problem
             trouble (non-finite samples, a rank-deficient per-problem layout) is not raised:
             that problem gets a NaN position and zero quality.
 
@@ -208,26 +210,26 @@ class _Call(NamedTuple):
 
 
 def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> _Call:
-    """Check a call of :func:`locate`; raise ``ValueError`` naming the argument at fault."""
+    """Check a call of :func:`locate`; raise :class:`~torchspec.errors.TorchspecError` naming the argument."""
     samples = _check_samples(samples)
     periods = _periods(period)
     dims = len(periods)
     if not isinstance(num_pulses, int) or isinstance(num_pulses, bool) or num_pulses < 1:
-        raise ValueError(f"num_pulses must be an int >= 1; got {num_pulses!r}.")
+        raise TorchspecError(f"num_pulses must be an int >= 1; got {num_pulses!r}.")
     if method is None:
         method = "coherent" if num_pulses == 1 else "esprit"
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}.")
+        raise TorchspecError(f"method must be one of {METHODS}; got {method!r}.")
     if num_pulses > 1 and method in ("coherent", "ml"):
-        raise ValueError(
+        raise TorchspecError(
             f"method {method!r} locates one pulse; for num_pulses={num_pulses} use 'esprit', 'cadzow' or 'ls'."
         )
     if num_pulses > 1 and dims == 2:
-        raise ValueError(f"num_pulses must be 1 in 2D; got {num_pulses}.")
+        raise TorchspecError(f"num_pulses must be 1 in 2D; got {num_pulses}.")
 
     if positions is None:
         if samples.dim() < dims:
-            raise ValueError(
+            raise TorchspecError(
                 f"samples must have at least {dims} dims ({'(*, N1, N2)' if dims == 2 else '(*, N)'}) "
                 f"for period {period!r}; got shape {tuple(samples.shape)}."
             )
@@ -235,7 +237,7 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> 
         bands = _bands(num_coefficients, dims, grid=sizes)
         for axis, (n, m) in enumerate(zip(sizes, bands, strict=True)):
             if n < 2 * m + 1:
-                raise ValueError(
+                raise TorchspecError(
                     f"samples has {n} samples along axis {axis - dims} (shape {tuple(samples.shape)}); "
                     f"num_coefficients={m} needs at least 2M + 1 = {2 * m + 1}. Pass fewer coefficients."
                 )
@@ -243,25 +245,25 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> 
     else:
         positions = torch.as_tensor(positions)
         if positions.dtype != samples.dtype or positions.device != samples.device:
-            raise ValueError(
+            raise TorchspecError(
                 f"positions must match samples' dtype and device ({samples.dtype}, {samples.device}); "
                 f"got ({positions.dtype}, {positions.device})."
             )
         if samples.dim() < 1:
-            raise ValueError(f"samples must have shape (*, N) with positions; got shape {tuple(samples.shape)}.")
+            raise TorchspecError(f"samples must have shape (*, N) with positions; got shape {tuple(samples.shape)}.")
         n = samples.shape[-1]
         tail = (n,) if dims == 1 else (n, 2)
         if positions.dim() < len(tail) or tuple(positions.shape[positions.dim() - len(tail) :]) != tail:
-            raise ValueError(
+            raise TorchspecError(
                 f"positions must have shape {'(*, N)' if dims == 1 else '(*, N, 2)'} with N = {n} "
                 f"(samples shape {tuple(samples.shape)}); got shape {tuple(positions.shape)}."
             )
         if not bool(torch.isfinite(positions).all()):
-            raise ValueError("positions must be finite; got NaN or Inf.")
+            raise TorchspecError("positions must be finite; got NaN or Inf.")
         bands = _bands(num_coefficients, dims, grid=None, scattered=n)
         unknowns = 1 + 2 * len(frequency_list(bands))
         if n < unknowns:
-            raise ValueError(
+            raise TorchspecError(
                 f"a scattered layout of {n} samples cannot resolve num_coefficients={bands}: "
                 f"that is {unknowns} real unknowns. Pass fewer coefficients or more samples."
             )
@@ -270,12 +272,12 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> 
             try:
                 batch = torch.broadcast_shapes(batch, positions.shape[: positions.dim() - len(tail)])
             except RuntimeError:
-                raise ValueError(
+                raise TorchspecError(
                     f"positions shape {tuple(positions.shape)} does not broadcast with samples shape "
                     f"{tuple(samples.shape)}."
                 ) from None
     if num_pulses > 1 and bands[0] < 2 * num_pulses:
-        raise ValueError(f"num_pulses={num_pulses} needs num_coefficients >= {2 * num_pulses}; got {bands[0]}.")
+        raise TorchspecError(f"num_pulses={num_pulses} needs num_coefficients >= {2 * num_pulses}; got {bands[0]}.")
     return _Call(samples, periods, method, bands, batch, positions)
 
 
@@ -299,7 +301,7 @@ def _coefficients_of(call: _Call) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         resolvable = condition * torch.finfo(flat.dtype).eps * max(flat.shape[-1], y.shape[-1]) < 1
         if shared:
             if not bool(resolvable):
-                raise ValueError(
+                raise TorchspecError(
                     f"the scattered layout cannot resolve num_coefficients={call.bands}: its design matrix is "
                     f"rank-deficient (condition number {float(condition):.3g}); positions repeat or "
                     "cluster. Pass fewer coefficients or spread the positions."

@@ -11,8 +11,8 @@ the kernel, because each solves a stationarity condition that ``I = 0`` satisfie
   envelope of a small dictionary (Gaussian spectra; sinc ones where they fit clearly better
   than noise explains), blended back towards the raw ``R`` where that departs
   from the envelope by more than the noise. With ``b`` equal to the true spectrum this is the
-  known-kernel maximum likelihood, which meets the Cramer-Rao bound; estimating ``b`` costs a
-  few percent at 10 dB and nothing at high SNR.
+  known-kernel maximum likelihood, which meets the Cramer-Rao bound; estimating ``b`` adds
+  error at low SNR only.
 - ``ml`` is the kernel-free likelihood: Gauss-Newton on ``sum_p I_p(theta)^2``, which leaves
   every ``a_p`` free. Efficient at high SNR, but it pays for M nuisance amplitudes at low SNR.
 - ``ls``, ``esprit``, ``cadzow``: the phase of the root of a length-2 annihilating filter on
@@ -78,8 +78,8 @@ def _dictionary(freq: Tensor, bands: tuple[int, ...]) -> _Dictionary:
     coarse grid of ``c`` and refined by a parabola in ``log c``; in 2D also separable ones of
     different widths per axis) and ``sinc(u / u0)`` (box- and disk-like kernels, whose
     spectra change sign), each from flat (a narrow kernel) to gone after the first coefficient
-    (a wide one). Exponential spectra (Lorentzian kernels) were tried as a third family: the
-    Gaussian envelope serves them within noise, so it was never chosen over the penalty.
+    (a wide one). Exponential spectra (Lorentzian kernels) need no family of their own: the
+    Gaussian envelope fits them within noise.
     """
     like = dict(dtype=freq.dtype, device=freq.device)
     edge = torch.tensor(bands, **like)

@@ -22,6 +22,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from ..errors import TorchspecError
+
 __all__ = ["KINDS", "spectrum", "outer", "sample", "sample_2d"]
 
 KINDS = ("gaussian", "lorentzian", "box", "triangle", "raised-cosine")
@@ -52,16 +54,16 @@ def spectrum(kind: str, width: Tensor, num_coefficients: int, *, period: float =
         torch.Size([9])
     """
     if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}; got {kind!r}.")
+        raise TorchspecError(f"kind must be one of {KINDS}; got {kind!r}.")
     if not isinstance(width, Tensor):
         raise TypeError(
             f"width must be a tensor (it sets dtype and device); got {type(width).__name__}. "
             "Pass e.g. torch.tensor(0.05, dtype=torch.float64)."
         )
     if num_coefficients < 0:
-        raise ValueError(f"num_coefficients must be >= 0; got {num_coefficients}.")
+        raise TorchspecError(f"num_coefficients must be >= 0; got {num_coefficients}.")
     if not period > 0:
-        raise ValueError(f"period must be > 0; got {period}.")
+        raise TorchspecError(f"period must be > 0; got {period}.")
     m = torch.arange(num_coefficients + 1, dtype=width.dtype, device=width.device)
     f = m / period  # frequency in cycles per unit
     w = width[..., None]
@@ -128,7 +130,7 @@ def sample(
         torch.Size([17])
     """
     if (num_samples is None) == (positions is None):
-        raise ValueError("give exactly one of num_samples and positions.")
+        raise TorchspecError("give exactly one of num_samples and positions.")
     t = _grid(num_samples, period, location) if positions is None else positions  # (N,) or (*, N)
     m = torch.arange(spectrum.shape[-1], dtype=location.dtype, device=location.device)
     weight = torch.where(m == 0, 1.0, 2.0) * spectrum  # (*, K, M + 1)
@@ -162,7 +164,7 @@ def sample_2d(
         ``(*, N1, N2)`` on a grid, ``(*, N)`` at scattered positions.
     """
     if (shape is None) == (positions is None):
-        raise ValueError("give exactly one of shape and positions.")
+        raise TorchspecError("give exactly one of shape and positions.")
     m1 = torch.arange(spectrum.shape[-2], dtype=location.dtype, device=location.device) - spectrum.shape[-2] // 2
     m2 = torch.arange(spectrum.shape[-1], dtype=location.dtype, device=location.device) - spectrum.shape[-1] // 2
     amp = torch.ones_like(location[..., 0]) if amplitude is None else amplitude

@@ -103,11 +103,14 @@ def read_exr(
             one size, or ``rows`` are not rows of the image.
 
     Example:
-        >>> rgb = read_exr("capture/frames/0000.exr", ["R", "G", "B"])  # doctest: +SKIP
-        >>> rgb.shape
-        (48, 48, 3)
-        >>> read_exr("capture/frames/0000.exr", ["R", "G", "B"], rows=(8, 24)).shape  # doctest: +SKIP
-        (16, 48, 3)
+        >>> import shutil, tempfile
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> write_exr(folder / "0000.exr", np.ones((48, 32, 3)), ["B", "G", "R"])
+        >>> read_exr(folder / "0000.exr").shape  # R, G, B, whatever the order written
+        (48, 32, 3)
+        >>> read_exr(folder / "0000.exr", ["G"], rows=(8, 24)).shape
+        (16, 32, 1)
+        >>> shutil.rmtree(folder)
     """
     if rows is None:
         return _read(Path(path), channels)[1]
@@ -220,7 +223,12 @@ def write_exr(path: str | Path, image, channels: Sequence[str]) -> None:
             channel name is repeated or empty, or OpenEXR fails to write.
 
     Example:
-        >>> write_exr("normal.exr", torch.zeros(48, 64, 3), ["X", "Y", "Z"])  # doctest: +SKIP
+        >>> import shutil, tempfile, torch
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> write_exr(folder / "normal.exr", torch.zeros(48, 64, 3), ["X", "Y", "Z"])
+        >>> sorted(path.name for path in folder.iterdir())  # no temporary file is left
+        ['normal.exr']
+        >>> shutil.rmtree(folder)
     """
     path = Path(path)
     if isinstance(channels, str):

@@ -86,9 +86,15 @@ def read_svbrdf(path: str | Path) -> Maps:
             message names the file and the count of bad pixels).
 
     Example:
-        >>> maps = read_svbrdf("../shared/data/painting-dev/truth")  # doctest: +SKIP
-        >>> maps.svbrdf.shape, sorted(maps.extra)
-        (torch.Size([48, 48]), ['regions'])
+        >>> import shutil, tempfile
+        >>> from torchspec.synth import PaintingConfig, painting
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> svbrdf, regions = painting(PaintingConfig(width=8, height=6), dtype=torch.float32)
+        >>> write_svbrdf(folder, svbrdf, extra={"regions": regions})
+        >>> maps = read_svbrdf(folder)
+        >>> maps.svbrdf.shape, sorted(maps.extra), maps.meta["model"]
+        (torch.Size([6, 8]), ['regions'], 'ward')
+        >>> shutil.rmtree(folder)
     """
     path = Path(path)
     folder = path.parent if path.suffix.lower() == ".json" or path.is_file() else path
@@ -188,7 +194,7 @@ def write_svbrdf(
             size or a reserved name, or ``meta`` is not JSON or contradicts the format.
 
     Example:
-        >>> write_svbrdf("fit", svbrdf, meta={"model": "ward"}, extra={"quality": q})  # doctest: +SKIP
+        :func:`read_svbrdf`'s example writes a folder of maps and reads it back.
     """
     folder = Path(path)
     if isinstance(maps_or_svbrdf, Maps):

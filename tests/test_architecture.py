@@ -1,0 +1,59 @@
+"""The package's layout keeps the limits of ``docs/architecture.md``, measured by
+``experiments/architecture.py``: module and function lengths, underscore names that stay inside
+their subpackage, and no function of a package hiding a module of the same name."""
+
+import importlib
+import importlib.util
+import inspect
+import pkgutil
+from pathlib import Path
+
+import torchspec
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _architecture():
+    """``experiments/architecture.py`` imported by its path (experiments/ is not a package)."""
+    spec = importlib.util.spec_from_file_location("architecture", ROOT / "experiments" / "architecture.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+ARCHITECTURE = _architecture()
+
+
+def test_no_module_is_over_the_limit():
+    over = [(name, lines) for name, lines in ARCHITECTURE.modules() if lines > ARCHITECTURE.MODULE_LINES]
+    assert not over, f"modules over {ARCHITECTURE.MODULE_LINES} lines: {over}"
+
+
+def test_no_function_is_over_the_limit():
+    over = [(name, lines) for name, lines in ARCHITECTURE.functions() if lines > ARCHITECTURE.FUNCTION_LINES]
+    assert not over, f"functions over {ARCHITECTURE.FUNCTION_LINES} lines: {over}"
+
+
+def test_no_underscore_name_crosses_a_module_boundary():
+    crossing = ARCHITECTURE.private_imports()
+    assert not crossing, "underscore names imported across modules:\n" + "\n".join(crossing)
+
+
+def test_the_layout_script_passes():
+    assert ARCHITECTURE.main(["--most", "0"]) == 0
+
+
+def test_no_function_of_a_package_hides_a_module_of_that_package():
+    hidden = []
+    packages = [torchspec] + [
+        importlib.import_module(info.name)
+        for info in pkgutil.walk_packages(torchspec.__path__, "torchspec.")
+        if info.ispkg
+    ]
+    for package in packages:
+        submodules = {info.name for info in pkgutil.iter_modules(package.__path__)}
+        for name in submodules:
+            value = package.__dict__.get(name)
+            if value is not None and not inspect.ismodule(value):
+                hidden.append(f"{package.__name__}.{name} is a {type(value).__name__}, hiding the module")
+    assert not hidden, "\n".join(hidden)
