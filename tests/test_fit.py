@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.cli import main
-from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
@@ -170,7 +170,7 @@ def test_the_fits_quadrature_changes_little(painting):
 def _fitmodule():
     import importlib
 
-    return importlib.import_module("torchspec.fit")
+    return importlib.import_module("torchspec.pipeline.solver")
 
 
 def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):

@@ -145,12 +145,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
     """``torchspec fit --scheduler/--workers``: the same fit, its tiles on a Dask cluster."""
-    from .distributed import ClusterError, connect
-    from .distributed import fit as fit_on
+    from .pipeline import ClusterError, connect, fit_on_cluster
 
     try:
         with connect(args.scheduler, workers=args.workers) as client:
-            return fit_on(args.capture, client, checkpoint=checkpoint, config=config, frames=args.frames,
+            return fit_on_cluster(args.capture, client, checkpoint=checkpoint, config=config, frames=args.frames,
                           progress=not args.quiet, resume=args.resume)
     except ClusterError as error:  # printed by main like an unreadable file: the message names the address or tile
         raise OSError(str(error)) from error
@@ -173,7 +172,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
               f"{''.join(result.channels)}, with truth/")
     elif args.command == "fit":
         from .config import load_config
-        from .fit import FitConfig, FitInterrupted, fit, write_fit
+        from .pipeline import FitConfig, FitInterrupted, fit, write_fit
 
         config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
         if args.model is not None:
