@@ -92,6 +92,23 @@ def test_a_bad_sample_is_masked_not_fitted(painting, tmp_path):
     assert error < 0.1, f"normal error at the masked pixel {error:.3g} deg"
 
 
+def test_every_stage_is_a_module_and_fit_a_function():
+    import importlib
+    import importlib.util
+    import pkgutil
+
+    import torchspec
+    from torchspec import pipeline
+
+    assert callable(torchspec.fit) and torchspec.fit is pipeline.fit
+    assert importlib.util.find_spec("torchspec.fit") is None and importlib.util.find_spec("torchspec.distributed") is None
+    stages = [info.name for info in pkgutil.iter_modules(pipeline.__path__)]
+    assert {"settings", "start", "solver", "uncertainty", "selection", "checks", "tile", "cluster"} <= set(stages)
+    assert not set(stages) & set(pipeline.__all__)  # no re-exported name hides a stage
+    for name in stages:
+        importlib.import_module(f"torchspec.pipeline.{name}")
+
+
 def test_select_frames():
     assert select_frames(None, 5) == [0, 1, 2, 3, 4]
     assert select_frames("::2", 5) == [0, 2, 4]

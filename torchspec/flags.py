@@ -1,10 +1,9 @@
 """Per-pixel flags: which fitted pixels not to trust, and why.
 
 A fit's residual and deviations describe a pixel whose model is right; they do not say when the
-estimate is wrong altogether. The stability study (``experiments/stability.py``) measured which
-checks do: the solver's status and the photometric-stereo quality catch almost none of the peaks
-located more than 10 Cramer-Rao deviations away from the truth, while two checks against the
-samples around the fitted peak catch most of them:
+estimate is wrong altogether (a peak placed far from the truth). Two checks against the samples
+around the fitted peak tell (``experiments/stability.py`` compares them with the solver's status
+and the photometric-stereo quality):
 
 - ``peak_misfit``: the mean square of the residual, in units of each sample's noise, over the
   frames whose light lies within ``reach`` blurred widths of the fitted peak (the lobe's l-plane

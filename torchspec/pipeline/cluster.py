@@ -226,14 +226,7 @@ def fit_on_cluster(
     pixels = h * w
     itemsize = torch.finfo(view.dtype).bits // 8
     config, tile = plan(config, k, c, h, w, itemsize)
-    stack_bytes = k * c * pixels * itemsize
-    if not config.tile and stack_bytes + RUNTIME_BYTES > config.memory_gib * 2**30:
-        warnings.warn(
-            f"the frame stack ({stack_bytes / 2**30:.1f} GiB) leaves no room in memory_gib ({config.memory_gib}), "
-            f"so tiles fall to {tile} pixels (the in-process fit's rule, kept so that both fit alike); set the "
-            "config's tile (e.g. 16384: ~2 GiB per worker thread at 144 frames; docs/scale.md).",
-            stacklevel=2,
-        )
+    _warn_small_tiles(config, tile, k * c * pixels * itemsize)
     folder = Path(checkpoint).resolve()
     folder.mkdir(parents=True, exist_ok=True)
     _check_workers(client, capture, folder)  # before a job is recorded in the folder
@@ -261,15 +254,7 @@ def fit_on_cluster(
     except KeyboardInterrupt as interrupt:
         raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
     ordered = [parts[first] for first in firsts]
-    masked = None
-    if all(part.masked is not None for part in ordered):
-        masked = {name: sum(part.masked[name] for part in ordered) for name in MASK_KINDS}
-        if masked["nonfinite"]:
-            warnings.warn(
-                f"{masked['nonfinite']} sample(s) with NaN or Inf were masked; `torchspec info {capture.root}` names "
-                "their frames.",
-                stacklevel=2,
-            )
+    masked = _masked(ordered, capture)
     threads = client.nthreads()
     stats = run_stats(
         capture=capture,
@@ -285,6 +270,32 @@ def fit_on_cluster(
         cluster={"scheduler": client.scheduler.address, "workers": len(threads), "threads": sum(threads.values()), **report},
     )
     return assemble(ordered, height=h, width=w, channels=capture.channels, stats=stats, started=started)
+
+
+def _warn_small_tiles(config: FitConfig, tile: int, stack_bytes: int) -> None:
+    """Warn when the frame stack leaves no room in ``memory_gib`` for the tiles it sizes."""
+    if not config.tile and stack_bytes + RUNTIME_BYTES > config.memory_gib * 2**30:
+        warnings.warn(
+            f"the frame stack ({stack_bytes / 2**30:.1f} GiB) leaves no room in memory_gib ({config.memory_gib}), "
+            f"so tiles fall to {tile} pixels (the in-process fit's rule, kept so that both fit alike); set the "
+            "config's tile (e.g. 16384 pixels; docs/scale.md).",
+            stacklevel=3,
+        )
+
+
+def _masked(parts: list[TileResult], capture: Capture) -> dict[str, int] | None:
+    """The masked samples per kind over the tiles (``None`` when a tile lacks the count), with a
+    warning for NaN or Inf samples (the workers do not warn per frame)."""
+    if not all(part.masked is not None for part in parts):
+        return None
+    masked = {name: sum(part.masked[name] for part in parts) for name in MASK_KINDS}
+    if masked["nonfinite"]:
+        warnings.warn(
+            f"{masked['nonfinite']} sample(s) with NaN or Inf were masked; `torchspec info {capture.root}` names "
+            "their frames.",
+            stacklevel=3,
+        )
+    return masked
 
 
 def _fit_on(client, job: _Job, todo: list[int], report: dict, retries: int) -> Iterator[tuple[int, TileResult]]:

@@ -68,8 +68,7 @@ class FitConfig:
             them leaves ``criterion`` and ``std`` NaN.
         flag_peak_misfit, flag_astray, flag_reach: the thresholds of the ``peak_misfit`` and
             ``astray`` flags and the neighbourhood of the peak (:mod:`torchspec.flags`; they need
-            the noise: ``uncertainty`` or ``auto``). Set by the stability study: they catch most
-            peaks placed more than 10 Cramer-Rao deviations away while flagging few good ones.
+            the noise: ``uncertainty`` or ``auto``); ``experiments/stability.py`` chose the defaults.
         smooth: spatial regularisation of ``auto``'s choice between a lobe and none (a matte region
             of a painting is contiguous): the criterion of a pixel gains ``smooth`` for each of its
             four neighbours on the other side of that choice, and the image's total is lowered pixel
