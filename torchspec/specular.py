@@ -230,7 +230,9 @@ def grid_search(
     return LobeStart(_half_vector(best_peak, view), best_peak, best_ks, best_alpha, torch.ones_like(best))
 
 
-def naive_start(residual: Tensor, layout: Layout, view: Tensor, *, prior_normal: Tensor, alpha: float = 0.1) -> LobeStart:
+def naive_start(
+    residual: Tensor, layout: Layout, view: Tensor, *, prior_normal: Tensor, alpha: float = 0.1
+) -> LobeStart:
     """The photometric-stereo normal, ``alpha`` and ``k_s`` from the residual's energy."""
     peak = mirror_point(prior_normal, view)
     mass = (residual.clamp(min=0.0) * layout.area).sum(-1)

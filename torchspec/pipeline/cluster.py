@@ -34,7 +34,7 @@ import time
 import uuid
 import warnings
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -267,7 +267,12 @@ def fit_on_cluster(
         # worker-seconds, summed over the tasks (the tiles' stages too); "total" is the wall time
         seconds={**seconds, "read": report.pop("read"), "masks": report.pop("masks")},
         masked=masked,
-        cluster={"scheduler": client.scheduler.address, "workers": len(threads), "threads": sum(threads.values()), **report},
+        cluster={
+            "scheduler": client.scheduler.address,
+            "workers": len(threads),
+            "threads": sum(threads.values()),
+            **report,
+        },
     )
     return assemble(ordered, height=h, width=w, channels=capture.channels, stats=stats, started=started)
 

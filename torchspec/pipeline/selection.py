@@ -120,8 +120,8 @@ class Choice:
         rotation = zeros(n) if any(get_model(name).anisotropic for name in ladder) else None
         dual = any(get_model(name).dual for name in ladder)  # a second lobe's maps, 0 where not fitted
         second = (zeros((n, 1)), zeros((n, 2))) if dual else (None, None)
-        svbrdf = SVBRDF(ps.normal.clone(), ps.diffuse.clone(), zeros((n, 1 if grey else c)), zeros((n, 2)),
-                        rotation, channels, *second)  # fmt: skip
+        specular = zeros((n, 1 if grey else c))
+        svbrdf = SVBRDF(ps.normal.clone(), ps.diffuse.clone(), specular, zeros((n, 2)), rotation, channels, *second)
         nan = math.nan
         deviation = {
             "normal": ps.diffuse.new_full((n,), nan),

@@ -72,11 +72,12 @@ class FitConfig:
         smooth: spatial regularisation of ``auto``'s choice between a lobe and none (a matte region
             of a painting is contiguous): the criterion of a pixel gains ``smooth`` for each of its
             four neighbours on the other side of that choice, and the image's total is lowered pixel
-            by pixel (:func:`torchspec.pipeline.smoothing.smooth_choice`). Every pixel given a lobe is then also fitted without one
-            (its ``diffuse`` fit is the alternative). ``0`` (the default): each pixel on its own, and a
-            pixel whose samples show a peak always gets a lobe. In units of the criterion: the BIC
-            charges ``ln n`` (~5 for a few hundred samples) per parameter, so ``smooth = 10`` lets
-            four matte neighbours outweigh about eight parameters' worth of improvement.
+            by pixel (:func:`torchspec.pipeline.smooth_choice`). Every pixel given a lobe is then
+            also fitted without one (its ``diffuse`` fit is the alternative). ``0`` (the default):
+            each pixel on its own, and a pixel whose samples show a peak always gets a lobe. In
+            units of the criterion: the BIC charges ``ln n`` (~5 for a few hundred samples) per
+            parameter, so ``smooth = 10`` lets four matte neighbours outweigh about eight
+            parameters' worth of improvement.
         select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
             degrees of freedom by more than ``select_z`` of its standard deviations
             (``dof + select_z sqrt(2 dof)``): the residual is not noise.
@@ -163,10 +164,13 @@ class FitConfig:
         if self.init not in INITS:
             raise ConfigError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
         if self.quadrature not in QUADRATURES:
-            raise ConfigError(f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}.")
+            raise ConfigError(
+                f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}."
+            )
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"FitConfig.dtype must be 'float32' or 'float64'; got {self.dtype!r}.")
-        for name in ("detect", "noise_floor", "naive_alpha", "memory_gib", "flag_peak_misfit", "flag_astray", "flag_reach"):
+        positive = ("detect", "noise_floor", "naive_alpha", "memory_gib")
+        for name in (*positive, "flag_peak_misfit", "flag_astray", "flag_reach"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FitConfig.{name} must be > 0; got {getattr(self, name)!r}.")
         if self.tile < 0:

@@ -56,7 +56,8 @@ def plain_alternative(
 ) -> PlainFit:
     """A tile's fits without a lobe: ``chosen`` (the tile's outputs) where the chosen model
     ``code (n,)`` is ``diffuse``, a fit of the ``diffuse`` model elsewhere (counted in ``tried``)."""
-    plain = replace(chosen, criterion=torch.where(code == 0, chosen.criterion, torch.full_like(chosen.criterion, math.inf)))
+    criterion = torch.where(code == 0, chosen.criterion, torch.full_like(chosen.criterion, math.inf))
+    plain = replace(chosen, criterion=criterion)
     index = (code > 0).nonzero()[:, 0]
     if not index.numel():
         return plain
@@ -114,7 +115,9 @@ def smooth_choice(lobed: Tensor, plain: Tensor, weight: float, sweeps: int = SMO
         False
     """
     if lobed.shape != plain.shape or lobed.dim() != 2:
-        raise TorchspecError(f"smooth_choice: lobed and plain must be (H, W) alike; got {tuple(lobed.shape)} and {tuple(plain.shape)}.")
+        raise TorchspecError(
+            f"smooth_choice: lobed and plain must be (H, W) alike; got {tuple(lobed.shape)} and {tuple(plain.shape)}."
+        )
     choice = lobed < plain
     h, w = choice.shape
 

@@ -77,7 +77,13 @@ def _moved(value, device):
 
 
 def fit_pixels(
-    y: Tensor, valid: Tensor, lights: Lights, view: Tensor, channels: tuple[str, ...], config: FitConfig, ctx: LightContext
+    y: Tensor,
+    valid: Tensor,
+    lights: Lights,
+    view: Tensor,
+    channels: tuple[str, ...],
+    config: FitConfig,
+    ctx: LightContext,
 ) -> TileResult:
     """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
 
