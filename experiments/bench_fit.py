@@ -35,11 +35,10 @@ from _common import parse_args, scipy_fit
 from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.fit import QUADRATURES, FitConfig, start
+from torchspec.pipeline import QUADRATURES, FitConfig, starting_point
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.models import get_model
-from torchspec.relight import lights_of
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import PaintingConfig, SensorConfig
 
@@ -91,7 +90,7 @@ def _capture(settings: Settings) -> Path:
 _CHILD = """
 import json, resource, sys, time, torch
 from torchspec.config import from_mapping
-from torchspec.fit import FitConfig, fit, write_fit
+from torchspec.pipeline import FitConfig, fit, write_fit
 torch.set_num_threads({threads})
 config = from_mapping(json.loads(sys.argv[1]), FitConfig)
 start = time.perf_counter()
@@ -145,12 +144,12 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
     torch.set_num_threads(settings.threads)
     capture = read_capture(capture_dir)
     dtype = getattr(torch, settings.fit.dtype)
-    lights = lights_of(capture, dtype=dtype)
+    lights = capture.lights(dtype=dtype)
     view = torch.tensor(capture.view, dtype=dtype)
     stack = capture.read_frames(dtype=dtype).flatten(2)  # (K, C, H W)
     y = stack[:, :, pick].permute(2, 0, 1)  # (n, K, C)
     # The fit's own start (photometric stereo, then the FRI peak), as the fit would make it.
-    begun = start(y, torch.isfinite(y).all(-1), lights, view, config=settings.fit)
+    begun = starting_point(y, torch.isfinite(y).all(-1), lights, view, config=settings.fit)
     if settings.fit.model == "auto":  # the baseline fits one model; auto picks among several per pixel
         raise ValueError("bench_fit compares one model with scipy: set fit.model to one of the models, not 'auto'.")
     model = get_model(settings.fit.model)

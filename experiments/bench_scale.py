@@ -5,11 +5,11 @@ A procedural painting of ``size x size`` pixels is rendered under a ``grid x gri
 projected Gaussian light (144 frames by default), with shot noise, and written as a capture
 (cached between runs). Each fit then runs in a fresh process:
 
-- in-process (:func:`torchspec.fit`) with ``threads`` torch threads;
-- on a local cluster of ``workers`` processes of one thread each (:mod:`torchspec.distributed`):
+- in-process (:func:`torchspec.pipeline.fit`) with ``threads`` torch threads;
+- on a local cluster of ``workers`` processes of one thread each (:mod:`torchspec.pipeline.cluster`):
   the time to start the cluster and import torchspec in its workers, then the fit's;
 - on one worker started with Dask's default ``MALLOC_TRIM_THRESHOLD_``, with and without the
-  reset of glibc's thresholds that :func:`torchspec.distributed.fit` applies in such a worker.
+  reset of glibc's thresholds that :func:`torchspec.pipeline.fit_on_cluster` applies in such a worker.
 
 Every fit's maps are compared with the one-thread in-process fit's (``torch.equal``). The workers'
 bytes read are counted by the kernel (``/proc/thread-self/io``), against the capture's size on
@@ -37,7 +37,7 @@ from bench_fit import _capture  # the same simulated painting, cached by its set
 
 from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
-from torchspec.fit import FitConfig
+from torchspec.pipeline import FitConfig
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ class Settings:
 _CHILD = """
 import importlib, json, os, sys, time, torch
 from torchspec.config import from_mapping
-from torchspec.fit import FitConfig, fit
+from torchspec.pipeline import FitConfig, fit
 engine, count = sys.argv[1], int(sys.argv[2])
 config = from_mapping(json.loads(sys.argv[3]), FitConfig)
 capture, maps, checkpoint = sys.argv[4], sys.argv[5], sys.argv[6]
@@ -73,7 +73,8 @@ if engine == "in-process":
 else:
     import dask
     from distributed import Client, LocalCluster
-    from torchspec.distributed import connect, fit as fit_on
+    from torchspec.pipeline import connect
+    from torchspec.pipeline import fit_on_cluster as fit_on
     start = time.perf_counter()
     if engine == "dask":
         context = connect(workers=count)
@@ -81,9 +82,9 @@ else:
         cluster = LocalCluster(n_workers=count, threads_per_worker=1, host="127.0.0.1", dashboard_address=None)
         context = Client(cluster, set_as_default=False)
     with context as client:
-        client.run(importlib.import_module, "torchspec.distributed")  # the workers' imports, outside the fit
+        client.run(importlib.import_module, "torchspec.pipeline.cluster")  # the workers' imports, outside the fit
         if engine == "dask-malloc-trim":  # as if the reset of glibc's thresholds had been done already
-            client.run(lambda: importlib.import_module("torchspec.distributed")._PINNED.append(True))
+            client.run(lambda: importlib.import_module("torchspec.pipeline.cluster")._PINNED.append(True))
         out["environ"] = client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
         out["startup_seconds"] = time.perf_counter() - start
         start = time.perf_counter()

@@ -31,7 +31,7 @@ from _common import ROOT, parse_args  # noqa: E402
 
 from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.fit import FitConfig, fit  # noqa: E402
+from torchspec.pipeline import FitConfig, fit  # noqa: E402
 from torchspec.geometry import (
     angle,  # noqa: E402
     from_plane,  # noqa: E402

@@ -32,10 +32,9 @@ from _common import ROOT, parse_args  # noqa: E402
 from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.brdf import SVBRDF  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.fit import FitConfig, fit, select_frames  # noqa: E402
+from torchspec.pipeline import FitConfig, fit, select_frames  # noqa: E402
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
-from torchspec.relight import lights_of  # noqa: E402
 from torchspec.render import render  # noqa: E402
 from torchspec.report import score  # noqa: E402
 
@@ -45,7 +44,7 @@ TARGETS = {"normal_deg": 0.5, "kd": 0.03, "alpha": 0.10, "held_out_psnr_db": 40.
 @dataclass(frozen=True)
 class Run:
     label: str
-    frames: str  # a SPEC of torchspec.fit.select_frames
+    frames: str  # a SPEC of torchspec.pipeline.select_frames
     fit: FitConfig
 
 
@@ -58,7 +57,7 @@ class Settings:
 
 def _held_out(svbrdf: SVBRDF, capture, frames: list[int], observed: torch.Tensor) -> float:
     """PSNR of predicting ``frames`` from the maps (peak: the maximum of the whole capture)."""
-    lights = lights_of(capture, dtype=torch.float64)[frames]
+    lights = capture.lights(dtype=torch.float64)[frames]
     view = torch.tensor(capture.view, dtype=torch.float64)
     predicted = render(svbrdf.flatten().to(torch.float64), lights, view).permute(1, 2, 0)  # (K, C, H W)
     truth = observed[frames].flatten(2)

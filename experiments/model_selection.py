@@ -13,7 +13,7 @@ varnish): the share of pixels whose truth lies within 2 standard deviations, per
 (a Gaussian estimate: 95 %; the target is 90-98 %), and the sensor noise fitted against the
 simulated one.
 
-``runs`` adds fits with other settings (:class:`torchspec.fit.FitConfig`, by label): ``auto`` without
+``runs`` adds fits with other settings (:class:`torchspec.pipeline.FitConfig`, by label): ``auto`` without
 ``ward-dual`` (its ``ladder``), to show what trying two lobes costs where no pixel has them, and
 ``auto`` with its choice smoothed (``smooth``).
 
@@ -32,7 +32,7 @@ from _common import ROOT, parse_args
 
 from torchspec.atomic import write_json
 from torchspec.config import from_mapping, load_config
-from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.report import REGIONS, score
@@ -50,7 +50,7 @@ class Coverage:
 @dataclass(frozen=True)
 class Settings:
     capture: str  # relative to the repository root
-    frames: str  # a SPEC of torchspec.fit.select_frames
+    frames: str  # a SPEC of torchspec.pipeline.select_frames
     models: tuple[str, ...]  # "auto" and the forced ones
     matte_ks: float
     coverage: Coverage

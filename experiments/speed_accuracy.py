@@ -37,9 +37,8 @@ from bench_fit import _capture, _scipy, _scores  # noqa: E402
 
 from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.fit import FitConfig, fit, start  # noqa: E402
+from torchspec.pipeline import FitConfig, fit, starting_point  # noqa: E402
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
-from torchspec.relight import lights_of  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -74,12 +73,12 @@ def _timed(repeats: int, run):
 def _start_row(folder: Path, config: FitConfig, repeats: int):
     capture = read_capture(folder)
     dtype = getattr(torch, config.dtype)
-    lights, view = lights_of(capture, dtype=dtype), torch.tensor(capture.view, dtype=dtype)
+    lights, view = capture.lights(dtype=dtype), torch.tensor(capture.view, dtype=dtype)
     y = capture.read_frames(dtype=dtype).flatten(2).permute(2, 0, 1)  # (H W, K, C)
     valid = torch.isfinite(y).all(-1)
 
     def run():
-        return start(y, valid, lights, view, config=config).svbrdf(capture.channels)
+        return starting_point(y, valid, lights, view, config=config).svbrdf(capture.channels)
 
     return _timed(repeats, run)
 

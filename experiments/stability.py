@@ -11,7 +11,7 @@ l-plane (errors in l units; near the zenith one l unit is ~28.6 degrees of the n
   periodicity); and the baseline FRI replaces, ``peak`` picking (argmax + parabola) on *point-light*
   samples at the same positions with the same noise. The grazing axis renders a Ward lobe with
   :func:`torchspec.render.render` instead.
-- *pipeline*, :func:`torchspec.fit.fit` (``ward-iso``) on small simulated captures, a pixel per
+- *pipeline*, :func:`torchspec.pipeline.fit` (``ward-iso``) on small simulated captures, a pixel per
   trial, an ``N x N`` grid of lights, with ``matte`` pixels from dark to light on which the fit
   measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.init``); the peak is the
   mirror direction of the fitted normal, the error its 2D distance to the truth.
@@ -59,8 +59,9 @@ import torchspec as ts
 from torchspec.atomic import atomic_path, save_figure, write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.fit import MODEL_CODES, FitConfig, fit
-from torchspec.flags import bit, mirror_peak, untrusted
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit
+from torchspec.flags import bit, untrusted
+from torchspec.layout import mirror_point
 from torchspec.geometry import angles_from_normal, from_plane, normal_from_angles, normalize
 from torchspec.io import Capture, Frame, LightSpec, write_capture
 from torchspec.jacobian import jacobian
@@ -205,7 +206,7 @@ def flag_location(trial: dict, rule: LocationRule):
 
 
 def flag_fit(trial: dict, rule: FitRule):
-    """Flag fitted pixels ``(T,)`` from :class:`torchspec.fit.Fit`: ``quality`` low, ``chi2_z`` (the
+    """Flag fitted pixels ``(T,)`` from :class:`torchspec.pipeline.Fit`: ``quality`` low, ``chi2_z`` (the
     criterion's chi^2 against its degrees of freedom, in standard deviations) high, a ``status``
     other than converged, no ``lobe`` detected, the normal's ``std_deg`` large, a misfit under the
     peak (``local``) or the peak far from the brightest sample (``astray``; :func:`torchspec.flags.peak_checks`)."""
@@ -540,7 +541,7 @@ def _location_cell(settings: Settings, cell: Setting, sigma: float, generator) -
     return out
 
 
-# --- the pipeline family: torchspec.fit on small captures ---------------------------------------------
+# --- the pipeline family: torchspec.pipeline.fit on small captures ---------------------------------------------
 
 
 def _kernel(cell: Setting, settings: Settings) -> tuple[list[tuple[float, Tensor, Kernel]], LightSpec]:
@@ -613,7 +614,7 @@ def _slope(normal, view):
         step = torch.zeros_like(angles)
         step[:, j] = h
         plus, minus = normal_from_angles(angles + step), normal_from_angles(angles - step)
-        columns.append((mirror_peak(plus, view) - mirror_peak(minus, view)) / (2 * h))
+        columns.append((mirror_point(plus, view) - mirror_point(minus, view)) / (2 * h))
     return torch.stack(columns, -1)
 
 
@@ -714,7 +715,7 @@ def _fit_group(settings: Settings, folder: Path, group: dict, cells, init: str) 
     weak = (flags.to(torch.int32) & bit("weak_lobe")) != 0
     verdict = untrusted(flags) | ~result.lobe.reshape(-1) | weak
     normal = result.svbrdf.normal.reshape(-1, 3).double()
-    peak = mirror_peak(normal, group["view"])
+    peak = mirror_point(normal, group["view"])
     model = result.model.reshape(-1)
     size = torch.tensor([get_model(name).size(1) for name in MODEL_CODES], dtype=F64)[model.long()]
     n = torch.tensor(float(group["frames"]), dtype=F64)

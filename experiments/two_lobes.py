@@ -36,12 +36,13 @@ from _common import parse_args, scipy_fit
 from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.fit import MODEL_CODES, QUADRATURES, FitConfig, _lm_stage, fit, select_frames, start
+from torchspec.pipeline import MODEL_CODES, QUADRATURES, FitConfig, fit, select_frames, starting_point
+from torchspec.pipeline.samples import TileSamples
+from torchspec.pipeline.solver import solve_pixels
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import Lights
 from torchspec.models import get_model
-from torchspec.relight import lights_of
 from torchspec.render import render
 from torchspec.report import REGIONS
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
@@ -124,15 +125,16 @@ def _baseline(settings: Settings, folder: Path, frames: list[int], chosen: torch
     capture = read_capture(folder)
     config = FitConfig(model="ward-dual")
     dtype = getattr(torch, config.dtype)
-    lights = lights_of(capture, dtype=dtype)[frames]
+    lights = capture.lights(dtype=dtype)[frames]
     view = torch.tensor(capture.view, dtype=dtype)
     y = capture.read_frames(dtype=dtype)[frames].flatten(2)[:, :, chosen].permute(2, 0, 1)  # (n, K, C)
     valid = torch.isfinite(y).all(-1)
-    begun = start(y, valid, lights, view, config=config)
+    begun = starting_point(y, valid, lights, view, config=config)
     init = begun.svbrdf(capture.channels)
     model = get_model("ward-dual")
     t0 = time.perf_counter()
-    ours, _ = _lm_stage(model, init, y, valid / begun.level[:, None], lights, view, capture.channels, config)
+    data = TileSamples.of(y, valid, begun.level, lights, view, capture.channels)
+    ours = solve_pixels("ward-dual", torch.arange(y.shape[0]), init, data, config).svbrdf
     seconds = time.perf_counter() - t0
     g = torch.Generator().manual_seed(settings.seed)
     pick = torch.randperm(y.shape[0], generator=g)[: settings.scipy_pixels].sort().values
@@ -186,7 +188,7 @@ def main(argv: list[str] | None = None) -> dict:
         left = [i for i in range(count) if i not in frames]
         observed = capture.read_frames(dtype=torch.float64).flatten(2).permute(2, 0, 1)  # (N, K, C)
         peak = float(observed.abs().max())
-        held = lights_of(capture, dtype=torch.float64)[left]
+        held = capture.lights(dtype=torch.float64)[left]
         view = torch.tensor(capture.view, dtype=torch.float64)
         box = regions == DUAL
         bound = {

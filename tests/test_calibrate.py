@@ -214,7 +214,6 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
     from dataclasses import replace
 
     from torchspec.io import LightSpec, read_capture, read_svbrdf, write_capture
-    from torchspec.relight import lights_of
 
     kernel_file = tmp_path / "out" / "kernel.exr"
     assert (
@@ -249,7 +248,7 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
     write_capture(target, replace(source, root=target, light=LightSpec(**light), width=1, height=1), frames)
     capture = read_capture(target)
     assert capture.light.kernel == "tabulated" and capture.read_kernel().shape == (16, 16)
-    lights = lights_of(capture)
+    lights = capture.lights()
     picked = torch.arange(2, 80, 8)  # every 8th frame keeps the test fast
     lights = lights[picked]
     maps = read_svbrdf(DATA / "mirror-dev-1d" / "truth").svbrdf[5:6, 7:8].to(F64)
@@ -265,7 +264,7 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
 def test_fit_with_a_calibrated_kernel(tmp_path):
     from dataclasses import replace
 
-    from torchspec.fit import FitConfig, fit
+    from torchspec.pipeline import FitConfig, fit
     from torchspec.geometry import angle
     from torchspec.io import LightSpec, read_capture, read_svbrdf, write_capture
 

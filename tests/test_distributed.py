@@ -20,13 +20,12 @@ import cloudpickle  # noqa: E402 (installed with distributed)
 from capture_cases import write_small_painting  # noqa: E402
 
 from torchspec.cli import CHECKPOINT, main  # noqa: E402
-from torchspec.distributed import ClusterError, connect  # noqa: E402
-from torchspec.distributed import fit as fit_on  # noqa: E402
-from torchspec.fit import FitConfig, FitInterrupted, fit, write_fit  # noqa: E402
+from torchspec.pipeline import ClusterError, FitConfig, FitInterrupted, connect, fit, write_fit  # noqa: E402
+from torchspec.pipeline import fit_on_cluster as fit_on  # noqa: E402
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
 from torchspec.io.exr import ExrError, read_exr, write_exr  # noqa: E402
 
-FIT = importlib.import_module("torchspec.fit")  # the module (torchspec.fit is also the function)
+TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")
 CONFIG = FitConfig(tile=7)  # 21 tiles of a 12 x 12 image, most across two rows
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # _fail_on_workers runs on the workers
@@ -124,7 +123,7 @@ def test_a_worker_killed_mid_fit_loses_no_tile(capture, client, reference, tmp_p
 def test_either_engine_resumes_the_other(capture, client, reference, tmp_path, monkeypatch):
     folder = tmp_path / "tiles"
     calls = []
-    real = FIT._tile
+    real = TILE.fit_pixels
 
     def interrupt_after_five(*args, **kwargs):
         if len(calls) == 5:
@@ -132,7 +131,7 @@ def test_either_engine_resumes_the_other(capture, client, reference, tmp_path, m
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(FIT, "_tile", interrupt_after_five)
+    monkeypatch.setattr(TILE, "fit_pixels", interrupt_after_five)
     with pytest.raises(FitInterrupted):
         fit(capture, config=CONFIG, checkpoint=folder)
     monkeypatch.undo()
@@ -169,8 +168,8 @@ def test_a_band_of_rows_reads_only_its_blocks(tmp_path):
 
 def _fail_on_workers(pixels: int) -> None:
     """Make the tiles of ``pixels`` pixels fail in this (worker) process."""
-    module = importlib.import_module("torchspec.fit")
-    real = getattr(module, "_real_tile", module._tile)
+    module = importlib.import_module("torchspec.pipeline.tile")
+    real = getattr(module, "_real_tile", module.fit_pixels)
     module._real_tile = real
 
     def tile(y, *args):
@@ -178,12 +177,12 @@ def _fail_on_workers(pixels: int) -> None:
             raise FloatingPointError("injected")
         return real(y, *args)
 
-    module._tile = tile
+    module.fit_pixels = tile
 
 
 def _heal_workers() -> None:
-    module = importlib.import_module("torchspec.fit")
-    module._tile = getattr(module, "_real_tile", module._tile)
+    module = importlib.import_module("torchspec.pipeline.tile")
+    module.fit_pixels = getattr(module, "_real_tile", module.fit_pixels)
 
 
 def test_a_failing_tile_is_named(capture, client, tmp_path):

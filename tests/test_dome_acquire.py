@@ -31,7 +31,7 @@ from torchspec.dome.acquire import (
 )
 from torchspec.dome.camera import CameraError, FolderCamera, SimulatedCamera
 from torchspec.dome.protocol import DomeIdentity, DomeStatus
-from torchspec.fit import fit
+from torchspec.pipeline import fit
 from torchspec.geometry import angle
 from torchspec.info import OK, inspect_capture
 from torchspec.io import CaptureError, read_capture, write_exr

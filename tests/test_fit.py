@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.cli import main
-from torchspec.fit import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
@@ -92,6 +92,24 @@ def test_a_bad_sample_is_masked_not_fitted(painting, tmp_path):
     assert error < 0.1, f"normal error at the masked pixel {error:.3g} deg"
 
 
+def test_every_stage_is_a_module_and_fit_a_function():
+    import importlib
+    import importlib.util
+    import pkgutil
+
+    import torchspec
+    from torchspec import pipeline
+
+    assert callable(torchspec.fit) and torchspec.fit is pipeline.fit
+    for gone in ("torchspec.fit", "torchspec.distributed"):
+        assert importlib.util.find_spec(gone) is None, gone
+    stages = [info.name for info in pkgutil.iter_modules(pipeline.__path__)]
+    assert {"settings", "start", "solver", "uncertainty", "selection", "checks", "tile", "cluster"} <= set(stages)
+    assert not set(stages) & set(pipeline.__all__)  # no re-exported name hides a stage
+    for name in stages:
+        importlib.import_module(f"torchspec.pipeline.{name}")
+
+
 def test_select_frames():
     assert select_frames(None, 5) == [0, 1, 2, 3, 4]
     assert select_frames("::2", 5) == [0, 2, 4]
@@ -170,7 +188,7 @@ def test_the_fits_quadrature_changes_little(painting):
 def _fitmodule():
     import importlib
 
-    return importlib.import_module("torchspec.fit")
+    return importlib.import_module("torchspec.pipeline.solver")
 
 
 def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):

@@ -9,20 +9,20 @@ import torch
 from capture_cases import write_painting
 
 from torchspec.brdf import SVBRDF
-from torchspec.fit import FitConfig, fit, write_fit
+from torchspec.pipeline import FitConfig, fit, write_fit
 from torchspec.flags import (
     FLAGS,
     UNTRUSTED,
     WEAK_LOBE_SNR,
     bit,
     describe,
-    mirror_peak,
     peak_checks,
     residual_samples,
     untrusted,
 )
 from torchspec.geometry import from_plane, normalize
 from torchspec.io.exr import read_exr
+from torchspec.layout import mirror_point
 from torchspec.lights import Kernel, Lights
 from torchspec.render import render
 
@@ -71,9 +71,9 @@ def _checks(maps, observed, inverse, lights):
     return peak_checks(maps, z2, excess, inverse[..., 0] > 0, lights, VIEW)
 
 
-def test_mirror_peak_is_the_mirror_direction(scene):
+def test_mirror_point_is_the_mirror_direction(scene):
     truth, _, _, _, peaks = scene
-    torch.testing.assert_close(mirror_peak(truth.normal, VIEW), peaks)
+    torch.testing.assert_close(mirror_point(truth.normal, VIEW), peaks)
 
 
 def test_residual_samples_are_the_rendered_residuals(scene):

@@ -42,6 +42,20 @@ def test_unknown_light_needs_a_light_file(unknown_light_capture):
     assert report["psnr_db"] > 90
 
 
+def test_capture_lights(painting, unknown_light_capture):
+    capture = read_capture(painting)
+    lights = capture.lights(dtype=torch.float32)
+    assert lights.directions.shape == (len(capture.frames), 3) and lights.directions.dtype == torch.float32
+    assert torch.equal(lights.exposure, capture.exposure().float())
+    unknown = read_capture(unknown_light_capture)
+    with pytest.raises(CaptureError, match="'unknown'.*--light"):
+        unknown.lights()
+    with pytest.raises(CaptureError, match="cannot read the light description"):
+        unknown.lights(light=unknown_light_capture / "nope.json")
+    given = unknown.lights(light=unknown_light_capture / "truth" / "light.json")
+    assert given.kernel.kind != "unknown"
+
+
 def test_size_mismatch_is_named(painting, tmp_path):
     config = SimulationConfig(
         scene=SceneConfig(kind="painting", painting=PaintingConfig(width=6, height=6, strokes=2)),

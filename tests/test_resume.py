@@ -15,10 +15,10 @@ import torch
 from capture_cases import write_small_painting
 
 from torchspec.cli import CHECKPOINT
-from torchspec.fit import FitConfig, FitInterrupted, fit
+from torchspec.pipeline import FitConfig, FitInterrupted, fit
 from torchspec.io import read_svbrdf
 
-FIT = importlib.import_module("torchspec.fit")  # the module (torchspec.fit is also the function)
+TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")
 
 
@@ -45,7 +45,7 @@ def _same(a, b):
 
 def _interrupt_after(monkeypatch, tiles: int):
     calls = []
-    real = FIT._tile
+    real = TILE.fit_pixels
 
     def tile(*args, **kwargs):
         if len(calls) == tiles:
@@ -53,7 +53,7 @@ def _interrupt_after(monkeypatch, tiles: int):
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(FIT, "_tile", tile)
+    monkeypatch.setattr(TILE, "fit_pixels", tile)
 
 
 def _interrupted(capture, folder, monkeypatch, tiles: int = 1) -> None:

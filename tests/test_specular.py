@@ -8,7 +8,8 @@ from torchspec.geometry import angle, from_plane, normalize
 from torchspec.lights import Kernel, Lights, diffuse_directions
 from torchspec.render import render
 from torchspec.simulate import LayoutConfig, layout
-from torchspec.specular import grid_search, layout_of, locate_peak, naive_start, specular_residual
+from torchspec.layout import layout_of
+from torchspec.specular import grid_search, locate_peak, naive_start, specular_residual
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 

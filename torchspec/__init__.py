@@ -8,10 +8,12 @@ from . import (
     geometry,
     info,
     jacobian,
+    layout,
     lights,
     lm,
     models,
     photometric,
+    pipeline,
     relight,
     simulate,
     specular,
@@ -20,7 +22,7 @@ from . import (
 from ._version import __version__
 from .brdf import SVBRDF
 from .errors import TorchspecError
-from .fit import Fit, FitConfig, fit, write_fit
+from .pipeline import Fit, FitConfig, fit, write_fit
 from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
 from .render import render
 
@@ -37,10 +39,12 @@ __all__ = [
     "fit",
     "info",
     "jacobian",
+    "layout",
     "lights",
     "lm",
     "models",
     "photometric",
+    "pipeline",
     "relight",
     "simulate",
     "specular",

@@ -62,7 +62,7 @@ from ._kernel_table import (
 )
 from .geometry import reflect
 from .lights import _PAD, Kernel
-from .specular import layout_of
+from .layout import layout_of
 
 __all__ = [
     "CalibrationError",
@@ -511,7 +511,7 @@ def calibrate(
 
     Args:
         capture: a :class:`~torchspec.io.Capture` or its folder; its light may be ``unknown``.
-        frames: a SPEC of :func:`torchspec.fit.select_frames` or a list of indices.
+        frames: a SPEC of :func:`torchspec.pipeline.select_frames` or a list of indices.
         normal, size, extent, symmetry, mirror_alpha, smoothing: see :func:`recover_kernel`.
 
     Returns:
@@ -521,7 +521,7 @@ def calibrate(
         >>> calibration = calibrate("mirror-dev-1d")  # doctest: +SKIP
         >>> write_kernel("kernel.exr", calibration)  # doctest: +SKIP
     """
-    from .fit import select_frames
+    from .pipeline import select_frames
     from .io import Capture, read_capture
 
     capture = capture if isinstance(capture, Capture) else read_capture(capture)

@@ -2,7 +2,7 @@
 
 Simulates a small painting (pigments, canvas weave, brush strokes, varnish, a gilded patch) under
 a 12 x 12 grid of an extended Gaussian light clipped to the l-plane radius 0.8, with shot noise;
-fits it (:func:`torchspec.fit.fit`); and writes, in the output folder:
+fits it (:func:`torchspec.pipeline.fit`); and writes, in the output folder:
 
 - ``capture/``: the simulated capture, with its ``truth/``;
 - ``maps/``: the fitted SVBRDF (EXR maps, residual, quality, ``svbrdf.json``);
@@ -21,9 +21,8 @@ from pathlib import Path
 import torch
 
 from .atomic import save_figure, write_json
-from .fit import FitConfig, fit, select_frames, write_fit
+from .pipeline import FitConfig, fit, select_frames, write_fit
 from .io import read_capture
-from .relight import lights_of
 from .report import display, heldout_psnr, relit_strip, score, write_previews, write_report
 from .simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from .synth import PaintingConfig, SensorConfig
@@ -72,7 +71,7 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
         f"({result.stats['pixels_per_second']:.0f} pixels/s): {output / 'maps'}"
     )
 
-    lights = lights_of(capture, dtype=torch.float64)
+    lights = capture.lights(dtype=torch.float64)
     view = torch.tensor(capture.view, dtype=torch.float64)
     stack = capture.read_frames(dtype=torch.float64)
     index = torch.tensor(held)

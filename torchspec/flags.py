@@ -1,10 +1,9 @@
 """Per-pixel flags: which fitted pixels not to trust, and why.
 
 A fit's residual and deviations describe a pixel whose model is right; they do not say when the
-estimate is wrong altogether. The stability study (``experiments/stability.py``) measured which
-checks do: the solver's status and the photometric-stereo quality catch almost none of the peaks
-located more than 10 Cramer-Rao deviations away from the truth, while two checks against the
-samples around the fitted peak catch most of them:
+estimate is wrong altogether (a peak placed far from the truth). Two checks against the samples
+around the fitted peak tell (``experiments/stability.py`` compares them with the solver's status
+and the photometric-stereo quality):
 
 - ``peak_misfit``: the mean square of the residual, in units of each sample's noise, over the
   frames whose light lies within ``reach`` blurred widths of the fitted peak (the lobe's l-plane
@@ -33,6 +32,7 @@ from torch import Tensor
 
 from .brdf import SVBRDF
 from .jacobian import sandwich_terms
+from .layout import kernel_variance, light_spacing, mirror_point
 from .lights import Lights
 
 __all__ = [
@@ -44,7 +44,6 @@ __all__ = [
     "describe",
     "peak_checks",
     "residual_samples",
-    "mirror_peak",
 ]
 
 FLAGS = (
@@ -84,29 +83,6 @@ def describe(flags: Tensor) -> dict[str, int]:
     """The number of pixels carrying each flag."""
     values = flags.to(torch.int32)
     return {name: int(((values & bit(name)) != 0).sum()) for name in FLAGS}
-
-
-def mirror_peak(normal: Tensor, view: Tensor) -> Tensor:
-    """``(*, 2)``: the l-plane position of the specular peak of ``normal (*, 3)``, the view's mirror
-    direction."""
-    return (2.0 * (normal @ view)[..., None] * normal - view)[..., :2]
-
-
-def _kernel_variance(lights: Lights) -> float:
-    """The kernel's mean per-axis variance in the l-plane over the frames (0 for point lights)."""
-    if lights.kernel.kind == "point":
-        return 0.0
-    cov = lights.kernel.covariance(lights.directions)
-    return float(cov.diagonal(dim1=-2, dim2=-1).mean())
-
-
-def _spacing(centres: Tensor) -> float:
-    """The median distance from each light to its nearest neighbour (``inf`` for one light)."""
-    if centres.shape[0] < 2:
-        return math.inf
-    distance = torch.cdist(centres, centres)
-    distance.fill_diagonal_(math.inf)
-    return float(distance.min(-1).values.median())
 
 
 def residual_samples(
@@ -159,10 +135,10 @@ def peak_checks(
     """
     like = dict(dtype=z2.dtype, device=z2.device)
     centres = lights.directions[:, :2].to(**like) + lights.kernel.offset(z2)
-    kernel = _kernel_variance(lights)
-    spacing = _spacing(centres)
+    kernel = kernel_variance(lights, frames="all")
+    spacing = float(light_spacing(centres))
     c = svbrdf.diffuse.shape[-1]
-    peak = mirror_peak(svbrdf.normal.to(**like), view.to(**like))
+    peak = mirror_point(svbrdf.normal.to(**like), view.to(**like))
     width = (svbrdf.roughness.to(**like).pow(2).sum(-1) + kernel).sqrt()
     near = (torch.cdist(peak, centres) < reach * width[:, None]) & valid
     local = (z2 / c * near).sum(-1) / near.sum(-1).clamp(min=1)

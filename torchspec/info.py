@@ -20,8 +20,8 @@ from tqdm.auto import tqdm
 
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
+from .layout import layout_of
 from .photometric import peak_of, sample_masks, saturation_level
-from .specular import layout_of
 
 __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
 
@@ -31,7 +31,7 @@ WARNINGS = "usable with warnings"
 UNUSABLE = "unusable"
 
 MIN_FRAMES = 4
-"""A fit needs 3 frames for the normal and ``k_d`` and one more for a lobe (:func:`torchspec.fit.fit`)."""
+"""A fit needs 3 frames for the normal and ``k_d`` and one more for a lobe (:func:`torchspec.pipeline.fit`)."""
 _LISTED = 10
 """Frames at fault that :func:`format_report` lists one by one."""
 
@@ -51,7 +51,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         ``warnings`` (messages). When the manifest is valid, also: ``width``, ``height``,
         ``channels``, ``frames`` (``K``), ``view``, ``light`` (the manifest's keys), ``kernel``
         (a description), ``layout`` (``kind`` ``"grid"``, ``"line"`` or ``"scattered"``, as
-        :func:`torchspec.specular.layout_of` sees the frames' ``l``, with ``spacing``, ``radius``
+        :func:`torchspec.layout.layout_of` sees the frames' ``l``, with ``spacing``, ``radius``
         (the largest ``|l|``) and the grid's ``rows`` and ``columns``; ``None`` for fewer than 3
         frames), ``exposure`` and ``irradiance`` (``[min, max]``), ``values`` (``[min, max]`` of
         the finite pixel values), ``saturation`` (the clipping level, ``None`` when nothing
@@ -195,7 +195,7 @@ def _pixel_warnings(rows: list[dict[str, Any]], level: float, capture: Capture) 
 
 
 def _layout(directions: torch.Tensor) -> dict[str, Any]:
-    """The light layout as the fit sees it: :func:`torchspec.specular.layout_of` of the frames' ``l``."""
+    """The light layout as the fit sees it: :func:`torchspec.layout.layout_of` of the frames' ``l``."""
     l = directions[:, :2].to(torch.float32)  # the fit's default dtype, so the same grid test
     layout = layout_of(l)
     out: dict[str, Any] = {"kind": "grid" if layout.grid is not None else "line" if layout.dims == 1 else "scattered"}

@@ -9,47 +9,17 @@ capture's maximum) and the relative RMS error.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import torch
 
-from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
-from .lights import Kernel, Lights
+from .io import CaptureError, read_capture, read_svbrdf, write_capture
 from .render import render
 
-__all__ = ["lights_of", "render_capture", "psnr"]
+__all__ = ["render_capture", "psnr"]
 
 TILE_PIXELS = 4096
-
-
-def lights_of(capture: Capture, *, light: Path | dict | None = None, dtype=torch.float64) -> Lights:
-    """The :class:`~torchspec.lights.Lights` of a capture's frames; ``light`` (a JSON file or a
-    mapping with the keys of the format, or of a development capture's ``truth/light.json``)
-    replaces the manifest's kernel, which an ``unknown`` kernel requires."""
-    if light is None:
-        spec = capture.light
-        if spec.kernel == "unknown":
-            raise CaptureError(
-                f"{capture.manifest}: light.kernel is 'unknown', so the frames cannot be predicted. Give the "
-                "light's shape with --light FILE (e.g. a calibrated or known light JSON)."
-            )
-        table = capture.read_kernel() if spec.kernel == "tabulated" else None
-        kernel = Kernel.from_spec(spec, table=table)
-    else:
-        if not isinstance(light, dict):
-            try:
-                light = json.loads(Path(light).read_text(encoding="utf-8"))
-            except (OSError, ValueError) as exc:
-                raise CaptureError(f"cannot read the light description {light}: {exc}") from None
-        kernel = Kernel.from_spec(light)
-    return Lights(
-        capture.directions().to(dtype),
-        kernel,
-        capture.irradiance().to(dtype),
-        capture.exposure().to(dtype),
-    )
 
 
 def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:
@@ -88,7 +58,7 @@ def render_capture(
         raise CaptureError(
             f"{Path(svbrdf_dir)}: the maps have channels {svbrdf.channels}, {capture.manifest} has {capture.channels}."
         )
-    lights = lights_of(capture, light=light, dtype=dtype)
+    lights = capture.lights(light=light, dtype=dtype)
     flat = svbrdf.flatten().to(dtype)
     view = torch.tensor(capture.view, dtype=dtype)
     parts = [

@@ -128,7 +128,7 @@ def write_previews(
     (``RGB = (n + 1) / 2``), ``diffuse.png`` (sRGB-encoded), ``specular.png`` and
     ``roughness.png`` (false colour), ``specular2.png`` and ``roughness2.png`` for a second lobe
     (where some pixel has one), and where given ``model.png`` (the model codes of
-    :data:`torchspec.fit.MODEL_CODES`, 0 diffuse to 4 ward-dual),
+    :data:`torchspec.pipeline.MODEL_CODES`, 0 diffuse to 4 ward-dual),
     ``residual.png``, ``quality.png`` and, against ``truth``, ``normal_error.png`` (degrees) and
     ``diffuse_error.png`` (relative). Returns the paths written."""
     folder = Path(folder)

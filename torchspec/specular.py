@@ -28,97 +28,12 @@ from torch import Tensor
 
 from . import fri
 from .geometry import from_plane, normalize
-from .photometric import grid_layout
+from .layout import Layout, mirror_point
 
-__all__ = ["Start", "Layout", "layout_of", "specular_residual", "locate_peak", "grid_search", "naive_start"]
+__all__ = ["LobeStart", "specular_residual", "locate_peak", "grid_search", "naive_start"]
 
 ALPHA_RANGE = (0.005, 0.5)
 """Starting roughness is clamped into this range."""
-
-
-@dataclass(frozen=True)
-class Layout:
-    """The geometry of the light positions that the peak search needs.
-
-    Attributes:
-        l: ``(K, 2)`` positions in the l-plane.
-        dims: 2 for a planar layout, 1 for lights along a line.
-        axis: ``(2,)`` the line's unit direction (1D); ``origin``: ``(2,)`` a point of it.
-        area: ``(K,)`` the l-plane area (1D: length) each sample stands for.
-        period: the FRI period per dimension: the span plus one spacing.
-        start: ``(dims,)`` the coordinate mapped to 0.
-        grid: for lights on a grid clipped to a disk (or not at all), ``(row, col, ny, nx)``: the
-            cell of each frame ``(K,)`` and the lattice's size; ``None`` otherwise.
-        spacing: the median distance between neighbouring samples.
-    """
-
-    l: Tensor
-    dims: int
-    axis: Tensor
-    origin: Tensor
-    area: Tensor
-    period: tuple[float, ...]
-    start: Tensor
-    grid: tuple[Tensor, Tensor, int, int] | None = None
-    spacing: float = 0.0
-
-    def coordinates(self) -> Tensor:
-        """``(K, dims)`` sample coordinates shifted into ``[0, period)``."""
-        if self.dims == 1:
-            return ((self.l - self.origin) @ self.axis)[:, None] - self.start
-        return self.l - self.start
-
-
-def _spacing(values: Tensor) -> Tensor:
-    """Median distance to the nearest neighbour of ``(K, D)`` points."""
-    d = torch.cdist(values, values)
-    d = d + torch.diag(torch.full_like(d[0], math.inf))
-    return d.min(-1).values.median()
-
-
-def layout_of(l: Tensor) -> Layout:
-    """Describe the light positions ``(K, 2)``: a line (1D) when they are collinear, else planar."""
-    if l.dim() != 2 or l.shape[-1] != 2 or l.shape[0] < 3:
-        raise ValueError(f"light positions must have shape (K, 2) with K >= 3; got {tuple(l.shape)}.")
-    centre = l.mean(0)
-    _, s, vh = torch.linalg.svd(l - centre, full_matrices=False)
-    if s[1] <= 1e-6 * s[0]:
-        axis = vh[0]
-        t = (l - centre) @ axis
-        order = t.sort().values
-        gaps = order.diff()
-        step = gaps.median()
-        area = torch.empty_like(t)
-        width = torch.cat([gaps[:1], 0.5 * (gaps[1:] + gaps[:-1]), gaps[-1:]])
-        area[t.argsort()] = width
-        span = float(order[-1] - order[0] + step)
-        return Layout(l, 1, axis, centre, area, (span,), order[:1] - 0.5 * step, None, float(step))
-    cells = grid_layout(l)
-    low, high = l.min(0).values, l.max(0).values
-    if cells is not None:
-        row, col, dy, dx = cells
-        ny, nx = int(row.max()) + 1, int(col.max()) + 1
-        # Empty cells may be filled with zeros only where the lobe is not: outside the lit disk
-        # (a grid clipped to a radius), not between the frames (every second frame of a grid).
-        filled = torch.zeros(ny, nx, dtype=torch.bool, device=l.device)
-        filled[row, col] = True
-        ys = low[1] + dy * torch.arange(ny, dtype=l.dtype, device=l.device)
-        xs = low[0] + dx * torch.arange(nx, dtype=l.dtype, device=l.device)
-        radius = torch.sqrt(ys[:, None] ** 2 + xs[None, :] ** 2)
-        if (~filled).any() and float(radius[~filled].min()) < float(radius[filled].max()) - 1e-9 * max(dx, dy):
-            cells = None
-    if cells is not None:  # the lattice's own spacing: a period of exactly nx (ny) cells
-        step = torch.tensor([dx, dy], dtype=l.dtype, device=l.device)
-        area = torch.full_like(l[:, 0], dx * dy)
-        period = (nx * dx, ny * dy)
-        return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low, (row, col, ny, nx), float(min(dx, dy)))
-    step = _spacing(l)
-    period = tuple(float(v) for v in (high - low + step))
-    # Each sample stands for its share of the layout's convex area: a disk or a square here.
-    hull = math.pi * float(((l - centre).norm(dim=-1).max() + 0.5 * step) ** 2)
-    box = float((high - low + step).prod())
-    area = torch.full_like(l[:, 0], min(hull, box) / l.shape[0])
-    return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low - 0.5 * step, None, float(step))
 
 
 def specular_residual(samples: Tensor, normal: Tensor, diffuse: Tensor, directions: Tensor) -> Tensor:
@@ -134,7 +49,7 @@ def specular_residual(samples: Tensor, normal: Tensor, diffuse: Tensor, directio
 
 
 @dataclass(frozen=True)
-class Start:
+class LobeStart:
     """A starting point of the specular fit for ``N`` pixels.
 
     Attributes:
@@ -150,13 +65,6 @@ class Start:
     specular: Tensor
     alpha: Tensor
     quality: Tensor
-
-
-def _mirror(normal: Tensor, view: Tensor) -> Tensor:
-    """The l-plane position of the direction that ``normal`` mirrors ``view`` into."""
-    v = view.to(normal.dtype)
-    w = 2.0 * (normal @ v)[:, None] * normal - v
-    return w[:, :2]
 
 
 def _half_vector(peak: Tensor, view: Tensor) -> Tensor:
@@ -199,12 +107,12 @@ def locate_peak(
     kernel_variance: float,
     method: str | None = None,
     num_coefficients: int | None = None,
-) -> Start:
+) -> LobeStart:
     """FRI location of the specular peak and the start it gives.
 
     Args:
         residual: ``(N, K)`` from :func:`specular_residual`.
-        layout: :func:`layout_of` the frames' positions.
+        layout: :func:`torchspec.layout.layout_of` the frames' positions.
         view: ``(3,)``.
         prior_normal: ``(N, 3)`` the photometric-stereo normal, for the coordinate a line of
             lights cannot see.
@@ -212,7 +120,7 @@ def locate_peak(
         method, num_coefficients: for :func:`torchspec.fri.locate`.
 
     Returns:
-        :class:`Start`.
+        :class:`LobeStart`.
     """
     start = layout.start.to(residual.dtype)
     if layout.grid is not None:
@@ -243,11 +151,11 @@ def locate_peak(
         if layout.dims == 2:
             peak = found.position + start
         else:  # along the line; across it, where the photometric-stereo normal mirrors the view
-            seen = _mirror(prior_normal, view)
+            seen = mirror_point(prior_normal, view)
             across = seen - ((seen - layout.origin) @ layout.axis)[:, None] * layout.axis
             peak = across + (found.position + start)[:, None] * layout.axis
     finite = torch.isfinite(peak).all(-1, keepdim=True)
-    peak = torch.where(finite, peak, _mirror(prior_normal, view))
+    peak = torch.where(finite, peak, mirror_point(prior_normal, view))
     # A location far from every bright sample is an aliased one (too few samples for the lobe's
     # width on a scattered layout): fall back on the centroid around the brightest sample.
     spacing = layout.spacing
@@ -267,7 +175,7 @@ def locate_peak(
     specular, alpha = _moments(residual, layout, peak, kernel_variance, window)
     # A lobe started narrower than the samples resolve has no gradient towards them; too wide is safe.
     alpha = alpha.clamp(min=layout.spacing / (2.0 * math.sqrt(2.0)))
-    return Start(_half_vector(peak, view), peak, specular, alpha, quality)
+    return LobeStart(_half_vector(peak, view), peak, specular, alpha, quality)
 
 
 def grid_search(
@@ -280,13 +188,13 @@ def grid_search(
     step: float = 0.01,
     radius: float = 0.3,
     alphas: int = 12,
-) -> Start:
+) -> LobeStart:
     """Brute force: the best peak position (within ``radius`` of the photometric-stereo mirror
     point, every ``step``) and roughness (``alphas`` log-spaced values) of a Gaussian surrogate of
     the blurred lobe, ``r_k ~ k_s g(l_k; peak, 2 alpha^2 + kernel variance)``, with ``k_s`` by
     least squares at every node. Memory and time grow as ``(radius / step)^2 alphas K`` per pixel."""
     dtype = residual.dtype
-    centre = _mirror(prior_normal, view)
+    centre = mirror_point(prior_normal, view)
     ticks = torch.arange(-radius, radius + 0.5 * step, step, dtype=dtype, device=residual.device)
     if layout.dims == 2:
         offsets = torch.stack(torch.meshgrid(ticks, ticks, indexing="ij"), -1).reshape(-1, 2)
@@ -319,13 +227,15 @@ def grid_search(
         best_ks = torch.where(better, ks.gather(-1, index[:, None])[:, 0], best_ks)
     if layout.dims == 1:  # the surrogate's mass along the line -> the lobe's full mass
         best_ks = best_ks * (2.0 * math.pi * (2.0 * best_alpha**2 + kernel_variance)).sqrt()
-    return Start(_half_vector(best_peak, view), best_peak, best_ks, best_alpha, torch.ones_like(best))
+    return LobeStart(_half_vector(best_peak, view), best_peak, best_ks, best_alpha, torch.ones_like(best))
 
 
-def naive_start(residual: Tensor, layout: Layout, view: Tensor, *, prior_normal: Tensor, alpha: float = 0.1) -> Start:
+def naive_start(
+    residual: Tensor, layout: Layout, view: Tensor, *, prior_normal: Tensor, alpha: float = 0.1
+) -> LobeStart:
     """The photometric-stereo normal, ``alpha`` and ``k_s`` from the residual's energy."""
-    peak = _mirror(prior_normal, view)
+    peak = mirror_point(prior_normal, view)
     mass = (residual.clamp(min=0.0) * layout.area).sum(-1)
     if layout.dims == 1:
         mass = mass * math.sqrt(2.0 * math.pi) * math.sqrt(2.0) * alpha
-    return Start(prior_normal, peak, mass, torch.full_like(mass, alpha), torch.ones_like(mass))
+    return LobeStart(prior_normal, peak, mass, torch.full_like(mass, alpha), torch.ones_like(mass))

@@ -10,6 +10,7 @@ missing frames.
 
 from __future__ import annotations
 
+import json
 import operator
 import warnings
 from collections.abc import Sequence
@@ -21,6 +22,7 @@ import torch
 
 from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
+from ..lights import Kernel, Lights
 from ._manifest import (
     FORMAT,
     MANIFEST,
@@ -111,7 +113,7 @@ class Capture:
             dtype, device: of the result.
             nonfinite: ``raise`` (a frame with NaN, Inf or negative pixels is an error),
                 ``keep`` (they are returned as they are, with a warning naming the frame, for a
-                caller that masks them, as :func:`torchspec.fit.fit` does) or ``ignore`` (the same
+                caller that masks them, as :func:`torchspec.pipeline.fit` does) or ``ignore`` (the same
                 without the warning, for a caller that counts and reports them itself).
 
         Returns:
@@ -243,6 +245,37 @@ class Capture:
     def exposure(self) -> torch.Tensor:
         """``(K,)`` float64 exposure per frame."""
         return torch.tensor([frame.exposure for frame in self.frames], dtype=torch.float64)
+
+    def lights(self, *, light: str | Path | dict | None = None, dtype: torch.dtype = torch.float64) -> Lights:
+        """The :class:`~torchspec.lights.Lights` of the capture's frames (``K`` of them), in ``dtype``.
+
+        Args:
+            light: a JSON file, or a mapping, with the keys of the format's ``light`` (or of a
+                development capture's ``truth/light.json``): replaces the manifest's kernel, which
+                an ``unknown`` kernel requires.
+            dtype: of the directions, irradiance and exposure.
+
+        Raises:
+            CaptureError: the manifest's kernel is ``unknown`` and no ``light`` is given, or
+                ``light`` is an unreadable file.
+        """
+        if light is None:
+            spec = self.light
+            if spec.kernel == "unknown":
+                raise CaptureError(
+                    f"{self.manifest}: light.kernel is 'unknown', so the frames cannot be predicted. Give the "
+                    "light's shape with --light FILE (e.g. a calibrated or known light JSON)."
+                )
+            table = self.read_kernel() if spec.kernel == "tabulated" else None
+            kernel = Kernel.from_spec(spec, table=table)
+        else:
+            if not isinstance(light, dict):
+                try:
+                    light = json.loads(Path(light).read_text(encoding="utf-8"))
+                except (OSError, ValueError) as exc:
+                    raise CaptureError(f"cannot read the light description {light}: {exc}") from None
+            kernel = Kernel.from_spec(light)
+        return Lights(self.directions().to(dtype), kernel, self.irradiance().to(dtype), self.exposure().to(dtype))
 
 
 def read_capture(path: str | Path) -> Capture:

@@ -1,12 +1,14 @@
-"""Tile-parallel fitting on a Dask cluster: ``torchspec fit CAPTURE -o OUT --scheduler ADDRESS``
-(an existing cluster) or ``--workers N`` (a local one).
+"""The Dask driver: tile-parallel fitting on a cluster (:func:`fit_on_cluster`; ``torchspec fit
+CAPTURE -o OUT --scheduler ADDRESS`` for an existing cluster, ``--workers N`` for a local one).
 
-The fit is independent per tile, so the tiles of :func:`torchspec.fit.fit` are mapped over the
-cluster's workers, each fitted by the same function as in-process (:func:`torchspec.fit._fit_tile`):
+The fit is independent per tile, so the tiles of :func:`torchspec.pipeline.fit` are mapped over the
+cluster's workers, each fitted by the same function as in-process
+(:func:`torchspec.pipeline.tile.fit_tile`):
 
 1. the client reads the manifest (no pixel), tiles the fit exactly as the in-process fit does
-   (:func:`torchspec.fit._plan`) and opens its checkpoint (:func:`torchspec.fit._checkpoint`, the
-   same folder and format: either engine resumes the other's);
+   (:func:`torchspec.pipeline.plan.plan`) and opens its checkpoint
+   (:func:`torchspec.pipeline.checkpoint.open_checkpoint`, the same folder and format: either
+   driver resumes the other's);
 2. when the settings leave the sensor's clipping level to be found (``saturation: null``), tasks
    over bands of rows find it (:func:`torchspec.photometric.sample_masks` takes it from the whole
    stack); it is kept in the checkpoint for a resumed fit;
@@ -15,12 +17,11 @@ cluster's workers, each fitted by the same function as in-process (:func:`torchs
    fits each tile and writes it atomically into the checkpoint, skipping a tile already there: a
    task retried after an error or a lost worker redoes only the tiles that were not written;
 4. the client loads each tile once, as its task completes, and assembles the maps
-   (:func:`torchspec.fit._result`).
+   (:func:`torchspec.pipeline.assembly.assemble`).
 
 The maps equal the in-process fit's (``torch.equal``; the tiles' rounding is the same with one
 torch thread per task, which each task pins). The capture and the output folder must be on a
-filesystem every worker sees at the same path. Sizes, timings and the estimate for a 100-megapixel
-painting: ``docs/scale.md``.
+filesystem every worker sees at the same path. Sizes and timings: ``docs/scale.md``.
 """
 
 from __future__ import annotations
@@ -33,33 +34,25 @@ import time
 import uuid
 import warnings
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
-from .atomic import read_json, write_json
-from .fit import (
-    MASK_KINDS,
-    RUNTIME_BYTES,
-    Fit,
-    FitConfig,
-    FitInterrupted,
-    _checkpoint,
-    _context,
-    _fit_tile,
-    _job,
-    _load_tile,
-    _plan,
-    _result,
-    _setup,
-)
-from .io import Capture
-from .lights import Lights
-from .photometric import _peak, _saturation_level, sample_masks
+from ..atomic import read_json, write_json
+from ..io import Capture
+from ..lights import Lights
+from ..photometric import peak_of, sample_masks, saturation_level
+from .assembly import assemble, run_stats
+from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, tile_name
+from .plan import RUNTIME_BYTES, plan, setup
+from .result import Fit
+from .settings import FitConfig
+from .start import LightContext, light_context
+from .tile import MASK_KINDS, TileResult, fit_tile
 
-__all__ = ["ClusterError", "connect", "fit"]
+__all__ = ["ClusterError", "connect", "fit_on_cluster"]
 
 LEVEL = "saturation.json"
 """The checkpoint's record of the clipping level found by the level pass (resumed fits skip it)."""
@@ -69,7 +62,7 @@ BLOCK_ROWS = 16
 """Rows of an EXR block with ZIP compression: the level pass reads whole blocks."""
 TASK_ROWS = 32
 """A task fits the tiles of about this many rows (one read of them): the EXR blocks (16 rows with
-ZIP) that it shares with its neighbours then add ~50 % to its reading, not ~100 % or more."""
+ZIP) that it shares with its neighbours then add a fraction of its own rows to its reading."""
 TASKS_PER_THREAD = 4
 """Tiles are grouped into at least this many tasks per worker thread, to balance the load."""
 UNSET_ENVIRON = ("MALLOC_TRIM_THRESHOLD_",)
@@ -91,7 +84,7 @@ def connect(scheduler: str | None = None, *, workers: int | None = None, timeout
 
     The local cluster's workers run without ``MALLOC_TRIM_THRESHOLD_`` (:data:`UNSET_ENVIRON`;
     the rest of Dask's ``distributed.nanny.pre-spawn-environ``, one OpenMP/BLAS thread, is kept).
-    Workers of an existing cluster are started by their owner: :func:`fit` restores glibc's
+    Workers of an existing cluster are started by their owner: :func:`fit_on_cluster` restores glibc's
     adaptive thresholds in them instead (docs/scale.md).
 
     Args:
@@ -105,7 +98,7 @@ def connect(scheduler: str | None = None, *, workers: int | None = None, timeout
 
     Example:
         >>> with connect(workers=2) as client:  # doctest: +SKIP
-        ...     result = fit("painting", client, checkpoint="maps/.torchspec-fit")
+        ...     result = fit_on_cluster("painting", client, checkpoint="maps/.torchspec-fit")
     """
     try:
         import dask
@@ -149,7 +142,7 @@ class _Job:
     tile: int
     lights: Lights
     view: torch.Tensor
-    ctx: dict
+    ctx: LightContext
     folder: Path
     level: float | None = None  # the clipping level given to sample_masks
     halo: int = 0  # rows read around a task's own: the saturated regions' growth
@@ -179,7 +172,7 @@ class _Job:
         return f"tile {first // self.tile} (pixels {first}..{stop - 1}, rows {first // w}..{(stop - 1) // w})"
 
 
-def fit(
+def fit_on_cluster(
     capture: Capture | str | Path,
     client,
     *,
@@ -191,8 +184,8 @@ def fit(
     retries: int = 2,
     tiles_per_task: int | None = None,
 ) -> Fit:
-    """Fit SVBRDF maps to a capture on a Dask cluster: :func:`torchspec.fit.fit`, its tiles mapped
-    over the cluster's workers.
+    """Fit SVBRDF maps to a capture on a Dask cluster: :func:`torchspec.pipeline.fit`, its tiles
+    mapped over the cluster's workers.
 
     Args:
         capture: a :class:`~torchspec.io.Capture` or its folder, on a filesystem every worker
@@ -201,7 +194,7 @@ def fit(
         checkpoint: the folder the workers write the finished tiles to (atomically), on a
             filesystem every worker sees; the caller removes it once the maps are written. The
             in-process fit's format: either engine resumes the other's.
-        config, frames, progress, resume: as for :func:`torchspec.fit.fit` (the bar counts pixels
+        config, frames, progress, resume: as for :func:`torchspec.pipeline.fit` (the bar counts pixels
             of finished tiles).
         retries: times a task that raised is tried again (a task whose worker was lost is
             rescheduled by Dask without counting).
@@ -210,49 +203,43 @@ def fit(
             tasks per worker thread.
 
     Returns:
-        :class:`~torchspec.fit.Fit`, equal to the in-process fit's; ``stats["distributed"]`` holds
+        :class:`~torchspec.pipeline.result.Fit`, equal to the in-process fit's; ``stats["distributed"]`` holds
         the cluster's size, the tasks, the bytes the workers read and the tiles a retried task
         found already written.
 
     Raises:
         ClusterError: a worker cannot see the capture or the checkpoint, or a tile failed after
             its retries (the message names the tile; the finished tiles stay in ``checkpoint``).
-        CaptureError, ValueError: as :func:`torchspec.fit.fit`.
+        CaptureError, ConfigError, ValueError: as :func:`torchspec.pipeline.fit`.
         FitInterrupted: a ``KeyboardInterrupt``; the finished tiles are saved.
 
     Example:
         >>> with connect(workers=2) as client:  # doctest: +SKIP
-        ...     result = fit("painting", client, checkpoint="maps/.torchspec-fit")
+        ...     result = fit_on_cluster("painting", client, checkpoint="maps/.torchspec-fit")
         >>> write_fit("maps", result)  # doctest: +SKIP
     """
     started = time.perf_counter()
-    config, capture, picked, lights, view = _setup(capture, config, frames)
-    capture = replace(capture, root=capture.root.resolve())  # the workers' working folders differ
+    begun = setup(capture, config, frames)
+    config, picked, lights, view = begun.config, begun.picked, begun.lights, begun.view
+    capture = replace(begun.capture, root=begun.capture.root.resolve())  # the workers' working folders differ
     k, c, h, w = len(picked), len(capture.channels), capture.height, capture.width
     pixels = h * w
     itemsize = torch.finfo(view.dtype).bits // 8
-    config, tile = _plan(config, k, c, h, w, itemsize)
-    stack_bytes = k * c * pixels * itemsize
-    if not config.tile and stack_bytes + RUNTIME_BYTES > config.memory_gib * 2**30:
-        warnings.warn(
-            f"the frame stack ({stack_bytes / 2**30:.1f} GiB) leaves no room in memory_gib ({config.memory_gib}), "
-            f"so tiles fall to {tile} pixels (the in-process fit's rule, kept so that both fit alike); set the "
-            "config's tile (e.g. 16384: ~2 GiB per worker thread at 144 frames; docs/scale.md).",
-            stacklevel=2,
-        )
+    config, tile = plan(config, k, c, h, w, itemsize)
+    _warn_small_tiles(config, tile, k * c * pixels * itemsize)
     folder = Path(checkpoint).resolve()
     folder.mkdir(parents=True, exist_ok=True)
     _check_workers(client, capture, folder)  # before a job is recorded in the folder
-    done = _checkpoint(folder, _job(capture, picked, config, tile, pixels), resume)
+    done = open_checkpoint(folder, job_record(capture, picked, config, tile, pixels), resume)
     stale = sorted({int(p.stem.split("-")[1]) for p in folder.glob("tile-*.pt")} - set(done))
     if stale:  # a worker skips a tile that is there: only this job's may be
         raise ValueError(f"{folder} holds tiles of no recorded job (first pixels {stale[:3]}); remove {folder}.")
-    job = _Job(capture, picked, config, tile, lights, view, _context(lights), folder)
+    job = _Job(capture, picked, config, tile, lights, view, light_context(lights), folder)
     firsts = list(range(0, pixels, tile))
     todo = [first for first in firsts if first not in done]
     seconds: dict[str, float] = {}
     report = {"tasks": 0, "tiles_per_task": None, "bytes_read": 0, "tiles_found_written": 0, "read": 0.0, "masks": 0.0}
-    parts = {first: _load_tile(done[first], view.device) for first in done}
+    parts = {first: done[first].to(view.device) for first in done}
     try:
         if todo:
             clock = time.perf_counter()
@@ -267,38 +254,56 @@ def fit(
     except KeyboardInterrupt as interrupt:
         raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
     ordered = [parts[first] for first in firsts]
-    masked = None
-    if all("masked" in part for part in ordered):
-        masked = {name: sum(part["masked"][name] for part in ordered) for name in MASK_KINDS}
-        if masked["nonfinite"]:
-            warnings.warn(
-                f"{masked['nonfinite']} sample(s) with NaN or Inf were masked; `torchspec info {capture.root}` names "
-                "their frames.",
-                stacklevel=2,
-            )
+    masked = _masked(ordered, capture)
     threads = client.nthreads()
-    stats = {
-        "capture": str(capture.root),
-        "frames": picked,
-        "settings": asdict(config),
-        "device": str(view.device),
-        "pixels": pixels,
-        "tile_pixels": tile,
-        "resumed_tiles": len(done),
+    stats = run_stats(
+        capture=capture,
+        picked=picked,
+        config=config,
+        device=view.device,
+        pixels=pixels,
+        tile=tile,
+        resumed=len(done),
         # worker-seconds, summed over the tasks (the tiles' stages too); "total" is the wall time
-        "seconds": {**seconds, "read": report.pop("read"), "masks": report.pop("masks")},
-        "masked_samples": masked,
-        "distributed": {
+        seconds={**seconds, "read": report.pop("read"), "masks": report.pop("masks")},
+        masked=masked,
+        cluster={
             "scheduler": client.scheduler.address,
             "workers": len(threads),
             "threads": sum(threads.values()),
             **report,
         },
-    }
-    return _result(ordered, h, w, capture.channels, stats, started=started)
+    )
+    return assemble(ordered, height=h, width=w, channels=capture.channels, stats=stats, started=started)
 
 
-def _fit_on(client, job: _Job, todo: list[int], report: dict, retries: int) -> Iterator[tuple[int, dict]]:
+def _warn_small_tiles(config: FitConfig, tile: int, stack_bytes: int) -> None:
+    """Warn when the frame stack leaves no room in ``memory_gib`` for the tiles it sizes."""
+    if not config.tile and stack_bytes + RUNTIME_BYTES > config.memory_gib * 2**30:
+        warnings.warn(
+            f"the frame stack ({stack_bytes / 2**30:.1f} GiB) leaves no room in memory_gib ({config.memory_gib}), "
+            f"so tiles fall to {tile} pixels (the in-process fit's rule, kept so that both fit alike); set the "
+            "config's tile (e.g. 16384 pixels; docs/scale.md).",
+            stacklevel=3,
+        )
+
+
+def _masked(parts: list[TileResult], capture: Capture) -> dict[str, int] | None:
+    """The masked samples per kind over the tiles (``None`` when a tile lacks the count), with a
+    warning for NaN or Inf samples (the workers do not warn per frame)."""
+    if not all(part.masked is not None for part in parts):
+        return None
+    masked = {name: sum(part.masked[name] for part in parts) for name in MASK_KINDS}
+    if masked["nonfinite"]:
+        warnings.warn(
+            f"{masked['nonfinite']} sample(s) with NaN or Inf were masked; `torchspec info {capture.root}` names "
+            "their frames.",
+            stacklevel=3,
+        )
+    return masked
+
+
+def _fit_on(client, job: _Job, todo: list[int], report: dict, retries: int) -> Iterator[tuple[int, TileResult]]:
     """Fit tiles ``todo`` on the cluster, in runs of ``report["tiles_per_task"]`` per task;
     yields each tile's first pixel and output (loaded from the checkpoint, once) as its task
     completes, and adds the tasks' counts to ``report``."""
@@ -311,7 +316,7 @@ def _fit_on(client, job: _Job, todo: list[int], report: dict, retries: int) -> I
         report["bytes_read"] += summary["bytes"]
         report["tiles_found_written"] += len(summary["found"])
         for first in firsts:
-            yield first, _load_tile(_read_tile(job.folder, first), job.view.device)
+            yield first, read_tile(job.folder / tile_name(first))[1].to(job.view.device)
 
 
 def _span(job: _Job, firsts: list[int]) -> str:
@@ -404,7 +409,7 @@ def _with_level(client, job: _Job, report: dict, progress: bool, retries: int) -
                 peaks.append((torch.tensor(top, dtype=job.view.dtype), torch.tensor(count)))
                 report["bytes_read"] += read
                 bar.update()
-        level = float(_saturation_level(peaks))
+        level = float(saturation_level(peaks))
         write_json(job.folder / LEVEL, {"level": level if math.isfinite(level) else None})
         report["tasks"] += len(bands)
     # Nothing clips (an infinite level): no saturated region to grow, no rows around a task's own.
@@ -419,7 +424,7 @@ def _peak_of_rows(job: _Job, rows: tuple[int, int]) -> tuple[float, int, int]:
     """The largest value of ``rows`` of the picked frames, how many share it, and the bytes read."""
     before = _bytes_read()
     _pin()
-    top, count = _peak(job.read(rows))
+    top, count = peak_of(job.read(rows))
     return float(top), int(count), _bytes_read() - before
 
 
@@ -428,7 +433,7 @@ def _fit_tiles(job: _Job, firsts: list[int]) -> tuple[list[int], dict]:
     once; returns ``firsts`` and what was read and found."""
     before = _bytes_read()
     _pin()
-    todo = [first for first in firsts if not (job.folder / _tile_name(first)).is_file()]
+    todo = [first for first in firsts if not (job.folder / tile_name(first)).is_file()]
     summary = {"found": [f for f in firsts if f not in todo], "bytes": 0, "read": 0.0, "masks": 0.0}
     if not todo:
         return firsts, summary
@@ -455,7 +460,7 @@ def _fit_tiles(job: _Job, firsts: list[int]) -> tuple[list[int], dict]:
         at = slice(first - offset, job.stop(first) - offset)
         values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
         try:
-            _fit_tile(first, values, tile_masks, job.lights, job.view, channels, config, ctx, folder)
+            fit_tile(first, values, tile_masks, job.lights, job.view, channels, config, ctx, folder)
         except Exception as error:
             raise ClusterError(
                 f"{job.describe(first)} of {job.capture.root} failed on worker {_worker()}: "
@@ -463,18 +468,6 @@ def _fit_tiles(job: _Job, firsts: list[int]) -> tuple[list[int], dict]:
             ) from error
     summary["bytes"] = _bytes_read() - before
     return firsts, summary
-
-
-def _tile_name(first: int) -> str:
-    return f"tile-{first:012d}.pt"  # torchspec.fit._save_tile's
-
-
-def _read_tile(folder: Path, first: int) -> dict:
-    path = folder / _tile_name(first)
-    try:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # written atomically: damage from outside
-        raise ValueError(f"{path} is not a readable tile ({type(error).__name__}: {error}); remove it.") from error
 
 
 _PINNED = []

@@ -1,0 +1,163 @@
+"""Facts of a capture's light layout that the fit's stages share: where the lights lie in the
+l-plane (:func:`layout_of`: a line or a plane, a grid or scattered), how far apart they are
+(:func:`light_spacing`), the kernel's blur (:func:`kernel_variance`), and where a normal mirrors
+the view (:func:`mirror_point`, the l-plane position of a specular peak).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .errors import TorchspecError
+from .lights import Lights
+from .photometric import grid_layout
+
+__all__ = ["Layout", "layout_of", "light_spacing", "kernel_variance", "mirror_point"]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The geometry of the light positions that the peak search needs.
+
+    Attributes:
+        l: ``(K, 2)`` positions in the l-plane.
+        dims: 2 for a planar layout, 1 for lights along a line.
+        axis: ``(2,)`` the line's unit direction (1D); ``origin``: ``(2,)`` a point of it.
+        area: ``(K,)`` the l-plane area (1D: length) each sample stands for.
+        period: the FRI period per dimension: the span plus one spacing.
+        start: ``(dims,)`` the coordinate mapped to 0.
+        grid: for lights on a grid clipped to a disk (or not at all), ``(row, col, ny, nx)``: the
+            cell of each frame ``(K,)`` and the lattice's size; ``None`` otherwise.
+        spacing: the median distance between neighbouring samples.
+    """
+
+    l: Tensor
+    dims: int
+    axis: Tensor
+    origin: Tensor
+    area: Tensor
+    period: tuple[float, ...]
+    start: Tensor
+    grid: tuple[Tensor, Tensor, int, int] | None = None
+    spacing: float = 0.0
+
+    def coordinates(self) -> Tensor:
+        """``(K, dims)`` sample coordinates shifted into ``[0, period)``."""
+        if self.dims == 1:
+            return ((self.l - self.origin) @ self.axis)[:, None] - self.start
+        return self.l - self.start
+
+
+def layout_of(l: Tensor) -> Layout:
+    """Describe the light positions ``(K, 2)``: a line (1D) when they are collinear, else planar.
+
+    Raises:
+        ValueError: ``l`` is not ``(K, 2)`` with ``K >= 3``.
+
+    Example:
+        >>> ticks = torch.linspace(-0.2, 0.2, 5, dtype=torch.float64)
+        >>> grid = torch.stack(torch.meshgrid(ticks, ticks, indexing="xy"), -1).reshape(-1, 2)
+        >>> found = layout_of(grid)
+        >>> found.dims, found.grid[2:], round(found.spacing, 3)
+        (2, (5, 5), 0.1)
+        >>> layout_of(torch.stack([ticks, 0.5 * ticks], -1)).dims
+        1
+    """
+    if l.dim() != 2 or l.shape[-1] != 2 or l.shape[0] < 3:
+        raise ValueError(f"light positions must have shape (K, 2) with K >= 3; got {tuple(l.shape)}.")
+    centre = l.mean(0)
+    _, s, vh = torch.linalg.svd(l - centre, full_matrices=False)
+    if s[1] <= 1e-6 * s[0]:
+        axis = vh[0]
+        t = (l - centre) @ axis
+        order = t.sort().values
+        gaps = order.diff()
+        step = gaps.median()
+        area = torch.empty_like(t)
+        width = torch.cat([gaps[:1], 0.5 * (gaps[1:] + gaps[:-1]), gaps[-1:]])
+        area[t.argsort()] = width
+        span = float(order[-1] - order[0] + step)
+        return Layout(l, 1, axis, centre, area, (span,), order[:1] - 0.5 * step, None, float(step))
+    cells = grid_layout(l)
+    low, high = l.min(0).values, l.max(0).values
+    if cells is not None:
+        row, col, dy, dx = cells
+        ny, nx = int(row.max()) + 1, int(col.max()) + 1
+        # Empty cells may be filled with zeros only where the lobe is not: outside the lit disk
+        # (a grid clipped to a radius), not between the frames (every second frame of a grid).
+        filled = torch.zeros(ny, nx, dtype=torch.bool, device=l.device)
+        filled[row, col] = True
+        ys = low[1] + dy * torch.arange(ny, dtype=l.dtype, device=l.device)
+        xs = low[0] + dx * torch.arange(nx, dtype=l.dtype, device=l.device)
+        radius = torch.sqrt(ys[:, None] ** 2 + xs[None, :] ** 2)
+        if (~filled).any() and float(radius[~filled].min()) < float(radius[filled].max()) - 1e-9 * max(dx, dy):
+            cells = None
+    if cells is not None:  # the lattice's own spacing: a period of exactly nx (ny) cells
+        step = torch.tensor([dx, dy], dtype=l.dtype, device=l.device)
+        area = torch.full_like(l[:, 0], dx * dy)
+        period = (nx * dx, ny * dy)
+        return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low, (row, col, ny, nx), float(min(dx, dy)))
+    step = light_spacing(l)
+    period = tuple(float(v) for v in (high - low + step))
+    # Each sample stands for its share of the layout's convex area: a disk or a square here.
+    hull = math.pi * float(((l - centre).norm(dim=-1).max() + 0.5 * step) ** 2)
+    box = float((high - low + step).prod())
+    area = torch.full_like(l[:, 0], min(hull, box) / l.shape[0])
+    return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low - 0.5 * step, None, float(step))
+
+
+def light_spacing(points: Tensor) -> Tensor:
+    """The median distance from each of ``points (K, D)`` to its nearest neighbour: a 0-dim tensor
+    of their dtype (``inf`` for fewer than two points).
+
+    Example:
+        >>> float(light_spacing(torch.tensor([[0.0, 0.0], [0.0, 0.1], [0.3, 0.0]], dtype=torch.float64)))
+        0.1
+    """
+    if points.shape[0] < 2:
+        return torch.tensor(math.inf, dtype=points.dtype, device=points.device)
+    d = torch.cdist(points, points)
+    d = d + torch.diag(torch.full_like(d[0], math.inf))
+    return d.min(-1).values.median()
+
+
+def kernel_variance(lights: Lights, *, frames: str) -> float:
+    """The light kernel's mean per-axis variance in the l-plane (0 for point lights).
+
+    Args:
+        lights: the frames' lights.
+        frames: ``"first"``: the kernel's covariance at the first frame's direction (the specular
+            start's blur); ``"all"``: the mean over every frame (the peak checks' blur). The two
+            agree for a kernel whose covariance does not depend on the direction, up to rounding.
+
+    Example:
+        >>> from torchspec.lights import Kernel
+        >>> directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
+        >>> lights = Lights(directions, Kernel("gaussian", sigma=0.1), torch.ones(3, 1), torch.ones(3))
+        >>> round(kernel_variance(lights, frames="all"), 6)
+        0.01
+    """
+    if lights.kernel.kind == "point":
+        return 0.0
+    if frames == "first":
+        return float(lights.kernel.covariance(lights.directions[:1])[0].diagonal().mean())
+    if frames == "all":
+        cov = lights.kernel.covariance(lights.directions)
+        return float(cov.diagonal(dim1=-2, dim2=-1).mean())
+    raise TorchspecError(f"kernel_variance: frames must be 'first' or 'all'; got {frames!r}.")
+
+
+def mirror_point(normal: Tensor, view: Tensor) -> Tensor:
+    """``(*, 2)``: the l-plane position of the direction that ``normal (*, 3)`` mirrors ``view (3,)``
+    into (``2 <n, v> n - v``, in ``normal``'s dtype): where the peak of a specular lobe lies.
+
+    Example:
+        >>> mirror_point(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.0, 0.0, 1.0]))
+        tensor([[0., 0.]])
+    """
+    v = view.to(normal.dtype)
+    return (2.0 * (normal @ v)[..., None] * normal - v)[..., :2]

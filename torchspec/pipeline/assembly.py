@@ -1,0 +1,144 @@
+"""Assembly: an image's :class:`~torchspec.pipeline.result.Fit` from its tiles' results
+(:func:`assemble`), its statistics built alike by every driver (:func:`run_stats`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, fields, replace
+
+import torch
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..flags import describe, untrusted
+from ..io import Capture
+from ..lm import STATUS
+from .checks import Checks
+from .result import Fit
+from .settings import MODEL_CODES, FitConfig
+from .smoothing import PlainFit, smooth
+from .tile import TileResult
+
+__all__ = ["assemble", "run_stats"]
+
+
+def run_stats(
+    *,
+    capture: Capture,
+    picked: list[int],
+    config: FitConfig,
+    device: torch.device,
+    pixels: int,
+    tile: int,
+    resumed: int,
+    seconds: dict[str, float],
+    masked: dict[str, int] | None,
+    cluster: dict | None = None,
+) -> dict:
+    """The statistics a driver knows of its fit before the tiles' (JSON-ready): the capture, the
+    frames, the settings, the device, the pixels and tiling, the tiles resumed, ``seconds`` per
+    stage so far, the masked samples per kind and, on a cluster, ``cluster`` (``stats["distributed"]``)."""
+    stats = {
+        "capture": str(capture.root),
+        "frames": picked,
+        "settings": asdict(config),
+        "device": str(device),
+        "pixels": pixels,
+        "tile_pixels": tile,
+        "resumed_tiles": resumed,
+        "seconds": seconds,
+        "masked_samples": masked,
+    }
+    if cluster is not None:
+        stats["distributed"] = cluster
+    return stats
+
+
+def _join(values: list[Tensor], h: int, w: int) -> Tensor:
+    return torch.cat(values).reshape(h, w, *values[0].shape[1:])
+
+
+def _join_svbrdf(pieces: list[SVBRDF], h: int, w: int, channels: tuple[str, ...]) -> SVBRDF:
+    def glue(name, tail):
+        if getattr(pieces[0], name) is None:
+            return None
+        return torch.cat([getattr(p, name) for p in pieces]).reshape(h, w, *tail)
+
+    return SVBRDF(
+        glue("normal", (3,)),
+        glue("diffuse", (len(channels),)),
+        glue("specular", (-1,)),
+        glue("roughness", (2,)),
+        glue("rotation", ()),
+        channels,
+        glue("specular2", (-1,)),
+        glue("roughness2", (2,)),
+    )
+
+
+def assemble(
+    parts: list[TileResult], *, height: int, width: int, channels: tuple[str, ...], stats: dict, started: float
+) -> Fit:
+    """The :class:`~torchspec.pipeline.result.Fit` of an image from its tiles' results (in pixel
+    order), smoothed with ``stats["settings"]["smooth"]`` when the tiles hold the fits without a
+    lobe, ``stats`` (:func:`run_stats`) completed with the tiles' statistics and the time since
+    ``started`` (``time.perf_counter``)."""
+    h, w = height, width
+    joined = Fit(
+        svbrdf=_join_svbrdf([p.svbrdf for p in parts], h, w, channels),
+        **{
+            name: _join([getattr(p, name) for p in parts], h, w)
+            for name in ("residual", "quality", "status", "iterations", "lobe", "model", "criterion", "flags")
+        },
+        std={name: _join([p.std[name] for p in parts], h, w) for name in parts[0].std},
+        stats={},
+        checks={f.name: _join([getattr(p.checks, f.name) for p in parts], h, w) for f in fields(Checks)},
+    )
+    smoothed = None
+    if parts[0].plain is not None:  # FitConfig.smooth: the choice of a lobe over the whole image
+        plain = PlainFit(**{f.name: _join([getattr(p.plain, f.name) for p in parts], h, w) for f in fields(PlainFit)})
+        joined, smoothed = smooth(joined, plain, stats["settings"]["smooth"])
+    svbrdf = joined.svbrdf
+    if svbrdf.specular2 is not None and not bool((svbrdf.specular2 > 0).any()):
+        # A ladder with ward-dual that no pixel took: no second lobe's maps or deviations.
+        std = {name: value for name, value in joined.std.items() if name not in ("specular2", "roughness2")}
+        joined = replace(joined, svbrdf=replace(svbrdf, specular2=None, roughness2=None), std=std)
+    return replace(joined, stats=_tile_stats(joined, parts, stats, smoothed, time.perf_counter() - started))
+
+
+def _tile_stats(fit: Fit, parts: list[TileResult], stats: dict, smoothed: int | None, total: float) -> dict:
+    """``stats`` completed with the tiles' times and counts and the image's statistics."""
+    times: dict[str, float] = {}
+    tried: dict[str, int] = {}
+    for part in parts:
+        for name, seconds in part.times.items():
+            times[name] = times.get(name, 0.0) + seconds
+        for name, pixels_tried in part.tried.items():
+            tried[name] = tried.get(name, 0) + pixels_tried
+    status, iterations, lobe, model, criterion = fit.status, fit.iterations, fit.lobe, fit.model, fit.criterion
+    finite = criterion.isfinite()
+    pixels = status.numel()
+    return {
+        **stats,
+        "seconds": {**stats["seconds"], **times, "total": total},
+        "pixels_per_second": pixels / total if total > 0 else None,
+        "lobe_pixels": int(lobe.sum()),
+        "models": {name: int((model == code).sum()) for code, name in enumerate(MODEL_CODES)},
+        "models_tried": tried,
+        "criterion": float(criterion[finite].double().sum()) if bool(finite.any()) else None,
+        # The sensor's noise variance a y + b per tile (y in recorded units; 0 when not estimated).
+        "sensor_noise": {key: [float(p.noise[i]) for p in parts] for i, key in enumerate("ab")},
+        "status": {name: int((status == code).sum()) for code, name in enumerate(STATUS)},
+        "iterations": {
+            "mean": float(iterations.float().mean()),
+            "median": float(iterations.float().median()),
+            "max": int(iterations.max()),
+            "mean_lobe": float(iterations[lobe].float().mean()) if bool(lobe.any()) else None,
+        },
+        "median_residual": float(fit.residual.median()),
+        "flags": describe(fit.flags),
+        "untrusted": int(untrusted(fit.flags).sum()),
+        # FitConfig.smooth: the pixels whose lobe the neighbours' term took away (None: not smoothed).
+        "smoothed": smoothed,
+    }

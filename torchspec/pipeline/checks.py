@@ -1,0 +1,87 @@
+"""The checks stage: each pixel's flags (:mod:`torchspec.flags`), the peak checks behind two of
+them (:class:`Checks`) and its quality.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..flags import WEAK_LOBE_SNR, bit, peak_checks, untrusted
+from ..lm import CONVERGED, DIVERGED
+from ..models import get_model
+from .samples import TileSamples
+from .selection import Choice
+from .settings import MODEL_CODES, FitConfig
+
+__all__ = ["Checks", "check_choice", "solver_flags", "quality_of", "with_flags"]
+
+
+@dataclass(frozen=True)
+class Checks:
+    """The values behind the ``peak_misfit`` and ``astray`` flags, ``(n,)`` each
+    (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or no noise
+    estimate)."""
+
+    peak_misfit: Tensor
+    astray: Tensor
+
+
+def with_flags(flags: Tensor, *marks: tuple[str, Tensor]) -> Tensor:
+    """``flags`` (int16) with bit ``name`` set where ``where`` holds, for each ``(name, where)``."""
+    for name, where in marks:
+        flags = flags | torch.where(where, bit(name), 0).to(torch.int16)
+    return flags
+
+
+def solver_flags(status: Tensor, few: Tensor) -> Tensor:
+    """The flags a fit gets from its solver and its samples alone: ``diverged``, ``few_samples`` and
+    ``not_converged``."""
+    flags = torch.zeros(status.shape, dtype=torch.int16, device=status.device)
+    return with_flags(
+        flags,
+        ("diverged", status == DIVERGED),
+        ("few_samples", few),
+        ("not_converged", (status != CONVERGED) & (status != DIVERGED)),
+    )
+
+
+def quality_of(base: Tensor, status: Tensor, flags: Tensor) -> Tensor:
+    """A pixel's quality: ``base``, halved where the solver did not converge, 0 where untrusted."""
+    quality = torch.where(status == CONVERGED, base, 0.5 * base)
+    return torch.where(untrusted(flags), torch.zeros_like(quality), quality)
+
+
+def check_choice(choice: Choice, data: TileSamples, few: Tensor, config: FitConfig) -> tuple[Tensor, Checks]:
+    """The flags ``(n,)`` int16 and :class:`Checks` of a tile's chosen fits; ``few (n,)``: the pixels
+    with fewer than 3 valid samples. Without a noise estimate, the solver's flags only."""
+    like = choice.criterion
+    peak_misfit, astray = like.new_full(like.shape, math.nan), like.new_full(like.shape, math.nan)
+    flags = solver_flags(choice.status, few)
+    if not config.noise_known:  # the checks need the sensor's noise
+        return flags, Checks(peak_misfit, astray)
+    lobed = torch.tensor([get_model(name).lobe for name in MODEL_CODES], device=like.device)[choice.code.long()]
+    weak = lobed & (choice.peak.lobe_snr < WEAK_LOBE_SNR)
+    flags = with_flags(flags, ("weak_lobe", weak))
+    index = (lobed & ~few & ~weak).nonzero()[:, 0]
+    if index.numel():
+        peak_misfit[index], astray[index] = peak_checks(
+            choice.svbrdf[index],
+            choice.peak.z2[index],
+            choice.peak.excess[index],
+            data.valid[index],
+            data.lights,
+            data.view,
+            reach=config.flag_reach,
+        )
+    flags = with_flags(
+        flags,
+        ("undetermined", ~choice.deviation["normal"].isfinite() & ~few & ~weak),
+        ("peak_misfit", peak_misfit > config.flag_peak_misfit),
+        ("astray", astray > config.flag_astray),
+        ("misfit", choice.misfit),
+    )
+    return flags, Checks(peak_misfit, astray)

@@ -1,0 +1,117 @@
+"""The in-process driver: :func:`fit`, every tile of a capture in this process, one after another
+(memory is bounded by the frame stack and one tile).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from tqdm.auto import tqdm
+
+from ..io import Capture
+from ..photometric import sample_masks
+from .assembly import assemble, run_stats
+from .checkpoint import FitInterrupted, job_record, open_checkpoint
+from .plan import plan, setup
+from .result import Fit
+from .settings import FitConfig
+from .start import light_context
+from .tile import fit_tile
+
+__all__ = ["fit"]
+
+
+def fit(
+    capture: Capture | str | Path,
+    *,
+    config: FitConfig | None = None,
+    frames: str | list[int] | None = None,
+    progress: bool = False,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
+) -> Fit:
+    """Fit SVBRDF maps to a capture.
+
+    Args:
+        capture: a :class:`~torchspec.io.Capture` or its folder.
+        config: :class:`~torchspec.pipeline.settings.FitConfig` (the defaults otherwise).
+        frames: the frames to fit: a SPEC of :func:`~torchspec.pipeline.settings.select_frames` or
+            a list of indices.
+        progress: show a tqdm bar over the pixels.
+        checkpoint: a folder where each finished tile is saved (atomically), so that an
+            interrupted fit can be continued; a ``KeyboardInterrupt`` then becomes
+            :class:`~torchspec.pipeline.checkpoint.FitInterrupted`. The caller removes the folder
+            once the maps are written.
+        resume: continue the fit whose tiles ``checkpoint`` holds (the same capture, frames,
+            settings and tiling, else ``ValueError``): the maps are identical to an
+            uninterrupted fit's. Without it, a checkpoint holding tiles is an error (never
+            silently dropped).
+
+    Returns:
+        :class:`~torchspec.pipeline.result.Fit`.
+
+    Raises:
+        CaptureError: an unreadable capture or frame, or a light whose shape is unknown. (NaN
+            or Inf pixels are not an error: they are masked, with a warning naming the frame, and
+            counted in ``stats["masked_samples"]``.)
+        ConfigError: a bad SPEC or setting; TorchspecError: fewer than 4 frames.
+        ValueError: a checkpoint of another job, or an unfinished one without ``resume``.
+
+    Example:
+        >>> result = fit("painting-dev", frames="::2")  # doctest: +SKIP
+        >>> write_fit("maps", result)  # doctest: +SKIP
+    """
+    clock = time.perf_counter()
+    job = setup(capture, config, frames)
+    capture, lights, view = job.capture, job.lights, job.view
+    # NaN or Inf pixels (a failed HDR merge) are masked like saturated ones, with a warning per frame.
+    stack = capture.read_frames(job.picked, dtype=view.dtype, device=view.device, nonfinite="keep")  # (K, C, H, W)
+    read_seconds = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    config = job.config
+    masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
+    kinds = [m.flatten(1) for m in (masks.nonfinite, masks.saturated, masks.shadowed)]  # (K, H W) views
+    ctx = light_context(lights)
+    mask_seconds = time.perf_counter() - clock
+
+    k, c, h, w = stack.shape
+    pixels = h * w
+    config, tile = plan(config, k, c, h, w, stack.element_size())
+    flat = stack.flatten(2)  # (K, C, H W), a view
+    folder = Path(checkpoint) if checkpoint is not None else None
+    done = {}
+    if folder is not None:
+        done = open_checkpoint(folder, job_record(capture, job.picked, config, tile, pixels), resume)
+    firsts = range(0, pixels, tile)
+    parts = []
+    with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
+        try:
+            for first in firsts:
+                stop = min(first + tile, pixels)
+                if first in done:  # resumed: the tile as it was computed (its times are that run's)
+                    out = done[first].to(view.device)
+                else:
+                    at = slice(first, stop)
+                    values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
+                    out = fit_tile(first, values, tile_masks, lights, view, capture.channels, config, ctx, folder)
+                parts.append(out)
+                bar.update(stop - first)
+        except KeyboardInterrupt as interrupt:
+            if folder is None:
+                raise
+            raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
+    stats = run_stats(
+        capture=capture,
+        picked=job.picked,
+        config=config,
+        device=view.device,
+        pixels=pixels,
+        tile=tile,
+        resumed=len(done),
+        seconds={"read": read_seconds, "masks": mask_seconds},
+        masked=masks.counts(),
+    )
+    # clock: when the masks began
+    return assemble(parts, height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds)

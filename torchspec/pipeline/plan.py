@@ -1,0 +1,96 @@
+"""What every driver of a fit starts from: the settings, capture, frames, lights and view
+(:func:`setup`, a :class:`Setup`), and the tiling (:func:`plan`): from the capture's size and the
+settings only, so that every driver tiles a fit alike (the same maps, and either resumes the
+other's checkpoint).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ..errors import TorchspecError
+from ..io import Capture, read_capture
+from ..lights import Lights
+from ..models import get_model
+from .settings import AUTO, COMPILE_PIXELS, FitConfig, select_frames
+
+__all__ = ["RUNTIME_BYTES", "Setup", "device_of", "plan", "setup", "tile_size"]
+
+RUNTIME_BYTES = 768 * 2**20
+"""What a fit holds besides its stack and tiles: the torch runtime and fixed work arrays."""
+
+
+def device_of(name: str) -> torch.device:
+    """The device of ``FitConfig.device``: ``auto`` is CUDA when present, else the CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, reserved: int) -> int:
+    """Pixels per tile: ``config.tile``, or what fits in ``memory_gib`` after ``reserved`` bytes
+    (the stack and its masks) and :data:`RUNTIME_BYTES` (at least 256, at most 131072)."""
+    if config.tile:
+        return config.tile
+    p = max(get_model(name).size(channels) for name in (config.ladder if config.model == AUTO else (config.model,)))
+    # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
+    # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
+    # for transients (a conservative bound: the solver takes normal equations from Jacobian chunks).
+    per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
+    available = config.memory_gib * 2**30 - reserved - RUNTIME_BYTES
+    return int(max(256, min(1 << 17, available / (2 * per_pixel))))
+
+
+def plan(config: FitConfig, k: int, c: int, h: int, w: int, itemsize: int) -> tuple[FitConfig, int]:
+    """The settings with ``compile`` decided and the pixels per tile of a fit of a ``(K, C, H, W)``
+    stack of ``itemsize``-byte values."""
+    if config.compile is None:
+        config = replace(config, compile=h * w >= COMPILE_PIXELS)
+    reserved = (k * c * itemsize + 3 * k) * h * w  # the stack, three bool masks
+    return config, tile_size(config, k, c, itemsize, reserved)
+
+
+@dataclass(frozen=True)
+class Setup:
+    """What every driver of a fit starts from.
+
+    Attributes:
+        config: the settings; capture: the capture (its manifest read); picked: the frames fitted.
+        lights: the picked frames' lights (``K``), on the settings' device and dtype.
+        view: ``(3,)`` the view direction, alike.
+    """
+
+    config: FitConfig
+    capture: Capture
+    picked: list[int]
+    lights: Lights
+    view: Tensor
+
+
+def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str | list[int] | None) -> Setup:
+    """The :class:`Setup` of a fit of ``capture`` (or its folder) with ``config`` (the defaults
+    if ``None``) on ``frames`` (a SPEC of :func:`~torchspec.pipeline.settings.select_frames`, or indices).
+
+    Raises:
+        TorchspecError: fewer than 4 frames; CaptureError: an unreadable capture or light.
+    """
+    config = config or FitConfig()
+    capture = capture if isinstance(capture, Capture) else read_capture(capture)
+    picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
+    if len(picked) < 4:
+        raise TorchspecError(
+            f"frames: a fit needs at least 4 frames (3 for the normal and k_d, one more for a lobe); got {len(picked)}."
+        )
+    dtype = getattr(torch, config.dtype)
+    device = device_of(config.device)
+    everything = capture.lights(dtype=dtype)
+    index = torch.tensor(picked)
+    lights = Lights(
+        everything.directions[index], everything.kernel, everything.irradiance[index], everything.exposure[index]
+    ).to(device=device)
+    view = torch.tensor(capture.view, dtype=dtype, device=device)
+    return Setup(config=config, capture=capture, picked=picked, lights=lights, view=view)

@@ -1,0 +1,103 @@
+"""The result of a fit (:class:`Fit`) and its SVBRDF folder (:func:`write_fit`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..flags import FLAGS, UNTRUSTED, bit
+from ..io import write_svbrdf
+from ..lm import STATUS
+from .settings import MODEL_CODES
+
+__all__ = ["Fit", "write_fit"]
+
+
+@dataclass(frozen=True)
+class Fit:
+    """The result of :func:`torchspec.pipeline.fit` (and of :func:`torchspec.pipeline.fit_on_cluster`).
+
+    Attributes:
+        svbrdf: the maps, leading dims ``(H, W)``; with a second lobe (``specular2``,
+            ``roughness2``) where some pixel got ``ward-dual``.
+        residual: ``(H, W)`` RMS of the fit's residual over the valid samples, relative to the
+            pixel's mean value.
+        quality: ``(H, W)`` in ``[0, 1]``: photometric-stereo quality, times the peak location's
+            quality for lobed pixels, halved where the solver did not converge; 0 where ``flags``
+            holds a flag of :data:`torchspec.flags.UNTRUSTED` (diverged, fewer than 3 valid
+            samples, an undetermined normal, a misfit around the peak, a peak astray).
+        status: ``(H, W)`` int8 solver status (:data:`torchspec.lm.STATUS`).
+        iterations: ``(H, W)`` solver steps taken.
+        lobe: ``(H, W)`` bool, the pixels fitted with a lobe.
+        model: ``(H, W)`` int8, each pixel's model: an index into :data:`MODEL_CODES`.
+        criterion: ``(H, W)`` the Bayesian information criterion of each pixel's fit,
+            ``chi^2 + P ln(n)`` with the pixel's noise level (``inf`` where no sample was valid).
+        std: standard deviations of the fitted parameters from the Fisher information at the
+            solution with the estimated noise (the Cramer-Rao bound at the estimate):
+            ``normal (H, W)`` (the angle, radians), ``diffuse (H, W, C)``, ``specular (H, W, C_s)``,
+            ``roughness (H, W, 2)``, and ``specular2 (H, W, 1)``, ``roughness2 (H, W, 2)`` with a
+            second lobe; NaN for a parameter the pixel's model does not have, ``inf`` where the data
+            leave it undetermined.
+        stats: settings, timings and per-stage statistics (JSON-ready); ``smoothed``: the lobes
+            that ``FitConfig.smooth`` took away (``None`` without it).
+        flags: ``(H, W)`` int16 bits of :data:`torchspec.flags.FLAGS`: why not to trust a pixel
+            (the :data:`torchspec.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
+            of it (its solver stopped early, its model leaves a residual above the noise, its
+            lobe is too weak to place a peak).
+        checks: ``peak_misfit`` and ``astray`` ``(H, W)``: the values behind those flags
+            (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or
+            no noise estimate with a forced model and ``uncertainty`` off).
+    """
+
+    svbrdf: SVBRDF
+    residual: Tensor
+    quality: Tensor
+    status: Tensor
+    iterations: Tensor
+    lobe: Tensor
+    model: Tensor
+    criterion: Tensor
+    std: dict[str, Tensor]
+    stats: dict
+    flags: Tensor
+    checks: dict[str, Tensor]
+
+
+def write_fit(path: str | Path, result: Fit) -> None:
+    """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
+    ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
+    ``criterion.exr``, ``flags.exr`` (bits of ``flag_bits``), ``check_peak_misfit.exr``,
+    ``check_astray.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
+    ``std_specular.exr``, ``std_roughness.exr`` (and ``std_specular2.exr``, ``std_roughness2.exr``
+    with a second lobe, whose maps are ``specular2.exr`` and ``roughness2.exr``) and ``svbrdf.json``
+    (model, settings, timings, statistics)."""
+    meta = {
+        "model": "ward",
+        "fit": result.stats,
+        "status_codes": list(STATUS),
+        "model_codes": list(MODEL_CODES),
+        "flag_bits": {name: bit(name) for name in FLAGS},
+        "untrusted_flags": list(UNTRUSTED),
+    }
+    extra = {
+        "residual": result.residual.float(),
+        "quality": result.quality.float(),
+        "status": result.status.float(),
+        "iterations": result.iterations.float(),
+        "model": result.model.float(),
+        "criterion": result.criterion.float(),
+        "flags": result.flags.float(),
+        "check_peak_misfit": result.checks["peak_misfit"].float(),
+        "check_astray": result.checks["astray"].float(),
+        "std_normal_deg": torch.rad2deg(result.std["normal"]).float(),
+        "std_diffuse": result.std["diffuse"].float(),
+        "std_specular": result.std["specular"].float(),
+        "std_roughness": result.std["roughness"].float(),
+    }
+    if "specular2" in result.std:  # ward-dual's second lobe
+        extra.update(std_specular2=result.std["specular2"].float(), std_roughness2=result.std["roughness2"].float())
+    write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra)

@@ -1,0 +1,222 @@
+"""Model selection: each pixel's model by the Bayesian information criterion.
+
+The pixels without a peak are fitted without a lobe, those with one with the first model of the
+ladder from the specular start; their residuals give the sensor's noise, then each fit is assessed
+(:func:`assess`: a :class:`ModelFit`) and kept where its criterion is the lowest so far
+(:class:`Choice`). Each larger model of the ladder is then tried, from the previous one's
+solution, on the pixels it leaves unexplained (:func:`select_models`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..lm import DIVERGED, LMResult
+from ..models import get_model
+from .samples import TileSamples
+from .settings import MODEL_CODES, QUADRATURES, FitConfig
+from .solver import Solved, solve_pixels
+from .start import StartingPoint
+from .uncertainty import PeakSamples, sensor_noise, uncertainty
+
+__all__ = ["ModelFit", "Choice", "assess", "select_models"]
+
+
+@dataclass(frozen=True)
+class ModelFit:
+    """A candidate model's fit of pixels ``index (m,)`` of a tile, assessed.
+
+    Attributes:
+        name, index, svbrdf, result: the solution (:class:`~torchspec.pipeline.solver.Solved`).
+        chi2: ``(m,)`` noise-weighted chi-square (``-inf`` without a noise estimate).
+        std: the parameters' deviations (:class:`~torchspec.pipeline.uncertainty.Uncertainty`).
+        peak: what the peak checks take (``None`` without a noise estimate).
+        criterion: ``(m,)`` ``chi^2 + P ln(n)`` (``inf`` where the solver diverged).
+        unexplained: ``(m,)`` bool, the residual is above the noise (``FitConfig.select_z``).
+    """
+
+    name: str
+    index: Tensor
+    svbrdf: SVBRDF
+    result: LMResult
+    chi2: Tensor
+    std: dict[str, Tensor]
+    peak: PeakSamples | None
+    criterion: Tensor
+    unexplained: Tensor
+
+
+def assess(solved: Solved, data: TileSamples, sensor: Tensor, config: FitConfig) -> ModelFit:
+    """The fit's chi-square, deviations and peak samples (with the noise ``sensor = (a, b)``), its
+    criterion and whether its residual is above the noise. A forced model without
+    ``config.uncertainty`` is kept as is: neither criterion nor deviations."""
+    model, index, result = get_model(solved.name), solved.index, solved.result
+    c = len(data.channels)
+    if config.noise_known:
+        found = uncertainty(
+            model,
+            solved.svbrdf,
+            data.observed[index],
+            data.inverse_noise(sensor, index, config.noise_floor),
+            data.weight[index, :, None].expand(-1, -1, c),
+            data.lights,
+            data.view,
+            path=config.path,
+            quadrature=QUADRATURES[config.quadrature],
+            compile=config.compile,
+        )
+        chi2, std, peak = found.chi2, found.std, found.peak
+    else:
+        chi2, std, peak = torch.full_like(result.cost, -math.inf), {}, None
+    samples = data.samples[index]
+    dof = (samples - model.size(c)).clamp(min=1.0)
+    bic = chi2 + model.size(c) * torch.log(samples.clamp(min=1.0))
+    bic = torch.where(result.status == DIVERGED, torch.full_like(bic, math.inf), bic)
+    unexplained = chi2 > dof + config.select_z * (2.0 * dof).sqrt()
+    return ModelFit(solved.name, index, solved.svbrdf, result, chi2, std, peak, bic, unexplained)
+
+
+@dataclass
+class Choice:
+    """The accumulator of a tile's chosen fits, ``n`` pixels: each pixel holds the fit with the
+    lowest criterion so far (:meth:`take`). Built by :meth:`empty` from the models to be tried.
+
+    Attributes:
+        svbrdf: the chosen maps ``(n,)`` (``rotation`` with an anisotropic model in the ladder,
+            ``specular2``, ``roughness2`` with ``ward-dual``; 0 where the chosen model lacks them).
+        status, iterations, cost: the solver's, ``(n,)``.
+        code: ``(n,)`` int8 index of the chosen model in :data:`MODEL_CODES`.
+        criterion: ``(n,)`` (``inf`` where none was chosen, NaN without a noise estimate).
+        misfit: ``(n,)`` bool, the chosen fit leaves a residual above the noise.
+        peak: the chosen fits' :class:`PeakSamples` (zeros where not computed).
+        deviation: standard deviations as :class:`~torchspec.pipeline.uncertainty.Uncertainty`'s
+            (NaN where not computed).
+        tried: pixels fitted per model.
+    """
+
+    svbrdf: SVBRDF
+    status: Tensor
+    iterations: Tensor
+    cost: Tensor
+    code: Tensor
+    criterion: Tensor
+    misfit: Tensor
+    peak: PeakSamples
+    deviation: dict[str, Tensor]
+    tried: dict[str, int] = field(default_factory=dict)
+
+    @staticmethod
+    def empty(start: StartingPoint, ladder: tuple[str, ...], frames: int, channels: tuple[str, ...]) -> Choice:
+        """No fit chosen yet: photometric stereo's normal and ``k_d``, no lobe."""
+        ps = start.diffuse
+        n, c = ps.diffuse.shape
+        grey = len(ladder) == 1 and get_model(ladder[0]).grey
+        zeros = ps.diffuse.new_zeros
+        rotation = zeros(n) if any(get_model(name).anisotropic for name in ladder) else None
+        dual = any(get_model(name).dual for name in ladder)  # a second lobe's maps, 0 where not fitted
+        second = (zeros((n, 1)), zeros((n, 2))) if dual else (None, None)
+        specular = zeros((n, 1 if grey else c))
+        svbrdf = SVBRDF(ps.normal.clone(), ps.diffuse.clone(), specular, zeros((n, 2)), rotation, channels, *second)
+        nan = math.nan
+        deviation = {
+            "normal": ps.diffuse.new_full((n,), nan),
+            "diffuse": ps.diffuse.new_full((n, c), nan),
+            "specular": ps.diffuse.new_full((n, svbrdf.specular.shape[-1]), nan),
+            "roughness": ps.diffuse.new_full((n, 2), nan),
+        }
+        if dual:
+            deviation.update(specular2=ps.diffuse.new_full((n, 1), nan), roughness2=ps.diffuse.new_full((n, 2), nan))
+        device = ps.diffuse.device
+        return Choice(
+            svbrdf=svbrdf,
+            status=torch.zeros(n, dtype=torch.int8, device=device),
+            iterations=torch.zeros(n, dtype=torch.int32, device=device),
+            cost=zeros(n),
+            code=torch.zeros(n, dtype=torch.int8, device=device),
+            criterion=torch.full((n,), math.inf, dtype=ps.diffuse.dtype, device=device),
+            misfit=torch.zeros(n, dtype=torch.bool, device=device),
+            peak=PeakSamples(zeros((n, frames)), zeros((n, frames)), zeros(n)),
+            deviation=deviation,
+        )
+
+    def take(self, fit: ModelFit) -> None:
+        """Keep ``fit`` where its criterion is the lowest so far (everywhere without a noise
+        estimate), in place."""
+        model, index, result = get_model(fit.name), fit.index, fit.result
+        nothing = fit.chi2 == -math.inf
+        better = (fit.criterion < self.criterion[index]) | nothing
+        bic = torch.where(nothing, torch.full_like(fit.criterion, math.nan), fit.criterion)
+        pick, chosen, mine = index[better], fit.svbrdf[better], self.svbrdf
+        mine.normal[pick], mine.diffuse[pick] = chosen.normal, chosen.diffuse
+        mine.specular[pick] = chosen.specular.expand(-1, mine.specular.shape[-1])
+        mine.roughness[pick] = chosen.roughness
+        if mine.rotation is not None:
+            rotation = chosen.rotation if chosen.rotation is not None else torch.zeros_like(chosen.roughness[:, 0])
+            mine.rotation[pick] = rotation
+        if mine.specular2 is not None:
+            mine.specular2[pick] = chosen.specular2 if model.dual else 0.0
+            mine.roughness2[pick] = chosen.roughness2 if model.dual else 0.0
+        self.status[pick], self.iterations[pick] = result.status[better], result.iterations[better]
+        self.cost[pick], self.criterion[pick] = result.cost[better], bic[better]
+        self.code[pick] = MODEL_CODES.index(fit.name)
+        for key, value in fit.std.items():
+            if key not in self.deviation:  # a second lobe's, where no model has one
+                continue
+            kept = value[better]
+            self.deviation[key][pick] = kept.expand(-1, self.deviation[key].shape[-1]) if kept.dim() > 1 else kept
+        self.tried[fit.name] = self.tried.get(fit.name, 0) + index.numel()
+        self.misfit[pick] = fit.unexplained[better]
+        if fit.peak is not None:
+            self.peak.z2[pick], self.peak.excess[pick] = fit.peak.z2[better], fit.peak.excess[better]
+            self.peak.lobe_snr[pick] = fit.peak.lobe_snr[better]
+
+
+def select_models(
+    start: StartingPoint, lobe: Tensor, data: TileSamples, config: FitConfig
+) -> tuple[Choice, Tensor, Tensor]:
+    """Fit and choose each pixel's model (module docstring) for pixels with a lobe ``lobe (n,)``.
+
+    Returns:
+        The :class:`Choice`, the sensor's noise ``(a, b)`` (zeros when not estimated) and the
+        start's peak-location quality per pixel ``(n,)`` (1 for the pixels without a lobe).
+    """
+    ladder = config.ladder_climbed
+    ps, channels = start.diffuse, data.channels
+    choice = Choice.empty(start, ladder, data.observed.shape[1], channels)
+    first = []
+    index = (~lobe).nonzero()[:, 0]
+    if index.numel():
+        first.append(solve_pixels("diffuse", index, plain_start(start, channels)[index], data, config))
+    index = lobe.nonzero()[:, 0]
+    found_quality = torch.ones_like(start.level)
+    found_quality[index] = start.specular.quality[index]
+    if index.numel() and ladder:
+        first.append(solve_pixels(ladder[0], index, start.svbrdf(channels)[index], data, config))
+    sensor = data.observed.new_zeros(2)
+    if first and config.noise_known:
+        c = len(channels)
+        sensor = torch.stack(sensor_noise(first, start.lobe, data.observed, data.valid, data.level, c))
+    index, init = data.observed.new_zeros(0, dtype=torch.long), None
+    for solved in first:
+        fit = assess(solved, data, sensor, config)
+        choice.take(fit)
+        if solved.name != "diffuse":
+            index, init = fit.index[fit.unexplained], fit.svbrdf[fit.unexplained]
+    for name in ladder[1:]:  # each from the previous one's solution, where it leaves a misfit
+        if index.numel() == 0:
+            break
+        fit = assess(solve_pixels(name, index, init, data, config), data, sensor, config)
+        choice.take(fit)
+        index, init = index[fit.unexplained], fit.svbrdf[fit.unexplained]
+    return choice, sensor, found_quality
+
+
+def plain_start(start: StartingPoint, channels: tuple[str, ...]) -> SVBRDF:
+    """The solver's starting point without a lobe: photometric stereo's normal and ``k_d``."""
+    zero = start.level.new_zeros((start.level.shape[0], 1))
+    return SVBRDF(start.diffuse.normal, start.diffuse.diffuse, zero, zero.expand(-1, 2), None, channels)

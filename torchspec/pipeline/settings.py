@@ -1,0 +1,233 @@
+"""The settings of a fit (:class:`FitConfig`, ``configs/fit.yaml``) and the choices they name.
+
+:data:`LADDER` is the order in which ``auto`` tries the lobed models, :data:`QUADRATURES` the
+rules of the model's integrations, :func:`select_frames` the frames a SPEC picks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from ..config import ConfigError
+from ..lm import LMConfig
+from ..models import MODELS, get_model
+
+__all__ = [
+    "AUTO",
+    "COMPILE_PIXELS",
+    "INITS",
+    "LADDER",
+    "MODEL_CODES",
+    "QUADRATURES",
+    "FitConfig",
+    "select_frames",
+]
+
+INITS = ("fri", "naive", "grid")
+"""The specular starts of ``FitConfig.init``."""
+AUTO = "auto"
+"""``FitConfig.model`` that picks each pixel's model."""
+LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
+"""The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
+MODEL_CODES = tuple(MODELS)
+"""``model.exr``'s codes: the index of each pixel's model in this tuple."""
+COMPILE_PIXELS = 1 << 17
+"""``FitConfig.compile=None`` compiles the model for fits of at least this many pixels (the
+one-off compilation pays for itself on large fits only)."""
+QUADRATURES = {
+    # name: the lobe's Gauss-Hermite nodes per axis (fast rule) and radii (reference rule), and the
+    # rule of the diffuse clamp (torchspec.jacobian.jacobian's order, reference_order and clamp)
+    "fit": {"order": 3, "reference_order": 8, "clamp": "fast"},
+    "render": {"order": None, "reference_order": None, "clamp": "exact"},
+}
+"""The quadrature rules of ``FitConfig.quadrature``: keyword arguments of the model's evaluation."""
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of :func:`torchspec.pipeline.fit` (``configs/fit*.yaml``).
+
+    Attributes:
+        model: ``auto`` picks each pixel's model by the Bayesian information criterion, trying
+            the larger ones only where the smaller leave a residual above the noise
+            (``ladder``); or one model forced on every pixel that shows a peak
+            (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``,
+            ``ward-aniso`` or ``ward-dual`` (two grey isotropic lobes), or ``diffuse`` on every
+            pixel. Where some pixel gets ``ward-dual``, the maps have a second lobe
+            (``SVBRDF.specular2``, 0 where another model was chosen; ``std`` has its deviations).
+        ladder: the models ``auto`` climbs, in order, each tried from the previous one's solution on
+            the pixels it leaves unexplained (:data:`LADDER` by default). Leave ``ward-dual`` out to
+            spend no time on two lobes: a pixel no single Ward lobe explains (a lobe of another
+            shape, such as the development captures' Beckmann lobes) climbs to the last model.
+        uncertainty: compute each pixel's criterion and standard deviations (one more evaluation
+            of the model per pixel, at the solution), with each sample's noise from the sensor's
+            ``a y + b`` fitted to the residuals of the pixels without a peak
+            (:func:`torchspec.noise.affine_noise`; ``stats["sensor_noise"]``), floored at
+            ``noise_floor`` times the pixel's level. ``auto`` needs them; a forced model without
+            them leaves ``criterion`` and ``std`` NaN.
+        flag_peak_misfit, flag_astray, flag_reach: the thresholds of the ``peak_misfit`` and
+            ``astray`` flags and the neighbourhood of the peak (:mod:`torchspec.flags`; they need
+            the noise: ``uncertainty`` or ``auto``); ``experiments/stability.py`` chose the defaults.
+        smooth: spatial regularisation of ``auto``'s choice between a lobe and none (a matte region
+            of a painting is contiguous): the criterion of a pixel gains ``smooth`` for each of its
+            four neighbours on the other side of that choice, and the image's total is lowered pixel
+            by pixel (:func:`torchspec.pipeline.smooth_choice`). Every pixel given a lobe is then
+            also fitted without one (its ``diffuse`` fit is the alternative). ``0`` (the default):
+            each pixel on its own, and a pixel whose samples show a peak always gets a lobe. In
+            units of the criterion: the BIC charges ``ln n`` (~5 for a few hundred samples) per
+            parameter, so ``smooth = 10`` lets four matte neighbours outweigh about eight
+            parameters' worth of improvement.
+        select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
+            degrees of freedom by more than ``select_z`` of its standard deviations
+            (``dof + select_z sqrt(2 dof)``): the residual is not noise.
+        init: the specular start: ``fri`` (FRI peak location), ``naive`` (photometric-stereo
+            normal, ``alpha = naive_alpha``) or ``grid`` (dense search).
+        detect: a pixel gets a lobe when its residual peaks above ``detect`` times its noise
+            level (the larger of the photometric-stereo noise and ``noise_floor`` times the
+            pixel's mean value).
+        noise_floor: see ``detect``; also the smallest noise of a sample, relative to its
+            pixel's level, in the criterion and the deviations (the model's own error: the
+            quadrature, a lobe shape the data's material does not follow).
+        naive_alpha: the roughness of the naive start.
+        saturation: the sensor's clipping level; ``None`` detects a clipped plateau.
+        grow: saturated regions are grown by this many pixels.
+        shadow: samples below this fraction of the pixel's median are shadows.
+        trim, cut: of the robust photometric stereo.
+        fri_method, fri_coefficients: of the peak location (``None``: the defaults).
+        path: the quadrature path of the model (:func:`torchspec.render.render`).
+        quadrature: ``fit`` (the default): 3 x 3 nodes per frame for the lobe (8 radii where
+            the reference rule takes over) and the clamp's fast rule
+            (:data:`torchspec.render.CLAMPS`): within 1e-3 of a pixel's largest value;
+            ``render``: the renderer's own rules (1e-6).
+        compile: fuse the model's integrations with ``torch.compile`` (faster solver steps after
+            a one-off compilation). A failed compilation warns and fits without. ``None``: when
+            the fit has at least ``COMPILE_PIXELS`` pixels.
+        tile: pixels per tile; 0 sizes tiles to ``memory_gib``.
+        memory_gib: the memory budget of the whole fit: the frame stack, its masks, the torch
+            runtime and a tile (tiles are sized to what is left, at least 256 pixels).
+        dtype: ``float32`` or ``float64``.
+        device: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ...
+        lm: the solver's settings.
+    """
+
+    model: str = "auto"
+    ladder: tuple[str, ...] = LADDER
+    smooth: float = 0.0
+    select_z: float = 3.0
+    uncertainty: bool = True
+    flag_peak_misfit: float = 3.0
+    flag_astray: float = 2.0
+    flag_reach: float = 1.5
+    init: str = "fri"
+    detect: float = 5.0
+    noise_floor: float = 0.002
+    naive_alpha: float = 0.1
+    saturation: float | None = None
+    grow: int = 1
+    shadow: float = 0.02
+    trim: float = 0.25
+    cut: float = 3.0
+    fri_method: str | None = None
+    fri_coefficients: int | None = None
+    path: str = "auto"
+    quadrature: str = "fit"
+    compile: bool | None = None
+    tile: int = 0
+    memory_gib: float = 2.0
+    dtype: str = "float32"
+    device: str = "auto"
+    lm: LMConfig = field(default_factory=LMConfig)
+
+    def __post_init__(self):
+        if self.model != AUTO and self.model not in MODELS:
+            raise ConfigError(f"FitConfig.model must be one of {[AUTO, *sorted(MODELS)]}; got {self.model!r}.")
+        ladder = tuple(self.ladder)
+        object.__setattr__(self, "ladder", ladder)
+        unknown = [name for name in ladder if name not in MODELS]
+        if unknown:
+            raise ConfigError(f"FitConfig.ladder: each model must be one of {sorted(MODELS)}; got {unknown!r}.")
+        if not ladder or len(set(ladder)) != len(ladder) or not all(get_model(name).lobe for name in ladder):
+            raise ConfigError(
+                f"FitConfig.ladder must name one or more models with a lobe, each once "
+                f"(of {[name for name in MODELS if get_model(name).lobe]}); got {list(ladder)!r}."
+            )
+        if not self.select_z >= 0:
+            raise ConfigError(f"FitConfig.select_z must be >= 0; got {self.select_z!r}.")
+        if not (self.smooth >= 0 and math.isfinite(self.smooth)):
+            raise ConfigError(f"FitConfig.smooth must be >= 0 and finite; got {self.smooth!r}.")
+        if self.smooth > 0 and self.model != AUTO:
+            raise ConfigError(
+                f"FitConfig.smooth regularises auto's choice of a lobe; a forced model ({self.model!r}) has none "
+                "to regularise: set smooth to 0, or model to 'auto'."
+            )
+        if self.init not in INITS:
+            raise ConfigError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
+        if self.quadrature not in QUADRATURES:
+            raise ConfigError(
+                f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}."
+            )
+        if self.dtype not in ("float32", "float64"):
+            raise ConfigError(f"FitConfig.dtype must be 'float32' or 'float64'; got {self.dtype!r}.")
+        positive = ("detect", "noise_floor", "naive_alpha", "memory_gib")
+        for name in (*positive, "flag_peak_misfit", "flag_astray", "flag_reach"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"FitConfig.{name} must be > 0; got {getattr(self, name)!r}.")
+        if self.tile < 0:
+            raise ConfigError(f"FitConfig.tile must be >= 0 (0: from memory_gib); got {self.tile}.")
+
+    @property
+    def ladder_climbed(self) -> tuple[str, ...]:
+        """The lobed models fitted, in order: the ladder (``auto``), the forced model, or none."""
+        if self.model == AUTO:
+            return self.ladder
+        return () if self.model == "diffuse" else (self.model,)
+
+    @property
+    def noise_known(self) -> bool:
+        """Whether the fit estimates the sensor's noise: the criterion, deviations and peak checks need it."""
+        return self.uncertainty or self.model == AUTO
+
+
+def select_frames(spec: str | None, count: int) -> list[int]:
+    """Frame indices from a SPEC: ``None`` or ``all``; a Python slice ``start:stop:step``
+    (``::2`` every second frame, ``1::2`` the others); or a comma list of indices and ranges
+    ``0,3,10-19`` (inclusive).
+
+    Example:
+        >>> select_frames("0,3-5", 8), select_frames("1::3", 8)
+        ([0, 3, 4, 5], [1, 4, 7])
+
+    Raises:
+        ConfigError: a malformed SPEC, an index out of ``[0, count)``, a repeated frame or an
+            empty selection.
+    """
+    if spec is None or spec.strip() in ("", "all"):
+        return list(range(count))
+    text = spec.strip()
+    try:
+        if ":" in text:
+            parts = [int(p) if p.strip() else None for p in text.split(":")]
+            if len(parts) > 3 or (len(parts) == 3 and parts[2] == 0):
+                raise ValueError
+            picked = list(range(count))[slice(*parts)]
+        else:
+            picked = []
+            for item in text.split(","):
+                if "-" in item.strip()[1:]:
+                    low, high = item.split("-", 1)
+                    picked += list(range(int(low), int(high) + 1))
+                else:
+                    picked.append(int(item))
+    except ValueError:
+        raise ConfigError(
+            f"frames SPEC must be 'all', a slice 'start:stop:step' or a list '0,3,10-19'; got {spec!r}."
+        ) from None
+    bad = [k for k in picked if not 0 <= k < count]
+    if bad:
+        raise ConfigError(f"frames SPEC {spec!r} names frame(s) {bad[:5]} outside 0..{count - 1}.")
+    if len(set(picked)) != len(picked):
+        raise ConfigError(f"frames SPEC {spec!r} names a frame twice.")
+    if not picked:
+        raise ConfigError(f"frames SPEC {spec!r} selects no frame of {count}.")
+    return picked

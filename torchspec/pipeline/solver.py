@@ -1,0 +1,72 @@
+"""The solver stage: batched Levenberg-Marquardt (:func:`torchspec.lm.solve`) of one model's
+parameters on a set of pixels, from a starting point (:func:`solve_pixels`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..lm import LMResult, bounded, solve
+from ..models import get_model
+from .samples import TileSamples
+from .settings import QUADRATURES, FitConfig
+
+__all__ = ["Solved", "solve_pixels", "compiled_or_eager"]
+
+_COMPILE_FAILED = []  # a compilation that failed once in this process is not tried again
+
+
+def compiled_or_eager(run: Callable, compile: bool):
+    """``run(True)`` (with ``torch.compile``) when ``compile`` and no compilation has failed in
+    this process, else ``run(False)``; a failed compilation warns and runs ``run(False)``."""
+    if compile and not _COMPILE_FAILED:
+        try:
+            return run(True)
+        except Exception as error:  # no C++ compiler, an unsupported device, ...: the same work without
+            _COMPILE_FAILED.append(error)
+            warnings.warn(f"torch.compile failed ({type(error).__name__}: {error}); fitting without it.", stacklevel=3)
+    return run(False)
+
+
+@dataclass(frozen=True)
+class Solved:
+    """One model's solution on pixels ``index`` of a tile.
+
+    Attributes:
+        name: the model (:data:`torchspec.models.MODELS`).
+        index: ``(m,)`` the tile's pixels fitted.
+        svbrdf: ``(m,)`` the fitted maps.
+        result: the solver's :class:`torchspec.lm.LMResult` (status, iterations, cost).
+    """
+
+    name: str
+    index: Tensor
+    svbrdf: SVBRDF
+    result: LMResult
+
+
+def solve_pixels(name: str, index: Tensor, start: SVBRDF, data: TileSamples, config: FitConfig) -> Solved:
+    """Fit model ``name`` to pixels ``index (m,)`` of ``data`` from ``start (m,)``, minimising the
+    residual weighted by ``data.weight`` (``config.lm``, ``config.path``, ``config.quadrature``,
+    ``config.compile``)."""
+    model = get_model(name)
+    channels = data.channels
+    bounds = model.bounds(len(channels))
+    quadrature = QUADRATURES[config.quadrature]
+    params = bounds.to_free(model.pack(start))
+    observed, weight = data.observed[index], data.weight[index]
+
+    def run(compile: bool):
+        fn = model.residuals(
+            observed, weight, data.lights, data.view, channels, path=config.path, compile=compile, normal=True,
+            **quadrature,
+        )
+        return solve(bounded(fn, bounds), params, config=config.lm)
+
+    result = compiled_or_eager(run, config.compile)
+    return Solved(name, index, model.unpack(bounds.from_free(result.params)[0], channels, order=True), result)

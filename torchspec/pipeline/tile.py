@@ -1,0 +1,165 @@
+"""The per-tile engine: every stage of the fit on one tile of pixels (:func:`fit_pixels`), as
+every driver runs it (:func:`fit_tile`: in-process and on a cluster), giving a :class:`TileResult`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..lights import Lights
+from .checkpoint import save_tile
+from .checks import Checks, check_choice, quality_of
+from .samples import TileSamples
+from .selection import select_models
+from .settings import FitConfig
+from .smoothing import PlainFit, plain_alternative
+from .start import LightContext, starting_point
+
+__all__ = ["MASK_KINDS", "TileResult", "fit_pixels", "fit_tile"]
+
+MASK_KINDS = ("nonfinite", "saturated", "shadowed")
+"""The masks of :class:`torchspec.photometric.Masks` that :func:`fit_tile` takes and counts."""
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """The fit of one tile of ``n`` pixels, the fields of :class:`~torchspec.pipeline.result.Fit`
+    with leading dim ``(n,)``, and what the image's assembly needs besides.
+
+    Attributes:
+        svbrdf, flags, residual, quality, status, iterations, lobe, model, criterion, std: as
+            :class:`~torchspec.pipeline.result.Fit`'s.
+        checks: the peak checks behind two flags.
+        tried: pixels fitted per model.
+        noise: ``(2,)`` the sensor's ``(a, b)`` (zeros when not estimated).
+        times: seconds per stage.
+        plain: every pixel's fit without a lobe (``FitConfig.smooth`` only; else ``None``).
+        masked: the count of masked samples per kind of :data:`MASK_KINDS` (:func:`fit_tile`).
+    """
+
+    svbrdf: SVBRDF
+    flags: Tensor
+    checks: Checks
+    residual: Tensor
+    quality: Tensor
+    status: Tensor
+    iterations: Tensor
+    lobe: Tensor
+    model: Tensor
+    criterion: Tensor
+    std: dict[str, Tensor]
+    tried: dict[str, int]
+    noise: Tensor
+    times: dict[str, float]
+    plain: PlainFit | None = None
+    masked: dict[str, int] | None = None
+
+    def to(self, device: torch.device | str) -> TileResult:
+        """Every tensor moved to ``device``."""
+        return _moved(self, device)
+
+
+def _moved(value, device):
+    if isinstance(value, (Tensor, SVBRDF)):
+        return value.to(device=device)
+    if isinstance(value, dict):
+        return {name: _moved(item, device) for name, item in value.items()}
+    if isinstance(value, (TileResult, Checks, PlainFit)):
+        return replace(value, **{f.name: _moved(getattr(value, f.name), device) for f in fields(value)})
+    return value
+
+
+def fit_pixels(
+    y: Tensor,
+    valid: Tensor,
+    lights: Lights,
+    view: Tensor,
+    channels: tuple[str, ...],
+    config: FitConfig,
+    ctx: LightContext,
+) -> TileResult:
+    """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
+
+    The stages: :func:`~torchspec.pipeline.start.starting_point`, then
+    :func:`~torchspec.pipeline.selection.select_models`, then
+    :func:`~torchspec.pipeline.checks.check_choice`, and with ``FitConfig.smooth`` the fits without a
+    lobe (:func:`~torchspec.pipeline.smoothing.plain_alternative`)."""
+    begun = starting_point(y, valid, lights, view, config=config, context=ctx)
+    times = dict(begun.times)
+    lobe = begun.lobe if config.model != "diffuse" else torch.zeros_like(begun.lobe)
+    data = TileSamples.of(y, valid, begun.level, lights, view, channels)
+    t0 = time.perf_counter()
+    choice, sensor, found_quality = select_models(begun, lobe, data, config)
+    times["lm"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    few = valid.sum(-1) < 3
+    flags, checks = check_choice(choice, data, few, config)
+    times["checks"] = time.perf_counter() - t0
+
+    c = y.shape[-1]
+    rms = (2.0 * choice.cost / (data.count * c)).sqrt()
+    quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
+    plain = None
+    if config.smooth > 0:  # the alternative of each lobed pixel, for the image's choice (smoothing)
+        chosen = PlainFit(
+            normal=choice.svbrdf.normal.clone(),
+            diffuse=choice.svbrdf.diffuse.clone(),
+            criterion=choice.criterion,
+            status=choice.status.clone(),
+            iterations=choice.iterations.clone(),
+            residual=rms.clone(),
+            quality=quality.clone(),
+            flags=flags.clone(),
+            std_normal=choice.deviation["normal"].clone(),
+            std_diffuse=choice.deviation["diffuse"].clone(),
+        )
+        plain = plain_alternative(begun, chosen, choice.code, sensor, few, data, config, choice.tried)
+    return TileResult(
+        svbrdf=choice.svbrdf,
+        flags=flags,
+        checks=checks,
+        residual=torch.nan_to_num(rms, nan=math.inf),
+        quality=quality,
+        status=choice.status,
+        iterations=choice.iterations,
+        lobe=lobe,
+        model=choice.code,
+        criterion=choice.criterion,
+        std=choice.deviation,
+        tried=choice.tried,
+        noise=sensor,
+        times=times,
+        plain=plain,
+    )
+
+
+def fit_tile(
+    first: int,
+    values: Tensor,
+    masks: list[Tensor],
+    lights: Lights,
+    view: Tensor,
+    channels: tuple[str, ...],
+    config: FitConfig,
+    ctx: LightContext,
+    folder: Path | None,
+) -> TileResult:
+    """One tile, as every driver fits it: the pixels ``first .. first + n - 1`` of the image from
+    their values ``(K, C, n)`` and their masks of :data:`MASK_KINDS` (each ``(K, n)``); saved in the
+    checkpoint ``folder`` when given. Returns :func:`fit_pixels`'s result with the count of masked
+    samples of each kind."""
+    y = values.permute(2, 0, 1)  # (n, K, C)
+    valid = ~(masks[0] | masks[1] | masks[2]).T
+    out = fit_pixels(y, valid, lights, view, channels, config, ctx)
+    out = replace(out, masked={name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)})
+    if folder is not None:
+        save_tile(folder, first, out)
+    return out
