@@ -146,7 +146,10 @@ def load_light(path: str | Path) -> LightSettings:
             a value is out of its domain; the message names the file and the key.
 
     Example:
-        >>> settings = load_light("light.yaml")  # doctest: +SKIP
+        >>> import pathlib, tempfile
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "light.yaml"
+        >>> _ = path.write_text("light: {kernel: gaussian, domain: projected, sigma: 0.08}")
+        >>> settings = load_light(path)
         >>> settings.light.kernel, settings.intensity
         ('gaussian', 1.0)
     """
