@@ -3,7 +3,7 @@
 ``solve`` minimises ``0.5 ||r_n(x_n)||^2`` for ``N`` problems at once, each with ``P``
 parameters and ``R`` residuals, given a function that returns the residuals and their Jacobian
 for any subset of the problems. It knows nothing about what the parameters mean; bounds are
-handled by reparametrisation (:class:`Bounds`, :func:`bounded`). The solver only ever uses the
+handled by reparametrisation (:class:`~torchspec.lm.bounds.Bounds`, :func:`~torchspec.lm.bounds.bounded`). The solver only ever uses the
 cost, ``J^T J`` and ``J^T r``, so a function may return those instead (:class:`NormalEquations`)
 and never hold the Jacobian ``(M, R, P)``, the largest tensor of a fit.
 
@@ -37,8 +37,7 @@ Per problem, all state lives in tensors of shape ``(N,)``:
     current point passes the ``xtol`` test. It is taken without evaluating the point it reaches,
     whose cost is then the Gauss-Newton model's, ``cost + g^T s / 2`` (exact for a linear
     problem, within ``O(|s|^3)`` otherwise, ``s`` being below ``xtol``): the evaluation would only
-    confirm the convergence (on bench_fit's capture ~1 evaluation fewer in ~4.6 per pixel, at the
-    same accuracy). Skipped where ``J^T J`` is singular.
+    confirm the convergence. Skipped where ``J^T J`` is singular.
 
   In float32 the cost resolves parameters to about ``sqrt(eps)`` of their statistical scale only.
 - Failure: when a rejection pushes ``lambda`` above ``max_damping`` (before the stall test
@@ -74,6 +73,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..config import ConfigError
+from ..errors import TorchspecError
+
 __all__ = [
     "CONVERGED",
     "MAX_ITERATIONS",
@@ -82,10 +84,8 @@ __all__ = [
     "STATUS",
     "LMConfig",
     "LMResult",
-    "Bounds",
     "ResidualFn",
     "NormalEquations",
-    "bounded",
     "solve",
 ]
 
@@ -119,8 +119,8 @@ class LMConfig:
         max_iterations: LM steps (accepted or rejected) per problem, ``>= 1``.
         check_every: steps between the all-converged checks and compactions (the only host
             synchronisations), ``>= 1``; ``None``: 1 on the CPU, where a check costs nothing and
-            every step on a finished problem is wasted (4 cost 1.3x the time of a fit), and 4
-            on other devices, where a synchronisation stalls the queue.
+            every step on a finished problem is wasted, and 4 on other devices, where a
+            synchronisation stalls the queue.
         damping: initial ``lambda``, relative to ``diag(J^T J)``, ``> 0``.
         ftol: relative cost-reduction tolerance, ``>= 0``.
         xtol: relative step-size tolerance, ``>= 0``.
@@ -143,17 +143,17 @@ class LMConfig:
             if name == "check_every" and value is None:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"LMConfig.{name} must be an integer >= 1; got {value!r}.")
+                raise ConfigError(f"LMConfig.{name} must be an integer >= 1; got {value!r}.")
         for name in ("damping", "max_damping"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
-                raise ValueError(f"LMConfig.{name} must be a finite number > 0; got {value!r}.")
+                raise ConfigError(f"LMConfig.{name} must be a finite number > 0; got {value!r}.")
         for name in ("ftol", "xtol", "gtol"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 <= value < math.inf):
-                raise ValueError(f"LMConfig.{name} must be a finite number >= 0 (0 disables it); got {value!r}.")
+                raise ConfigError(f"LMConfig.{name} must be a finite number >= 0 (0 disables it); got {value!r}.")
         if self.max_damping <= self.damping:
-            raise ValueError(
+            raise ConfigError(
                 f"LMConfig.max_damping must be > damping = {self.damping!r}; got {self.max_damping!r}. "
                 "Raise max_damping or lower damping."
             )
@@ -194,25 +194,25 @@ def _checked_output(out, x: Tensor) -> tuple[Tensor, Tensor]:
     """The residuals and Jacobian returned by ``residual_fn``, detached, after checking their shapes."""
     m, p = x.shape
     if not isinstance(out, (tuple, list)) or len(out) != 2:
-        raise ValueError(
+        raise TorchspecError(
             f"residual_fn must return a pair (residuals (M, R), jacobian (M, R, P)); got {type(out).__name__}."
         )
     r, jac = out
     if not isinstance(r, Tensor) or r.ndim != 2 or r.shape[0] != m:
         shape = tuple(r.shape) if isinstance(r, Tensor) else type(r).__name__
-        raise ValueError(
+        raise TorchspecError(
             f"residual_fn's residuals must have shape (M, R) = ({m}, R) for params of shape {(m, p)}; got {shape}."
         )
     expected = (m, r.shape[1], p)
     if not isinstance(jac, Tensor) or tuple(jac.shape) != expected:
         shape = tuple(jac.shape) if isinstance(jac, Tensor) else type(jac).__name__
-        raise ValueError(
+        raise TorchspecError(
             f"residual_fn's jacobian must have shape (M, R, P) = {expected} for residuals of shape "
             f"{tuple(r.shape)} and params of shape {(m, p)}; got {shape}."
         )
     for name, value in (("residuals", r), ("jacobian", jac)):
         if value.dtype != x.dtype or value.device != x.device:
-            raise ValueError(
+            raise TorchspecError(
                 f"residual_fn's {name} must have the dtype and device of params ({x.dtype}, {x.device}); "
                 f"got ({value.dtype}, {value.device}). Compute them from the params passed in."
             )
@@ -226,11 +226,11 @@ def _checked_normal(out: NormalEquations, x: Tensor) -> tuple[Tensor, Tensor, Te
         value = getattr(out, name)
         if not isinstance(value, Tensor) or tuple(value.shape) != shape:
             got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-            raise ValueError(
+            raise TorchspecError(
                 f"residual_fn's NormalEquations.{name} must have shape {shape} for params of shape {(m, p)}; got {got}."
             )
         if value.dtype != x.dtype or value.device != x.device:
-            raise ValueError(
+            raise TorchspecError(
                 f"residual_fn's NormalEquations.{name} must have the dtype and device of params "
                 f"({x.dtype}, {x.device}); got ({value.dtype}, {value.device})."
             )
@@ -396,7 +396,7 @@ def solve(
         An :class:`LMResult` with ``(N, ...)`` fields; see the module docstring for the statuses.
 
     Raises:
-        ValueError: ``params`` is not a 2-D floating tensor with ``P >= 1``, or ``residual_fn``
+        TorchspecError: ``params`` is not a 2-D floating tensor with ``P >= 1``, or ``residual_fn``
             returns the wrong shapes, dtype or device.
 
     Example:
@@ -411,10 +411,10 @@ def solve(
     """
     if not isinstance(params, Tensor) or params.ndim != 2 or not params.is_floating_point():
         got = f"shape {tuple(params.shape)}, dtype {params.dtype}" if isinstance(params, Tensor) else type(params)
-        raise ValueError(f"params must be a 2-D floating tensor (N, P); got {got}. Stack the problems as rows.")
+        raise TorchspecError(f"params must be a 2-D floating tensor (N, P); got {got}. Stack the problems as rows.")
     n, p = params.shape
     if p < 1:
-        raise ValueError(f"params must have at least one column (N, P >= 1); got shape {tuple(params.shape)}.")
+        raise TorchspecError(f"params must have at least one column (N, P >= 1); got shape {tuple(params.shape)}.")
     like = dict(dtype=params.dtype, device=params.device)
     x0 = params.detach().clone()
     out = LMResult(
@@ -466,152 +466,3 @@ def solve(
             if running < state.running.shape[0]:
                 state = state.take(state.running.nonzero().squeeze(-1))
     return out
-
-
-_KINDS = ("free", "positive", "nonnegative", "interval")
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """Per-column reparametrisations ``x = f(u)`` of ``(N, P)`` parameters, ``u`` unconstrained.
-
-    Each entry of ``kinds`` describes one column:
-
-    - ``"free"``: ``x = u``;
-    - ``"positive"``: ``x = exp(u)``, ``x > 0``, for scale parameters spanning decades;
-    - ``"nonnegative"``: ``x = softplus(u) = log(1 + exp(u))``, ``x > 0``, linear for large ``u``
-      (gentler far from 0 than ``exp``);
-    - ``("interval", lo, hi)``: ``x = lo + (hi - lo) sigmoid(u)``, ``lo < x < hi``, finite
-      ``lo < hi``. A list ``["interval", lo, hi]`` (as from YAML) is accepted and stored as a tuple.
-
-    Values on or beyond a bound have no preimage: :meth:`to_free` first clamps them into the open
-    domain (``x >= tiny`` for ``positive`` and ``nonnegative``, ``eps <= (x - lo) / (hi - lo) <=
-    1 - eps`` for ``interval``, with the dtype's ``finfo``). A start that close to a bound moves
-    away only slowly (the derivative ``dx/du`` vanishes there): start inside.
-
-    Example:
-        >>> bounds = Bounds(("free", "positive", ("interval", 0.0, 1.0)))
-        >>> x = torch.tensor([[-1.0, 2.0, 0.25]], dtype=torch.float64)
-        >>> torch.allclose(bounds.from_free(bounds.to_free(x))[0], x)
-        True
-    """
-
-    kinds: tuple
-
-    def __post_init__(self) -> None:
-        if isinstance(self.kinds, (str, bytes)) or not hasattr(self.kinds, "__iter__"):
-            raise ValueError(f"Bounds.kinds must be a sequence with one entry per column; got {self.kinds!r}.")
-        kinds = []
-        for j, kind in enumerate(self.kinds):
-            if isinstance(kind, (tuple, list)) and len(kind) == 3 and kind[0] == "interval":
-                lo, hi = kind[1], kind[2]
-                numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi))
-                if not numbers or not (-math.inf < lo < hi < math.inf):
-                    raise ValueError(
-                        f"Bounds.kinds[{j}] must be ('interval', lo, hi) with finite numbers lo < hi; got {kind!r}."
-                    )
-                kinds.append(("interval", float(lo), float(hi)))
-            elif isinstance(kind, str) and kind in _KINDS[:3]:
-                kinds.append(kind)
-            else:
-                raise ValueError(
-                    f"Bounds.kinds[{j}] must be 'free', 'positive', 'nonnegative' or ('interval', lo, hi); "
-                    f"got {kind!r}."
-                )
-        object.__setattr__(self, "kinds", tuple(kinds))
-
-    def _check(self, value: Tensor, name: str) -> None:
-        if not isinstance(value, Tensor) or value.ndim != 2 or value.shape[-1] != len(self.kinds):
-            shape = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-            raise ValueError(f"{name} must have shape (N, P = {len(self.kinds)}) for these Bounds; got {shape}.")
-
-    def to_free(self, x: Tensor) -> Tensor:
-        """Unconstrained ``u (N, P)`` with ``from_free(u) = x (N, P)``, after clamping ``x`` into the domain."""
-        self._check(x, "x")
-        finfo = torch.finfo(x.dtype)
-        columns = []
-        for j, kind in enumerate(self.kinds):
-            v = x[:, j]
-            if kind == "free":
-                u = v
-            elif kind == "positive":
-                u = v.clamp(min=finfo.tiny).log()
-            elif kind == "nonnegative":
-                v = v.clamp(min=finfo.tiny)
-                u = v + torch.log(-torch.expm1(-v))  # log(expm1(v)), stable for small and large v
-            else:
-                _, lo, hi = kind
-                t = ((v - lo) / (hi - lo)).clamp(min=finfo.eps, max=1.0 - finfo.eps)
-                u = t.log() - torch.log1p(-t)
-            columns.append(u)
-        return torch.stack(columns, -1)
-
-    def from_free(self, u: Tensor) -> tuple[Tensor, Tensor]:
-        """Constrained ``x (N, P)`` and the derivative ``dx/du (N, P)`` of each column at ``u (N, P)``."""
-        self._check(u, "u")
-        values, slopes = [], []
-        for j, kind in enumerate(self.kinds):
-            v = u[:, j]
-            if kind == "free":
-                x, dx = v, torch.ones_like(v)
-            elif kind == "positive":
-                x = v.exp()
-                dx = x
-            elif kind == "nonnegative":
-                # softplus without torch's linear threshold, accurate to the last bit for all u
-                x = v.clamp(min=0) + torch.log1p(torch.exp(-v.abs()))
-                dx = torch.sigmoid(v)
-            else:
-                _, lo, hi = kind
-                s = torch.sigmoid(v)
-                x = lo + (hi - lo) * s
-                dx = (hi - lo) * s * torch.sigmoid(-v)
-            values.append(x)
-            slopes.append(dx)
-        return torch.stack(values, -1), torch.stack(slopes, -1)
-
-
-def bounded(residual_fn: ResidualFn, bounds: Bounds) -> ResidualFn:
-    """``residual_fn`` in ``x``-space as a residual function of the free parameters ``u``.
-
-    The returned function maps ``(u (M, P), index (M,))`` to ``r(x(u))`` and ``J_x * dx/du``
-    (the chain rule, column by column), or to the :class:`NormalEquations` of those when
-    ``residual_fn`` returns normal equations. Solve in ``u`` and map the result back.
-
-    Args:
-        residual_fn: ``(x (M, P), index (M,)) -> (residuals (M, R), jacobian (M, R, P))`` in ``x``.
-        bounds: the reparametrisation of each column.
-
-    Returns:
-        The same kind of function, in ``u``.
-
-    Example:
-        >>> bounds = Bounds(("positive",))
-        >>> def residual_fn(x, index):  # unconstrained optimum x = -1; bounded, x -> 0+
-        ...     return x + 1.0, torch.ones_like(x)[:, :, None]
-        >>> result = solve(bounded(residual_fn, bounds), bounds.to_free(torch.ones(1, 1, dtype=torch.float64)))
-        >>> x = bounds.from_free(result.params)[0]  # exp(u) may underflow to the bound itself
-        >>> bool((x >= 0).all() and (x < 1e-3).all())
-        True
-    """
-
-    def free_residual_fn(u: Tensor, index: Tensor) -> tuple[Tensor, Tensor] | NormalEquations:
-        x, dx = bounds.from_free(u)
-        out = residual_fn(x, index)
-        if isinstance(out, NormalEquations):  # J dx: dx J^T J dx and dx J^T r
-            hess, grad = out.hess, out.grad
-            if not isinstance(hess, Tensor) or hess.ndim != 3 or hess.shape[-1] != dx.shape[-1]:
-                shape = tuple(hess.shape) if isinstance(hess, Tensor) else type(hess).__name__
-                raise ValueError(
-                    f"residual_fn's NormalEquations.hess must have shape (M, {u.shape[1]}, {u.shape[1]}); got {shape}."
-                )
-            return NormalEquations(out.cost, hess * dx[:, :, None] * dx[:, None, :], grad * dx)
-        r, jac = out
-        if not isinstance(jac, Tensor) or jac.ndim != 3 or jac.shape[-1] != dx.shape[-1]:
-            shape = tuple(jac.shape) if isinstance(jac, Tensor) else type(jac).__name__
-            raise ValueError(
-                f"residual_fn's jacobian must have shape (M, R, P) = ({u.shape[0]}, R, {u.shape[1]}); got {shape}."
-            )
-        return r, jac * dx[:, None, :]
-
-    return free_residual_fn
