@@ -3,9 +3,9 @@
 ``solve`` minimises ``0.5 ||r_n(x_n)||^2`` for ``N`` problems at once, each with ``P``
 parameters and ``R`` residuals, given a function that returns the residuals and their Jacobian
 for any subset of the problems. It knows nothing about what the parameters mean; bounds are
-handled by reparametrisation (:class:`~torchspec.lm.bounds.Bounds`, :func:`~torchspec.lm.bounds.bounded`). The solver only ever uses the
-cost, ``J^T J`` and ``J^T r``, so a function may return those instead (:class:`NormalEquations`)
-and never hold the Jacobian ``(M, R, P)``, the largest tensor of a fit.
+handled by reparametrisation (:mod:`torchspec.lm.bounds`). The solver only ever uses the cost,
+``J^T J`` and ``J^T r``, so a function may return those instead (:class:`NormalEquations`) and
+never hold the Jacobian ``(M, R, P)``, the largest tensor of a fit.
 
 Per problem, all state lives in tensors of shape ``(N,)``:
 

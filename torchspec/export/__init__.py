@@ -1,0 +1,80 @@
+"""SVBRDF maps for other tools (``torchspec export``): a Mitsuba 3 scene, a glTF 2.0 quad, or
+16-bit PNG maps. Each mapping and what it cannot carry is stated in ``docs/export.md``.
+
+- :func:`export_mitsuba`: ``scene.xml`` and EXR textures; the painting is a rectangle under an
+  orthographic camera, its material ``normalmap(blendbsdf(0.5, diffuse(2 k_d),
+  roughconductor(beckmann, alpha_u, alpha_v, 2 k_s, F = 1))) = k_d / pi + k_s Beckmann``; an
+  optional directional emitter reproduces a point-light frame.
+- :func:`export_gltf`: ``scene.gltf``, ``scene.bin`` and 8-bit PNG textures of a textured quad:
+  metallic 0, ``roughness = sqrt(alpha)`` (glTF's GGX takes ``alpha = roughness^2``), ``k_s`` through
+  ``KHR_materials_specular`` and anisotropy through ``KHR_materials_anisotropy``.
+- :func:`export_png16`: the four maps as 16-bit PNG with their decoding in ``png16.json``.
+
+Every file is written atomically and each export's manifest (``scene.xml``, ``scene.gltf``,
+``png16.json``) last, so a folder with a manifest holds all of its files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from ..brdf import SVBRDF
+from ..io import Maps
+from .arrays import ExportError, ExportWarning
+from .gltf import export_gltf
+from .mitsuba import MIN_ALPHA, export_mitsuba
+from .png16 import export_png16
+
+__all__ = [
+    "ExportError",
+    "ExportWarning",
+    "FORMATS",
+    "MIN_ALPHA",
+    "export",
+    "export_gltf",
+    "export_mitsuba",
+    "export_png16",
+]
+
+FORMATS = ("mitsuba", "gltf", "png16")
+
+
+def export(
+    maps: Maps | SVBRDF | str | Path,
+    output: str | Path,
+    *,
+    to: str,
+    light: Sequence[float] | None = None,
+    irradiance: float | Sequence[float] | None = None,
+) -> Path:
+    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``).
+
+    Args:
+        maps: a folder of SVBRDF maps (read with :func:`~torchspec.io.read_svbrdf`), its
+            :class:`~torchspec.io.Maps` or an :class:`~torchspec.SVBRDF` with leading dims ``(H, W)``.
+        output: the folder to write (created if needed).
+        to: the format.
+        light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by default).
+
+    Returns:
+        The export's manifest: ``scene.xml``, ``scene.gltf`` or ``png16.json``.
+
+    Raises:
+        ExportError: an unknown format, a light for a format other than ``mitsuba``, an
+            irradiance without a light, or maps that the format cannot take (see each format).
+        SVBRDFError: ``maps`` is a folder that is missing or not a valid map folder.
+
+    Example:
+        >>> export("fit", "fit-gltf", to="gltf")  # doctest: +SKIP
+        PosixPath('fit-gltf/scene.gltf')
+    """
+    if to not in FORMATS:
+        raise ExportError(f"the export format must be one of {', '.join(FORMATS)}; got {to!r}.")
+    if light is None and irradiance is not None:
+        raise ExportError(f"an irradiance needs a light to apply to; got {irradiance!r} and no light. Add the light.")
+    if to == "mitsuba":
+        return export_mitsuba(maps, output, light=light, irradiance=1.0 if irradiance is None else irradiance)
+    if light is not None:
+        raise ExportError(f"a light can only be added to a mitsuba export; got one for {to!r}. Drop the light.")
+    return export_gltf(maps, output) if to == "gltf" else export_png16(maps, output)
