@@ -32,6 +32,8 @@ import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
+from ..config import ConfigError
+from ..errors import TorchspecError
 from ..io import ExrError, LightSpec, read_exr
 from ..lights import Kernel, Lights
 from ..render import render
@@ -140,18 +142,18 @@ class SimulatedCamera:
     ):
         svbrdf = _scene(scene) if isinstance(scene, SceneConfig) else scene
         if not isinstance(svbrdf, SVBRDF) or svbrdf.normal.dim() != 3:
-            raise ValueError(f"scene must be (H, W) maps or a SceneConfig; got {type(scene).__name__}.")
+            raise TorchspecError(f"scene must be (H, W) maps or a SceneConfig; got {type(scene).__name__}.")
         count = svbrdf.diffuse.shape[-1]
         names = tuple(channels) if channels is not None else svbrdf.channels
         if names is None or len(names) != count:
-            raise ValueError(f"channels must name the scene's {count} channel(s); got {names!r}.")
+            raise TorchspecError(f"channels must name the scene's {count} channel(s); got {names!r}.")
         kernel = light if isinstance(light, Kernel) else Kernel.from_spec(light)
         if kernel.kind == "unknown":
-            raise ValueError("light must be a known kernel to render frames; got 'unknown'. Give the true shape.")
+            raise TorchspecError("light must be a known kernel to render frames; got 'unknown'. Give the true shape.")
         like = dict(dtype=svbrdf.diffuse.dtype, device=svbrdf.diffuse.device)
         values = [float(irradiance)] if isinstance(irradiance, (int, float)) else [float(v) for v in irradiance]
         if len(values) not in (1, count) or not all(v > 0 for v in values):
-            raise ValueError(f"irradiance must be a positive number or {count} positive numbers; got {irradiance!r}.")
+            raise TorchspecError(f"irradiance must be a positive number or {count} positive numbers; got {irradiance!r}.")
         self.svbrdf = svbrdf
         self.kernel = kernel
         self.irradiance = torch.tensor(values, **like)[None]  # (1, 1) or (1, C)
@@ -175,7 +177,7 @@ class SimulatedCamera:
             else:
                 kernel = Kernel(truth.kernel, truth.domain, truth.sigma, truth.power)
         if kernel is None:
-            raise ValueError(
+            raise ConfigError(
                 "the acquisition's light is 'unknown', so a simulated camera cannot render it; give the true "
                 "shape as 'light' in the camera config."
             )
@@ -201,7 +203,7 @@ def _scene(config: SceneConfig) -> SVBRDF:
     elif config.kind == "mirror":
         svbrdf, _ = mirror(config.mirror, dtype=torch.float64)
     else:
-        raise ValueError(f"scene.kind must be 'painting' or 'mirror'; got {config.kind!r}.")
+        raise ConfigError(f"scene.kind must be 'painting' or 'mirror'; got {config.kind!r}.")
     return svbrdf
 
 
@@ -220,7 +222,7 @@ def command_trigger(command: str | Sequence[str], *, timeout: float = 30.0) -> C
     list) and raises :class:`CameraError` when it fails, e.g. ``gphoto2 --trigger-capture``."""
     argv = shlex.split(command) if isinstance(command, str) else list(command)
     if not argv:
-        raise ValueError("command must name a program; got an empty command.")
+        raise TorchspecError("command must name a program; got an empty command.")
 
     def trigger() -> None:
         try:
@@ -279,9 +281,9 @@ class FolderCamera:
     ):
         self.folder = Path(folder)
         if not self.folder.is_dir():
-            raise ValueError(f"folder must be an existing folder to watch; got {self.folder}. Create it first.")
+            raise TorchspecError(f"folder must be an existing folder to watch; got {self.folder}. Create it first.")
         if not (timeout > 0 and settle >= 0 and poll > 0):
-            raise ValueError(f"timeout and poll must be > 0 and settle >= 0; got {timeout}, {poll}, {settle}.")
+            raise TorchspecError(f"timeout and poll must be > 0 and settle >= 0; got {timeout}, {poll}, {settle}.")
         self.channels = (channels,) if isinstance(channels, str) else tuple(channels)
         self.pattern = pattern
         self.timeout = timeout

@@ -20,6 +20,7 @@ from typing import NoReturn
 
 import serial
 
+from ..errors import TorchspecError
 from .protocol import (
     COMMANDS,
     MAX_LINE,
@@ -145,11 +146,11 @@ class DomeClient:
     ) -> None:
         for name, value in (("timeout", timeout), ("move_timeout", move_timeout)):
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number of seconds; got {value}.")
+                raise TorchspecError(f"{name} must be a positive number of seconds; got {value}.")
         if not (isinstance(retries, int) and retries >= 0):
-            raise ValueError(f"retries must be an integer >= 0; got {retries!r}.")
+            raise TorchspecError(f"retries must be an integer >= 0; got {retries!r}.")
         if not (math.isfinite(backoff) and backoff >= 0):
-            raise ValueError(f"backoff must be a number of seconds >= 0; got {backoff}.")
+            raise TorchspecError(f"backoff must be a number of seconds >= 0; got {backoff}.")
         self.port = port
         self.timeout = timeout
         self.retries = retries
@@ -178,7 +179,7 @@ class DomeClient:
                 port=port,
             ) from cause
         except ValueError as cause:  # pyserial's check of the baud rate and the like
-            raise ValueError(f"dome port {port} settings must be valid; got {cause}.") from cause
+            raise TorchspecError(f"dome port {port} settings must be valid; got {cause}.") from cause
 
     def __enter__(self) -> DomeClient:
         return self
@@ -227,10 +228,10 @@ class DomeClient:
         """Drive the light to ``theta`` (radians from the zenith, in [0, pi/2]) and ``phi``
         (radians of azimuth from +x towards +y, any finite value); returns once it stopped."""
         if not (math.isfinite(theta) and math.isfinite(phi)):
-            raise ValueError(f"theta and phi must be finite radians; got theta={theta}, phi={phi}.")
+            raise TorchspecError(f"theta and phi must be finite radians; got theta={theta}, phi={phi}.")
         wire_theta = format_degrees(theta)
         if not 0 <= float(wire_theta) <= 90:
-            raise ValueError(f"theta must be in [0, pi/2] radians; got {theta} ({wire_theta} degrees).")
+            raise TorchspecError(f"theta must be in [0, pi/2] radians; got {theta} ({wire_theta} degrees).")
         wire_phi = format_degrees(math.remainder(phi, 2 * math.pi) % (2 * math.pi))
         if wire_phi == "360.000":
             wire_phi = "0.000"
@@ -251,7 +252,7 @@ class DomeClient:
         """Drive by (``dtheta``, ``dphi``) radians from where the dome is. Not idempotent, so a lost
         or garbled reply is never resent: it raises, and :meth:`status` tells where the dome went."""
         if not (math.isfinite(dtheta) and math.isfinite(dphi)):
-            raise ValueError(f"dtheta and dphi must be finite radians; got dtheta={dtheta}, dphi={dphi}.")
+            raise TorchspecError(f"dtheta and dphi must be finite radians; got dtheta={dtheta}, dphi={dphi}.")
         self._motion("JOG", format_degrees(dtheta), format_degrees(dphi))
 
     # The exchange.
@@ -260,7 +261,7 @@ class DomeClient:
     def _fraction(name: str, value: float) -> str:
         text = format_fraction(value) if math.isfinite(value) else "nan"
         if not (math.isfinite(value) and 0 <= float(text) <= 1):
-            raise ValueError(f"{name} must be in [0, 1]; got {value}.")
+            raise TorchspecError(f"{name} must be in [0, 1]; got {value}.")
         return text
 
     def _motion(self, command: str, *args: str) -> None:

@@ -26,6 +26,7 @@ import time
 import tty
 from dataclasses import dataclass
 
+from ..errors import TorchspecError
 from .protocol import (
     COMMANDS,
     MAX_LINE,
@@ -102,7 +103,7 @@ class DomeEmulator:
     ) -> None:
         for name, value in (("speed", speed), ("arm_speed", arm_speed)):
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive finite number per second; got {value}.")
+                raise TorchspecError(f"{name} must be a positive finite number per second; got {value}.")
         self.speed = speed
         self.arm_speed = arm_speed
         self.stall_seconds = stall_seconds
@@ -175,16 +176,16 @@ class DomeEmulator:
         replies); ``motor`` is used up only by a motion that is acted on. ``seconds`` is a stall's
         length (default ``stall_seconds``)."""
         if kind not in FAULTS:
-            raise ValueError(f"a fault must be one of {', '.join(FAULTS)}; got {kind!r}.")
+            raise TorchspecError(f"a fault must be one of {', '.join(FAULTS)}; got {kind!r}.")
         if not (isinstance(count, int) and count >= 1):
-            raise ValueError(f"a fault's count must be an integer >= 1; got {count!r}.")
+            raise TorchspecError(f"a fault's count must be an integer >= 1; got {count!r}.")
         if command is not None and command not in COMMANDS:
-            raise ValueError(f"a fault's command must be one of {', '.join(COMMANDS)}; got {command!r}.")
+            raise TorchspecError(f"a fault's command must be one of {', '.join(COMMANDS)}; got {command!r}.")
         if kind == "motor" and command is not None and not COMMANDS[command].motion:
-            raise ValueError(f"a motor fault's command must be a motion (HOME, MOVE, ARM, JOG); got {command!r}.")
+            raise TorchspecError(f"a motor fault's command must be a motion (HOME, MOVE, ARM, JOG); got {command!r}.")
         seconds = self.stall_seconds if seconds is None else seconds
         if not (math.isfinite(seconds) and seconds >= 0):
-            raise ValueError(f"a stall's seconds must be >= 0; got {seconds}.")
+            raise TorchspecError(f"a stall's seconds must be >= 0; got {seconds}.")
         with self._lock:
             self._faults.append(_Fault(kind, count, command, seconds))
 
@@ -435,9 +436,9 @@ def parse_fault(text: str) -> tuple[str, int, str | None]:
     """A CLI fault ``KIND[:COUNT[:COMMAND]]`` (e.g. ``drop:3``, ``garble:1:MOVE``) as inject's arguments."""
     parts = text.split(":")
     if not 1 <= len(parts) <= 3 or parts[0] not in FAULTS:
-        raise ValueError(f"--fault must be KIND[:COUNT[:COMMAND]] with KIND one of {', '.join(FAULTS)}; got {text!r}.")
+        raise TorchspecError(f"--fault must be KIND[:COUNT[:COMMAND]] with KIND one of {', '.join(FAULTS)}; got {text!r}.")
     if len(parts) >= 2 and not parts[1].isdigit():
-        raise ValueError(f"--fault's COUNT must be a positive integer; got {parts[1]!r} in {text!r}.")
+        raise TorchspecError(f"--fault's COUNT must be a positive integer; got {parts[1]!r} in {text!r}.")
     count = int(parts[1]) if len(parts) >= 2 else 1
     command = parts[2].upper() if len(parts) == 3 else None
     return parts[0], count, command

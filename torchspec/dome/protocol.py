@@ -173,7 +173,7 @@ def _frame(body: str) -> bytes:
     data = body.encode("ascii")
     line = data + b" *" + f"{crc8(data):02X}".encode("ascii") + b"\n"
     if len(line) > MAX_LINE:
-        raise ValueError(f"a frame must be at most {MAX_LINE} bytes; got {len(line)} for {body!r}. Shorten it.")
+        raise TorchspecError(f"a frame must be at most {MAX_LINE} bytes; got {len(line)} for {body!r}. Shorten it.")
     return line
 
 
@@ -208,12 +208,12 @@ def encode_request(request: Request) -> bytes:
         b'7 MOVE 45.000 90.000 *3D\\n'
     """
     if not 1 <= request.seq <= SEQ_MAX:
-        raise ValueError(f"a request's seq must be in 1..{SEQ_MAX}; got {request.seq}.")
+        raise TorchspecError(f"a request's seq must be in 1..{SEQ_MAX}; got {request.seq}.")
     if _COMMAND.fullmatch(request.command) is None:
-        raise ValueError(f"a command must be upper-case letters, digits and '_'; got {request.command!r}.")
+        raise TorchspecError(f"a command must be upper-case letters, digits and '_'; got {request.command!r}.")
     for arg in request.args:
         if _TOKEN.fullmatch(arg) is None:
-            raise ValueError(f"an argument must be printable ASCII without spaces or '*'; got {arg!r}.")
+            raise TorchspecError(f"an argument must be printable ASCII without spaces or '*'; got {arg!r}.")
     return _frame(" ".join((str(request.seq), request.command, *request.args)))
 
 
@@ -245,16 +245,16 @@ def encode_reply(reply: Reply) -> bytes:
         b'8 err RANGE theta must be in 0..90 *CD\\n'
     """
     if not 0 <= reply.seq <= SEQ_MAX:
-        raise ValueError(f"a reply's seq must be in 0..{SEQ_MAX}; got {reply.seq}.")
+        raise TorchspecError(f"a reply's seq must be in 0..{SEQ_MAX}; got {reply.seq}.")
     if reply.ok:
         for key, value in reply.values.items():
             if _KEY.fullmatch(key) is None or _TOKEN.fullmatch(value) is None or "=" in value:
-                raise ValueError(f"a reply value must be key=value (key [a-z][a-z0-9_]*); got {key!r}={value!r}.")
+                raise TorchspecError(f"a reply value must be key=value (key [a-z][a-z0-9_]*); got {key!r}={value!r}.")
         return _frame(" ".join([str(reply.seq), "ok", *(f"{key}={value}" for key, value in reply.values.items())]))
     if _COMMAND.fullmatch(reply.code) is None:
-        raise ValueError(f"an error code must be upper-case letters, digits and '_'; got {reply.code!r}.")
+        raise TorchspecError(f"an error code must be upper-case letters, digits and '_'; got {reply.code!r}.")
     if _MESSAGE.fullmatch(reply.message) is None:
-        raise ValueError(f"an error message must be printable ASCII without '*'; got {reply.message!r}.")
+        raise TorchspecError(f"an error message must be printable ASCII without '*'; got {reply.message!r}.")
     return _frame(f"{reply.seq} err {reply.code}" + (f" {reply.message}" if reply.message else ""))
 
 
@@ -298,9 +298,9 @@ def error_hint(code: str) -> str:
 
 def parse_number(text: str) -> float:
     """A wire number: optional '-', up to 6 digits, optional '.' and up to 6 decimals; no exponent,
-    no inf or nan. Raises ValueError otherwise."""
+    no inf or nan. Raises TorchspecError otherwise."""
     if _NUMBER.fullmatch(text) is None:
-        raise ValueError(f"a number must look like -12.345 (no exponent); got {text!r}")
+        raise TorchspecError(f"a number must look like -12.345 (no exponent); got {text!r}")
     return float(text)
 
 
@@ -356,10 +356,10 @@ def identity_values(identity: DomeIdentity) -> dict[str, str]:
 
 
 def parse_identity(reply: Reply) -> DomeIdentity:
-    """The identity an ``ID`` reply carries; ValueError naming the missing or malformed key."""
+    """The identity an ``ID`` reply carries; TorchspecError naming the missing or malformed key."""
     values = _required(reply, ("model", "firmware", "protocol"))
     if re.fullmatch(r"[0-9]{1,5}", values["protocol"]) is None:
-        raise ValueError(f"protocol must be a decimal integer; got {values['protocol']!r}")
+        raise TorchspecError(f"protocol must be a decimal integer; got {values['protocol']!r}")
     return DomeIdentity(values["model"], values["firmware"], int(values["protocol"]))
 
 
@@ -377,15 +377,15 @@ def status_values(status: DomeStatus) -> dict[str, str]:
 
 
 def parse_status(reply: Reply) -> DomeStatus:
-    """The status a ``STATUS`` reply carries; ValueError naming the missing or malformed key. Keys
+    """The status a ``STATUS`` reply carries; TorchspecError naming the missing or malformed key. Keys
     this version does not know are ignored (a newer firmware may add some)."""
     values = _required(reply, ("theta", "phi", "arm", "moving", "light", "intensity", "fault"))
     for key in ("moving", "light"):
         if values[key] not in ("0", "1"):
-            raise ValueError(f"{key} must be 0 or 1; got {values[key]!r}")
+            raise TorchspecError(f"{key} must be 0 or 1; got {values[key]!r}")
     fault = values["fault"]
     if fault != "-" and _COMMAND.fullmatch(fault) is None:
-        raise ValueError(f"fault must be '-' or an error code; got {fault!r}")
+        raise TorchspecError(f"fault must be '-' or an error code; got {fault!r}")
     return DomeStatus(
         theta=parse_degrees(values["theta"]),
         phi=parse_degrees(values["phi"]),
@@ -400,5 +400,5 @@ def parse_status(reply: Reply) -> DomeStatus:
 def _required(reply: Reply, keys: tuple[str, ...]) -> dict[str, str]:
     missing = [key for key in keys if key not in reply.values]
     if missing:
-        raise ValueError(f"the reply must carry {', '.join(keys)}; got no {', '.join(missing)}")
+        raise TorchspecError(f"the reply must carry {', '.join(keys)}; got no {', '.join(missing)}")
     return reply.values
