@@ -335,6 +335,18 @@ def _fit(
     return table / (table.sum() * step * step), float(extent), residual, int(keep.sum())
 
 
+def _reflection(responses: _Responses, normal: Tensor | None, view: Tensor, layout) -> tuple[Tensor, str]:
+    """Each pixel's reflection of the view in the l-plane ``(N, 2)``, and how it was found, in words:
+    from ``normal`` when given, otherwise the centroid of the pixel's response."""
+    if normal is None:
+        how = "estimated: each pixel's response centroid (the kernel's centroid is the light's centre)"
+        how += "; on the line of frames (a line cannot see across it)" if layout.dims == 1 else ""
+        return responses.centroid, how
+    n = normal.to(dtype=view.dtype, device=view.device)
+    reflection = reflect(view, n / n.norm(dim=-1, keepdim=True))[..., :2].expand(responses.centroid.shape[0], 2)
+    return reflection, "from the given normal (the kernel's offset is recovered)"
+
+
 def recover_kernel(
     values: Tensor,
     centres: Tensor,
@@ -389,14 +401,7 @@ def recover_kernel(
     along_line = layout.dims == 1 and normal is None  # offsets known along the line only
 
     responses = _responses(values, centres, layout)
-    if normal is None:
-        reflection = responses.centroid
-        how = "estimated: each pixel's response centroid (the kernel's centroid is the light's centre)"
-        how += "; on the line of frames (a line cannot see across it)" if layout.dims == 1 else ""
-    else:
-        n = normal.to(**like)
-        reflection = reflect(view, n / n.norm(dim=-1, keepdim=True))[..., :2].expand(values.shape[0], 2)
-        how = "from the given normal (the kernel's offset is recovered)"
+    reflection, how = _reflection(responses, normal, view, layout)
     used, cells = _usable(responses, reflection, layout, radial, along_line)
     offsets = reflection[used][:, None, :] - layout.l[None, :, :]  # (P, K, 2)
     if along_line:

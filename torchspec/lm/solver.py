@@ -368,6 +368,38 @@ def _step(state: _State, residual_fn: ResidualFn, config: LMConfig) -> _State:
     )
 
 
+def _check_params(params) -> None:
+    """Raise :class:`~torchspec.errors.TorchspecError` unless ``params`` is ``(N, P >= 1)`` floating."""
+    if not isinstance(params, Tensor) or params.ndim != 2 or not params.is_floating_point():
+        got = f"shape {tuple(params.shape)}, dtype {params.dtype}" if isinstance(params, Tensor) else type(params)
+        raise TorchspecError(f"params must be a 2-D floating tensor (N, P); got {got}. Stack the problems as rows.")
+    if params.shape[1] < 1:
+        raise TorchspecError(f"params must have at least one column (N, P >= 1); got shape {tuple(params.shape)}.")
+
+
+def _start(residual_fn: ResidualFn, x0: Tensor, out: LMResult, config: LMConfig) -> _State:
+    """Every problem at its start ``x0 (N, P)``, evaluated: ``DIVERGED`` where not finite,
+    ``CONVERGED`` where the ``gtol`` test holds, running otherwise; fills ``out.initial_cost``."""
+    n = x0.shape[0]
+    index = torch.arange(n, device=x0.device)
+    cost, hess, grad, finite = _evaluate(residual_fn, x0, index)
+    out.initial_cost.copy_(cost)
+    gtol = max(config.gtol, _ROUNDING * torch.finfo(x0.dtype).eps)
+    start_converged = finite & _gradient_small(grad, hess, cost, gtol)
+    return _State(
+        index=index,
+        x=x0.clone(),
+        cost=cost,
+        hess=hess,
+        grad=grad,
+        damping=out.damping.clone(),
+        nu=torch.full((n,), 2.0, dtype=x0.dtype, device=x0.device),
+        running=finite & ~start_converged,
+        status=torch.where(finite, torch.where(start_converged, CONVERGED, MAX_ITERATIONS), DIVERGED).to(torch.int8),
+        iterations=out.iterations.clone(),
+    )
+
+
 def solve(
     residual_fn: ResidualFn,
     params: Tensor,
@@ -409,12 +441,8 @@ def solve(
         >>> result.counts()["converged"], torch.allclose(result.params, torch.tensor([[2.0, 3.0], [0.5, 1.0]]).double())
         (2, True)
     """
-    if not isinstance(params, Tensor) or params.ndim != 2 or not params.is_floating_point():
-        got = f"shape {tuple(params.shape)}, dtype {params.dtype}" if isinstance(params, Tensor) else type(params)
-        raise TorchspecError(f"params must be a 2-D floating tensor (N, P); got {got}. Stack the problems as rows.")
-    n, p = params.shape
-    if p < 1:
-        raise TorchspecError(f"params must have at least one column (N, P >= 1); got shape {tuple(params.shape)}.")
+    _check_params(params)
+    n = params.shape[0]
     like = dict(dtype=params.dtype, device=params.device)
     x0 = params.detach().clone()
     out = LMResult(
@@ -430,24 +458,8 @@ def solve(
             progress(0, 0)
         return out
 
-    index = torch.arange(n, device=params.device)
-    cost, hess, grad, finite = _evaluate(residual_fn, x0, index)
-    out.initial_cost.copy_(cost)
-    gtol = max(config.gtol, _ROUNDING * torch.finfo(params.dtype).eps)
+    state = _start(residual_fn, x0, out, config)
     xtol = max(config.xtol, _ROUNDING * torch.finfo(params.dtype).eps)
-    start_converged = finite & _gradient_small(grad, hess, cost, gtol)
-    state = _State(
-        index=index,
-        x=x0.clone(),
-        cost=cost,
-        hess=hess,
-        grad=grad,
-        damping=out.damping.clone(),
-        nu=torch.full((n,), 2.0, **like),
-        running=finite & ~start_converged,
-        status=torch.where(finite, torch.where(start_converged, CONVERGED, MAX_ITERATIONS), DIVERGED).to(torch.int8),
-        iterations=out.iterations.clone(),
-    )
 
     every = config.check_every or (1 if params.device.type == "cpu" else 4)
     for k in range(config.max_iterations + 1):
