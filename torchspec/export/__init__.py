@@ -1,14 +1,20 @@
 """SVBRDF maps for other tools (``torchspec export``): a Mitsuba 3 scene, a glTF 2.0 quad, or
 16-bit PNG maps. Each mapping and what it cannot carry is stated in ``docs/export.md``.
 
-- :func:`export_mitsuba`: ``scene.xml`` and EXR textures; the painting is a rectangle under an
-  orthographic camera, its material ``normalmap(blendbsdf(0.5, diffuse(2 k_d),
-  roughconductor(beckmann, alpha_u, alpha_v, 2 k_s, F = 1))) = k_d / pi + k_s Beckmann``; an
-  optional directional emitter reproduces a point-light frame.
-- :func:`export_gltf`: ``scene.gltf``, ``scene.bin`` and 8-bit PNG textures of a textured quad:
-  metallic 0, ``roughness = sqrt(alpha)`` (glTF's GGX takes ``alpha = roughness^2``), ``k_s`` through
-  ``KHR_materials_specular`` and anisotropy through ``KHR_materials_anisotropy``.
-- :func:`export_png16`: the four maps as 16-bit PNG with their decoding in ``png16.json``.
+- :func:`export_mitsuba` (:mod:`torchspec.export.mitsuba`): ``scene.xml`` and EXR textures;
+  the painting is a rectangle under an orthographic camera, its material
+  ``normalmap(blendbsdf(0.5, diffuse(2 k_d), roughconductor(beckmann, alpha_u, alpha_v, 2 k_s,
+  F = 1))) = k_d / pi + k_s Beckmann``; an optional directional emitter reproduces a point-light
+  frame.
+- :func:`export_gltf` (:mod:`torchspec.export.gltf`): ``scene.gltf``, ``scene.bin`` and 8-bit PNG
+  textures of a textured quad: metallic 0, ``roughness = sqrt(alpha)`` (glTF's GGX takes
+  ``alpha = roughness^2``), ``k_s`` through ``KHR_materials_specular`` and anisotropy through
+  ``KHR_materials_anisotropy``.
+- :func:`export_png16` (:mod:`torchspec.export.png16`): the four maps as 16-bit PNG with their
+  decoding in ``png16.json``.
+
+:mod:`torchspec.export.arrays` holds what they share: the checked maps as numpy arrays, the
+value encodings, :class:`ExportError` and :class:`ExportWarning`.
 
 Every file is written atomically and each export's manifest (``scene.xml``, ``scene.gltf``,
 ``png16.json``) last, so a folder with a manifest holds all of its files.

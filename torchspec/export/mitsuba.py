@@ -52,9 +52,9 @@ def export_mitsuba(
         spp: the sampler's default sample count (``mitsuba -D spp=N`` overrides it).
         shadowing: keep Mitsuba's default ``normalmap`` shadowing function (Estevez et al. 2019,
             against the shading terminator: a factor ``<= 1`` that darkens tilted normals under
-            grazing light, e.g. by 0.6 % for a 12-degree tilt lit at 65 degrees). Off, the material is
-            exactly ``k_d / pi + k_s Beckmann``; on, it is what Mitsuba renders by default for a
-            normal-mapped surface (as the development captures were rendered).
+            grazing light). Off, the material is exactly ``k_d / pi + k_s Beckmann``; on, it is
+            what Mitsuba renders by default for a normal-mapped surface (the development captures
+            are rendered so).
 
     Returns:
         The path of ``scene.xml``.
