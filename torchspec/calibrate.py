@@ -388,8 +388,17 @@ def recover_kernel(
             Also: malformed shapes or settings (the message names the argument).
 
     Example:
-        >>> calibration = recover_kernel(values, centres, view=torch.tensor([0.0, 0, 1]))  # doctest: +SKIP
-        >>> calibration.kernel().density(offsets, centre)  # doctest: +SKIP
+        >>> from torchspec.geometry import from_plane
+        >>> from torchspec.lights import Kernel
+        >>> g = torch.linspace(-0.08, 0.08, 21, dtype=torch.float64)
+        >>> centres = from_plane(torch.cartesian_prod(g, g))  # (K = 441, 3): a 21 x 21 grid of frames
+        >>> light = Kernel("gaussian", "projected", 0.02)
+        >>> zenith = torch.zeros(441, 2, dtype=torch.float64)  # 4 pixels of a perfect mirror, reflecting to it:
+        >>> values = light.density(zenith, centres).expand(4, -1)  # (N = 4, K)
+        >>> view = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        >>> calibration = recover_kernel(values, centres, view=view, size=16)
+        >>> [round(std, 3) for std in calibration.stats["std"]]
+        [0.02, 0.02]
     """
     _check_arguments(
         values, centres, size=size, extent=extent, symmetry=symmetry, mirror_alpha=mirror_alpha, smoothing=smoothing
