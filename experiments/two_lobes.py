@@ -42,7 +42,7 @@ from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import Lights
 from torchspec.models import get_model
 from torchspec.relight import lights_of
-from torchspec.render import render
+from torchspec.rendering import render
 from torchspec.report import REGIONS
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import DUAL, DualConfig, PaintingConfig, SensorConfig
