@@ -41,7 +41,7 @@ from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
 from .lobe import at_nodes, lobe_frame, pick
 from .nodes import fallback_rule, fast_rule, node_rules
-from .quadrature import BUDGET, Quadrature, choose_path
+from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
 from .diffuse import diffuse_integral
 from .rendering import render
 
@@ -52,7 +52,6 @@ __all__ = [
     "jacobian_parts",
     "assemble",
     "pixels_per_chunk",
-    "check_quadrature",
     "MODES",
 ]
 
@@ -156,13 +155,6 @@ def jacobian(
         values[start : start + chunk] = value
         jacs[start : start + chunk] = jac
     return values.reshape(*lead, *values.shape[1:]), jacs.reshape(*lead, *jacs.shape[1:])
-
-
-def check_quadrature(quadrature) -> None:
-    """Raise a :class:`~torchspec.errors.TorchspecError` unless ``quadrature`` is a
-    :class:`~torchspec.quadrature.Quadrature`."""
-    if not isinstance(quadrature, Quadrature):
-        raise TorchspecError(f"quadrature must be a torchspec.quadrature.Quadrature; got {type(quadrature).__name__}.")
 
 
 def pixels_per_chunk(frames: int, quadrature: Quadrature) -> int:

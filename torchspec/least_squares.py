@@ -14,8 +14,8 @@ from torch import Tensor
 
 from .errors import TorchspecError
 from .fusion import fused
-from .jacobian import assemble, check_quadrature, jacobian_parts, pixels_per_chunk
-from .quadrature import Quadrature
+from .jacobian import assemble, jacobian_parts, pixels_per_chunk
+from .quadrature import Quadrature, check_quadrature
 
 __all__ = ["normal_equations", "sandwich_terms"]
 

@@ -101,11 +101,11 @@ class Kernel:
             raise TorchspecError(f"a supergaussian kernel needs power > 0; got {self.power!r}.")
         if self.kind == "tabulated":
             if self.table is None or self.table.dim() != 2 or not self.extent > 0:
-                raise TorchspecError("a tabulated kernel needs a (Hk, Wk) table and extent > 0.")
+                raise TorchspecError("a tabulated kernel needs Kernel.table of shape (Hk, Wk) and Kernel.extent > 0.")
             if not bool(torch.isfinite(self.table).all()) or bool((self.table < 0).any()) or not self.table.sum() > 0:
-                raise TorchspecError("a tabulated kernel's table must be finite, >= 0 and not all zero.")
+                raise TorchspecError("a tabulated kernel's Kernel.table must be finite, >= 0 and not all zero.")
             if self.domain != "projected":
-                raise TorchspecError("a tabulated kernel lives in the projected domain.")
+                raise TorchspecError(f"a tabulated kernel lives in the projected domain; got Kernel.domain {self.domain!r}.")
         if self.kind in ("gaussian", "supergaussian"):
             # Once per kernel, as a Python float: a constant of the compiled graphs, not work (and a graph
             # break) in each density call.
@@ -316,7 +316,7 @@ class Lights:
         if tuple(self.exposure.shape) != (k,):
             raise TorchspecError(f"Lights.exposure must have shape ({k},); got {tuple(self.exposure.shape)}.")
         if bool((self.directions[:, 2] <= 0).any()):
-            raise TorchspecError("Lights.directions must lie above the horizon (z > 0).")
+            raise TorchspecError("Lights.directions must lie above the horizon (z > 0 in every row).")
         # Quantities that depend on the lights only (effective diffuse directions), computed once
         # per object: a fit renders the same lights at every solver step.
         object.__setattr__(self, "_cache", {})

@@ -37,6 +37,7 @@ __all__ = [
     "ClampRule",
     "CLAMPS",
     "choose_path",
+    "check_quadrature",
     "gauss_table",
     "gauss_rule",
     "legendre",
@@ -174,6 +175,13 @@ def choose_path(lights: Lights, path: str = "auto") -> str:
     if path != "auto":
         return path
     return "auto" if kernel.kind == "gaussian" else "reference"
+
+
+def check_quadrature(quadrature) -> None:
+    """Raise a :class:`~torchspec.errors.TorchspecError` unless the argument ``quadrature`` is a
+    :class:`Quadrature` (not, e.g., a dict of its fields)."""
+    if not isinstance(quadrature, Quadrature):
+        raise TorchspecError(f"quadrature must be a torchspec.quadrature.Quadrature; got {type(quadrature).__name__}.")
 
 
 def _rule_tensors(rule, order: int) -> tuple[Tensor, Tensor]:

@@ -37,12 +37,12 @@ from torch import Tensor
 from .brdf import SVBRDF, beckmann_cosine, lambert
 from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
-from .geometry import from_plane
 from .diffuse import diffuse_integral
+from .geometry import from_plane
 from .lights import Lights, diffuse_directions
 from .lobe import lobe_at, lobe_frame, pick
 from .nodes import node_rules
-from .quadrature import BUDGET, Quadrature, choose_path
+from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
 
 __all__ = ["render", "LOBES"]
 
@@ -116,8 +116,7 @@ def _check(svbrdf: SVBRDF, lights: Lights, view: Tensor, quadrature: Quadrature,
     """The specular path of :func:`render`'s arguments, once they are checked."""
     if lobe not in LOBES:
         raise TorchspecError(f"lobe must be one of {LOBES}; got {lobe!r}.")
-    if not isinstance(quadrature, Quadrature):
-        raise TorchspecError(f"quadrature must be a torchspec.quadrature.Quadrature; got {type(quadrature).__name__}.")
+    check_quadrature(quadrature)
     if view.shape != (3,):
         raise TorchspecError(f"view must have shape (3,); got {tuple(view.shape)}.")
     count = svbrdf.diffuse.shape[-1]
