@@ -101,7 +101,7 @@ class Kernel:
             raise TorchspecError(f"a supergaussian kernel needs power > 0; got {self.power!r}.")
         if self.kind == "tabulated":
             if self.table is None or self.table.dim() != 2 or not self.extent > 0:
-                raise TorchspecError("a tabulated kernel needs Kernel.table of shape (Hk, Wk) and Kernel.extent > 0.")
+                raise TorchspecError("a tabulated kernel needs a (Hk, Wk) table (Kernel.table) and Kernel.extent > 0.")
             if not bool(torch.isfinite(self.table).all()) or bool((self.table < 0).any()) or not self.table.sum() > 0:
                 raise TorchspecError("a tabulated kernel's Kernel.table must be finite, >= 0 and not all zero.")
             if self.domain != "projected":
