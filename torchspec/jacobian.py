@@ -59,7 +59,14 @@ MODES = ("analytic", "forward")
 
 
 def parameters(svbrdf: SVBRDF) -> Tensor:
-    """The parameter vectors ``(*, P)`` of ``svbrdf`` in the order of this module."""
+    """The parameter vectors ``(*, P)`` of ``svbrdf`` in the order of this module.
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> maps = SVBRDF(n, torch.ones(1, 3), torch.ones(1, 1), torch.full((1, 2), 0.1))
+        >>> parameters(maps).shape  # 2 angles, 3 k_d, 1 k_s, alpha_x, alpha_y, rotation
+        torch.Size([1, 9])
+    """
     rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[..., 0])
     parts = [angles_from_normal(svbrdf.normal), svbrdf.diffuse, svbrdf.specular, svbrdf.roughness, rotation[..., None]]
     if svbrdf.specular2 is not None:

@@ -224,7 +224,12 @@ MODELS = {
 
 
 def get_model(name: str) -> Model:
-    """The model called ``name``; a clear error lists the known ones."""
+    """The model called ``name``; a clear error lists the known ones.
+
+    Example:
+        >>> get_model("ward-iso").size(3)  # 2 angles, 3 k_d, a grey k_s, one alpha
+        7
+    """
     if name not in MODELS:
         raise TorchspecError(f"model must be one of {sorted(MODELS)}; got {name!r}.")
     return MODELS[name]
