@@ -19,7 +19,8 @@ def parse_args(doc: str, config: str, argv: list[str] | None = None) -> argparse
 def scipy_fit(model, y, level, init, lights, view, channels, *, path="auto", quadrature=None, repeats=1):
     """The baseline a user would otherwise pick: ``scipy.optimize.least_squares`` (trust region
     reflective, the fit's bounds, the analytic Jacobian of :func:`torchspec.jacobian.jacobian` with the
-    fit's quadrature ``quadrature``) on each pixel of ``y (n, K, C)`` in turn, weighted as the fit weighs
+    fit's :class:`~torchspec.quadrature.Quadrature` ``quadrature`` on the path ``path``) on each pixel
+    of ``y (n, K, C)`` in turn, weighted as the fit weighs
     it (one over its ``level (n,)``), from the SVBRDF ``init (n,)``: the fit's own model, so the two
     differ in the solver only.
 
@@ -28,14 +29,17 @@ def scipy_fit(model, y, level, init, lights, view, channels, *, path="auto", qua
         (the machine's load varies) and the model evaluations per pixel.
     """
     import time
+    from dataclasses import replace
 
     import numpy as np
     import torch
     from scipy.optimize import least_squares
 
     from torchspec.models import ALPHA_BOUNDS
+    from torchspec.quadrature import Quadrature
 
     dtype = y.dtype
+    rule = replace(quadrature or Quadrature(), path=path)
     x0 = model.pack(init).double().numpy()
     kinds = model.bounds(len(channels)).kinds
     lower = np.array([-np.inf if k == "free" else (ALPHA_BOUNDS[0] if isinstance(k, tuple) else 0.0) for k in kinds])
@@ -46,7 +50,7 @@ def scipy_fit(model, y, level, init, lights, view, channels, *, path="auto", qua
         begin = time.perf_counter()
         for i in range(y.shape[0]):
             weight = torch.full((1, y.shape[1]), 1.0, dtype=dtype) / level[i]
-            fn = model.residuals(y[i : i + 1], weight, lights, view, channels, path=path, **(quadrature or {}))
+            fn = model.residuals(y[i : i + 1], weight, lights, view, channels, quadrature=rule)
             index = torch.zeros(1, dtype=torch.long)
             cache = {}
 

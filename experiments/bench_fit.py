@@ -35,7 +35,7 @@ from _common import parse_args, scipy_fit
 from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.pipeline import QUADRATURES, FitConfig, starting_point
+from torchspec.pipeline import FitConfig, starting_point
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.models import get_model
@@ -163,7 +163,7 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
         view,
         channels,
         path=settings.fit.path,
-        quadrature=QUADRATURES[settings.fit.quadrature],
+        quadrature=settings.fit.rule,
         repeats=settings.scipy_repeats,
     )
 

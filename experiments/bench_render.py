@@ -109,7 +109,8 @@ def _broadcast(maps):
 
 def _row(settings: Settings, path: str, what: str) -> dict:
     from torchspec.jacobian import jacobian
-    from torchspec.render import render
+    from torchspec.quadrature import Quadrature
+    from torchspec.rendering import render
 
     torch.manual_seed(settings.seed)
     label = path
@@ -121,14 +122,16 @@ def _row(settings: Settings, path: str, what: str) -> dict:
         path = "fast"
 
     def call():
-        if what.startswith("jacobian"):
-            return jacobian(maps, lights, view, mode="analytic" if "analytic" in what else "forward", path=path)[0]
         if path == "Monte Carlo (baseline)":
             return _monte_carlo(maps, lights, view, settings.monte_carlo_samples, settings.seed)
-        return render(maps, lights, view, path=path, compile=compiled)
+        quadrature = Quadrature(path=path, compile=compiled)
+        if what.startswith("jacobian"):
+            mode = "analytic" if "analytic" in what else "forward"
+            return jacobian(maps, lights, view, mode=mode, quadrature=quadrature)[0]
+        return render(maps, lights, view, quadrature=quadrature)
 
-    if compiled:
-        render(maps, lights, view, path=path, compile=True)  # compile (every chunk shape) outside the timing
+    if compiled:  # compile (every chunk shape) outside the timing
+        render(maps, lights, view, quadrature=Quadrature(path=path, compile=True))
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     runs = []
     for _ in range(1 if (slow or "forward mode" in what) else settings.repeats):
@@ -139,9 +142,8 @@ def _row(settings: Settings, path: str, what: str) -> dict:
     seconds = statistics.median(runs)
     # Accuracy against the reference at high order, in float64, on a subset.
     sub = maps[: settings.accuracy_pixels].to(torch.float64)
-    reference = render(
-        sub, lights.to(torch.float64), view.double(), path="point" if path == "point" else "reference", order=32
-    )
+    exact = Quadrature(path="point" if path == "point" else "reference", reference_order=32)
+    reference = render(sub, lights.to(torch.float64), view.double(), quadrature=exact)
     got = value[: settings.accuracy_pixels].double()
     error = ((got - reference).abs() / reference.abs().clamp(min=1e-12)).max().item()
     return {

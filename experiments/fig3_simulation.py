@@ -37,7 +37,8 @@ from torchspec.geometry import (
     from_plane,  # noqa: E402
 )
 from torchspec.lights import Kernel, Lights  # noqa: E402
-from torchspec.render import render  # noqa: E402
+from torchspec.quadrature import Quadrature  # noqa: E402
+from torchspec.rendering import render  # noqa: E402
 from torchspec.simulate import SimulationConfig, simulate, write_simulation  # noqa: E402
 
 PAPER_DB = {"1d": 43.4, "2d": 52.2}
@@ -85,8 +86,8 @@ def _run(
         yy, xx = torch.meshgrid(lo[1] + ax * (hi[1] - lo[1]), lo[0] + ax * (hi[0] - lo[0]), indexing="ij")
         dense = torch.stack([xx, yy], -1).reshape(-1, 2)
     point = _point_lights(dense)
-    true_rho = render(truth, point, view, path="point")[..., 0]  # (pixels, dense)
-    fit_rho = render(fitted, point, view, path="point")[..., 0]
+    true_rho = render(truth, point, view, quadrature=Quadrature(path="point"))[..., 0]  # (pixels, dense)
+    fit_rho = render(fitted, point, view, quadrature=Quadrature(path="point"))[..., 0]
     # Every pixel of the (constant) surface is an independent trial: medians over them, and the worst.
     snr = 10 * torch.log10((true_rho**2).sum(-1) / ((fit_rho - true_rho) ** 2).sum(-1))
     normal = torch.rad2deg(angle(fitted.normal, truth.normal))

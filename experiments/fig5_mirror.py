@@ -50,7 +50,7 @@ from torchspec.calibrate import recover_kernel  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
 from torchspec.geometry import reflect  # noqa: E402
 from torchspec.lights import Kernel, Lights  # noqa: E402
-from torchspec.render import render  # noqa: E402
+from torchspec.rendering import render  # noqa: E402
 from torchspec.simulate import LayoutConfig, LightConfig, layout  # noqa: E402
 from torchspec.synth import MirrorConfig, SensorConfig, mirror, sense  # noqa: E402
 

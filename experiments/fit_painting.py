@@ -35,7 +35,7 @@ from torchspec.config import load_config  # noqa: E402
 from torchspec.pipeline import FitConfig, fit, select_frames  # noqa: E402
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
-from torchspec.render import render  # noqa: E402
+from torchspec.rendering import render  # noqa: E402
 from torchspec.report import score  # noqa: E402
 
 TARGETS = {"normal_deg": 0.5, "kd": 0.03, "alpha": 0.10, "held_out_psnr_db": 40.0}

@@ -1,4 +1,4 @@
-"""Accuracy of :func:`torchspec.render.render` against an independent brute-force integration.
+"""Accuracy of :func:`torchspec.rendering.render` against an independent brute-force integration.
 
 The brute force (``tests/brute_force.py``) shares no code with the package: Ward from the format's
 formula with explicit angles, kernels from their definitions, a fine midpoint rule in the
@@ -31,7 +31,8 @@ from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
 from torchspec.lights import Kernel, Lights
-from torchspec.render import render
+from torchspec.quadrature import Quadrature
+from torchspec.rendering import render
 
 sys.path.insert(0, str(ROOT / "tests"))
 from brute_force import pixel_tensors, random_case, reference_value  # noqa: E402
@@ -90,11 +91,11 @@ def _batch_study(settings: Settings) -> dict:
         frames = centre.shape[0]
         lights = Lights(centre, kernel, torch.ones(frames, 1, dtype=F64), torch.ones(frames, dtype=F64))
         values = {
-            label: render(maps, lights, VIEW, **options)[..., 0]
+            label: render(maps, lights, VIEW, quadrature=options)[..., 0]
             for label, options in (
-                ("reference", dict(path="reference")),
-                ("auto", dict(path="auto")),
-                ("fast, order 4", dict(path="fast")),
+                ("reference", Quadrature(path="reference")),
+                ("auto", Quadrature(path="auto")),
+                ("fast, order 4", Quadrature(path="fast")),
             )
         }
         reference = values["reference"]
@@ -154,11 +155,11 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"relative error of render against the brute force, {settings.cases} random cases per kernel")
     print(f"{'kernel':26s} {'path':14s} {'max':>9s} {'median':>9s} {'spec max':>9s} {'spec med':>9s}")
     for name, (kernel, kernel_args, width) in KERNELS.items():
-        paths = {"reference": dict(path="reference")}
+        paths = {"reference": Quadrature(path="reference")}
         if kernel.kind == "gaussian":
-            paths["auto"] = dict(path="auto")
+            paths["auto"] = Quadrature(path="auto")
             for order in settings.fast_orders:
-                paths[f"fast, order {order}"] = dict(path="fast", order=order)
+                paths[f"fast, order {order}"] = Quadrature(path="fast", order=order)
         errors = {label: [] for label in paths}
         specular_errors = {label: [] for label in paths}
         for seed in range(settings.cases):
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> dict:
                     continue
                 maps = SVBRDF(*pixel_tensors(normal, k_d, alpha, rotation))
                 for label, options in paths.items():
-                    value = render(maps, lights, VIEW, **options)[0, 0, 0].item()
+                    value = render(maps, lights, VIEW, quadrature=options)[0, 0, 0].item()
                     store[label].append(abs(value - target) / max(abs(target), 1e-12))
         result["kernels"][name] = {
             label: {

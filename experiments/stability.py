@@ -10,7 +10,7 @@ l-plane (errors in l units; near the zenith one l unit is ~28.6 degrees of the n
   light's kernel, point-sampled and not periodised (a peak near an end of the line breaks FRI's
   periodicity); and the baseline FRI replaces, ``peak`` picking (argmax + parabola) on *point-light*
   samples at the same positions with the same noise. The grazing axis renders a Ward lobe with
-  :func:`torchspec.render.render` instead.
+  :func:`torchspec.rendering.render` instead.
 - *pipeline*, :func:`torchspec.pipeline.fit` (``ward-iso``) on small simulated captures, a pixel per
   trial, an ``N x N`` grid of lights, with ``matte`` pixels from dark to light on which the fit
   measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.init``); the peak is the
@@ -68,7 +68,7 @@ from torchspec.jacobian import jacobian
 from torchspec.lights import Kernel, Lights
 from torchspec.lm import STATUS
 from torchspec.models import get_model
-from torchspec.render import render
+from torchspec.rendering import render
 
 F64 = torch.float64
 AXES = ("snr_db", "samples", "width_ratio", "skew", "edge", "separation", "grazing_deg")

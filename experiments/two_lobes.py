@@ -36,14 +36,14 @@ from _common import parse_args, scipy_fit
 from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.pipeline import MODEL_CODES, QUADRATURES, FitConfig, fit, select_frames, starting_point
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, starting_point
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.solver import solve_pixels
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import Lights
 from torchspec.models import get_model
-from torchspec.render import render
+from torchspec.rendering import render
 from torchspec.report import REGIONS
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import DUAL, DualConfig, PaintingConfig, SensorConfig
@@ -146,7 +146,7 @@ def _baseline(settings: Settings, folder: Path, frames: list[int], chosen: torch
         lights,
         view,
         capture.channels,
-        quadrature=QUADRATURES[config.quadrature],
+        quadrature=config.rule,
     )
     t = truth[chosen]
     return {

@@ -20,7 +20,7 @@ from torchspec.cli import main
 from torchspec.geometry import from_plane
 from torchspec.io import read_exr
 from torchspec.lights import Kernel, Lights
-from torchspec.render import render
+from torchspec.rendering import render
 from torchspec.simulate import LayoutConfig, layout
 from torchspec.synth import MirrorConfig, SensorConfig, mirror, sense
 

@@ -18,8 +18,9 @@ from torchspec.cli import main
 from torchspec.export import ExportError, ExportWarning, export, export_gltf, export_mitsuba, export_png16
 from torchspec.io import SVBRDFError, read_capture, read_exr, read_svbrdf
 from torchspec.lights import Kernel, Lights
+from torchspec.quadrature import Quadrature
 from torchspec.relight import psnr
-from torchspec.render import render
+from torchspec.rendering import render
 
 
 RELIGHT = SHARED / "painting-dev-relight"
@@ -138,7 +139,7 @@ def test_mitsuba_render_is_diffuse_plus_beckmann(tmp_path, channels, turns):
         direction = direction / direction.norm()
         irradiance = torch.tensor([[1.5, 0.7, 2.0][:channels]], dtype=F64)
         lights = Lights(direction, Kernel("point"), irradiance, torch.ones(1, dtype=F64))
-        expected = render(svbrdf.flatten(), lights, view, path="point", lobe="beckmann").reshape(5, 7, channels)
+        expected = render(svbrdf.flatten(), lights, view, quadrature=Quadrature(path="point"), lobe="beckmann").reshape(5, 7, channels)
         scene = export_mitsuba(svbrdf, tmp_path, light=direction[0].tolist(), irradiance=irradiance[0].tolist())
         got = _render_mitsuba(mi, scene)[:, :, :channels]
         error = ((got - expected).abs().max() / expected.abs().max()).item()

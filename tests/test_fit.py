@@ -197,7 +197,7 @@ def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
     def broken(function):
         raise RuntimeError("no C++ compiler here")
 
-    monkeypatch.setattr(__import__("importlib").import_module("torchspec.render"), "_compiled", broken)
+    monkeypatch.setattr(__import__("importlib").import_module("torchspec.fusion"), "compiled", broken)
     monkeypatch.setattr(module, "_COMPILE_FAILED", [])
     with pytest.warns(UserWarning, match="torch.compile failed .*no C\\+\\+ compiler here.*fitting without it"):
         result = fit(painting, frames="::3", config=FitConfig(compile=True))

@@ -24,7 +24,7 @@ from torchspec.geometry import from_plane, normalize
 from torchspec.io.exr import read_exr
 from torchspec.layout import mirror_point
 from torchspec.lights import Kernel, Lights
-from torchspec.render import render
+from torchspec.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)

@@ -1,14 +1,17 @@
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from torchspec.brdf import SVBRDF
 from torchspec.geometry import normal_from_angles
-from torchspec.jacobian import _svbrdf, jacobian, normal_equations, parameters, sandwich_terms
+from torchspec.jacobian import from_parameters, jacobian, parameters
+from torchspec.least_squares import normal_equations, sandwich_terms
 from torchspec.lights import Kernel, Lights
 from torchspec.models import MODELS
-from torchspec.render import render
+from torchspec.quadrature import Quadrature
+from torchspec.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -36,7 +39,7 @@ def _autograd(maps, lights, path="auto"):
     grey = maps.specular.shape[-1] == 1
 
     def forward(p):
-        return render(_svbrdf(p, maps.channels, grey), lights, VIEW, path=path)
+        return render(from_parameters(p, maps.channels, grey), lights, VIEW, quadrature=Quadrature(path=path))
 
     full = torch.autograd.functional.jacobian(forward, params)  # (N, K, C, N, P)
     index = torch.arange(params.shape[0])
@@ -74,8 +77,9 @@ def test_analytic_matches_the_derivative_of_the_quadrature(kernel, path):
     """Fixed nodes: the quadrature of the derivative, within 1e-3 of each pixel's largest
     derivative (the derivative of the quadrature moves its nodes too)."""
     maps, lights = _problem(False, kernel, seed=1)
-    value, jac = jacobian(maps, lights, VIEW, mode="analytic", path=path)
-    torch.testing.assert_close(value, render(maps, lights, VIEW, path=path), rtol=1e-10, atol=1e-12)
+    quadrature = Quadrature(path=path)
+    value, jac = jacobian(maps, lights, VIEW, mode="analytic", quadrature=quadrature)
+    torch.testing.assert_close(value, render(maps, lights, VIEW, quadrature=quadrature), rtol=1e-10, atol=1e-12)
     exact = _autograd(maps, lights, path)
     scale = exact.abs().amax(dim=(1, 2, 3), keepdim=True)  # per pixel
     error = ((jac - exact).abs() / scale).max().item()
@@ -143,14 +147,14 @@ def test_fast_clamp_is_close_to_the_exact_one():
         centre, Kernel("gaussian", "projected", 0.08), torch.ones(k, 1, dtype=F64), torch.ones(k, dtype=F64)
     )
     value, jac = jacobian(maps, lights, VIEW, diffuse_only=True)
-    fast, fast_jac = jacobian(maps, lights, VIEW, diffuse_only=True, clamp="fast")
+    fast, fast_jac = jacobian(maps, lights, VIEW, diffuse_only=True, quadrature=Quadrature(clamp="fast"))
     assert not torch.equal(value, fast)  # the rules differ where the clamp acts...
     scale = value.abs().amax(dim=(1, 2), keepdim=True)
     assert ((fast - value).abs() / scale).max() < 5e-4  # ...by little
     jac_scale = jac.abs().amax(dim=(1, 2, 3), keepdim=True)
     assert ((fast_jac - jac).abs() / jac_scale).max() < 1e-2
     with pytest.raises(ValueError, match="clamp must be one of"):
-        jacobian(maps, lights, VIEW, clamp="rough")
+        jacobian(maps, lights, VIEW, quadrature=Quadrature(clamp="rough"))
 
 
 @pytest.mark.parametrize(
@@ -167,7 +171,7 @@ def test_the_fits_quadrature_is_close_to_the_renderers(kernel):
     rule) on lobes from 0.005 to 0.5 and a frame at 75 deg: values within 1e-3 of each pixel's
     largest, derivatives within 1e-2."""
     maps, lights = _problem(False, kernel)
-    value, jac = jacobian(maps, lights, VIEW, order=3, reference_order=8, clamp="fast")
+    value, jac = jacobian(maps, lights, VIEW, quadrature=Quadrature(order=3, reference_order=8, clamp="fast"))
     exact, exact_jac = jacobian(maps, lights, VIEW)
     assert ((value - exact).abs() / exact.abs().amax(dim=(1, 2), keepdim=True)).max() < 1e-3
     assert ((jac - exact_jac).abs() / exact_jac.abs().amax(dim=(1, 2, 3), keepdim=True)).max() < 1e-2
@@ -187,23 +191,26 @@ def test_compiled_is_eager():
         maps.roughness,
         maps.rotation,
     )
+    eager_rule = Quadrature(order=3, clamp="fast")
+    fused_rule = replace(eager_rule, compile=True)
     for batch in (maps, tilted):  # the second reaches behind its horizon: the clamp's integral too
         plain = render(batch, lights, VIEW.float())
-        torch.testing.assert_close(render(batch, lights, VIEW.float(), compile=True), plain, rtol=1e-4, atol=1e-6)
-        eager = jacobian(batch, lights, VIEW.float(), order=3, clamp="fast")
-        fused = jacobian(batch, lights, VIEW.float(), order=3, clamp="fast", compile=True)
+        compiled = render(batch, lights, VIEW.float(), quadrature=Quadrature(compile=True))
+        torch.testing.assert_close(compiled, plain, rtol=1e-4, atol=1e-6)
+        eager = jacobian(batch, lights, VIEW.float(), quadrature=eager_rule)
+        fused = jacobian(batch, lights, VIEW.float(), quadrature=fused_rule)
         torch.testing.assert_close(fused, eager, rtol=1e-4, atol=1e-6)
         observed = eager[0] * 1.1
         weight = torch.ones_like(observed)
         select = torch.eye(eager[1].shape[-1])
         args = (batch, lights, VIEW.float(), observed, weight, select)
-        plain = normal_equations(*args, order=3, clamp="fast")
+        plain = normal_equations(*args, quadrature=eager_rule)
         torch.testing.assert_close(
-            normal_equations(*args, order=3, clamp="fast", compile=True), plain, rtol=1e-4, atol=1e-7
+            normal_equations(*args, quadrature=fused_rule), plain, rtol=1e-4, atol=1e-7
         )
         args = (batch, lights, VIEW.float(), observed, weight / (0.1 + observed), weight, select)
-        plain = sandwich_terms(*args, order=3, clamp="fast")
-        fused = sandwich_terms(*args, order=3, clamp="fast", compile=True)
+        plain = sandwich_terms(*args, quadrature=eager_rule)
+        fused = sandwich_terms(*args, quadrature=fused_rule)
         torch.testing.assert_close(fused, plain, rtol=1e-4, atol=1e-7)
 
 
@@ -229,9 +236,9 @@ def test_every_models_compiled_normal_equations(name):
     weight = (torch.rand(observed.shape[:2], generator=g) > 0.2).float() * 3.0  # (N, K): some dropped
     index = torch.arange(params.shape[0])
     args = (observed, weight, lights, VIEW.float(), maps.channels)
-    options = dict(order=3, reference_order=8, clamp="fast", normal=True)
-    eager = model.residuals(*args, **options)(params, index)
-    fused = model.residuals(*args, compile=True, **options)(params, index)
+    eager_rule = Quadrature(order=3, reference_order=8, clamp="fast")
+    eager = model.residuals(*args, quadrature=eager_rule, normal=True)(params, index)
+    fused = model.residuals(*args, quadrature=replace(eager_rule, compile=True), normal=True)(params, index)
     assert fused.hess.shape == (params.shape[0], params.shape[1], params.shape[1])
     for got, expected in zip(fused, eager, strict=True):
         torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6 * float(expected.abs().max()))
@@ -258,7 +265,7 @@ def test_a_second_lobes_columns(kernel):
     params = parameters(maps)
 
     def forward(p):
-        return render(_svbrdf(p, maps.channels, False, 1), lights, VIEW)
+        return render(from_parameters(p, maps.channels, False, 1), lights, VIEW)
 
     full = torch.autograd.functional.jacobian(forward, params)
     index = torch.arange(params.shape[0])

@@ -4,7 +4,8 @@ import pytest
 import torch
 from brute_force import integrate, kernel_density
 
-from torchspec.lights import Kernel, Lights, clamped_diffuse, diffuse_directions, nodes
+from torchspec.diffuse import clamped_diffuse
+from torchspec.lights import Kernel, Lights, diffuse_directions, nodes
 
 F64 = torch.float64
 
@@ -123,7 +124,8 @@ def test_an_angular_kernel_compiles_without_a_graph_break():
 
     from torchspec.brdf import SVBRDF
     from torchspec.geometry import normal_from_angles
-    from torchspec.render import render
+    from torchspec.quadrature import Quadrature
+    from torchspec.rendering import render
 
     kernel = Kernel("gaussian", "angular", 0.05)
     assert kernel._radial_normaliser() == pytest.approx(2 * math.pi * 0.05**2, rel=2e-3)  # small angles: planar
@@ -135,7 +137,7 @@ def test_an_angular_kernel_compiles_without_a_graph_break():
                   torch.rand(6, 1, generator=g), torch.full((6, 2), 0.1))
     view = torch.tensor([0.0, 0.0, 1.0])
     torch._dynamo.utils.counters.clear()
-    compiled = render(maps, lights, view, compile=True)
+    compiled = render(maps, lights, view, quadrature=Quadrature(compile=True))
     assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
     torch.testing.assert_close(compiled, render(maps, lights, view), rtol=1e-4, atol=1e-6)
 

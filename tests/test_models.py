@@ -5,7 +5,7 @@ from torchspec.brdf import SVBRDF
 from torchspec.geometry import normalize
 from torchspec.lights import Kernel, Lights
 from torchspec.models import MODELS, get_model
-from torchspec.render import render
+from torchspec.rendering import render
 from torchspec.simulate import LayoutConfig, layout
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -111,7 +111,7 @@ def test_sandwich_terms_are_those_of_the_jacobian(name):
     """``sandwich_terms``: ``0.5 chi^2``, ``A = J^T W^2 J`` and ``B = J^T W^2 S W^2 J`` of the dense
     Jacobian (brute force, float64), with noise weights per sample and channel (some 0) and fit
     weights per pixel; with ``W`` the noise weights, ``A = B``: the Fisher information."""
-    from torchspec.jacobian import sandwich_terms
+    from torchspec.least_squares import sandwich_terms
 
     model = get_model(name)
     lights = _lights()
@@ -142,7 +142,8 @@ def test_sandwich_terms_are_those_of_the_jacobian(name):
 
 
 def test_normal_equations_check_their_inputs():
-    from torchspec.jacobian import normal_equations
+    from torchspec.least_squares import normal_equations
+    from torchspec.quadrature import Quadrature
 
     lights = _lights()
     svbrdf = _svbrdf(count=2)
@@ -152,7 +153,7 @@ def test_normal_equations_check_their_inputs():
     with pytest.raises(ValueError, match=rf"weight must have shape \(2, {k}, 3\); got \(2, {k}\)"):
         normal_equations(svbrdf, lights, VIEW, good, good[..., 0], select)
     with pytest.raises(ValueError, match="clamp must be one of"):
-        normal_equations(svbrdf, lights, VIEW, good, good, select, clamp="rough")
+        normal_equations(svbrdf, lights, VIEW, good, good, select, quadrature=Quadrature(clamp="rough"))
 
 
 def test_ward_dual_starts_either_side_of_one_lobe_and_names_the_sharper_first():

@@ -10,7 +10,8 @@ import torchspec as ts
 from torchspec.brdf import SVBRDF, ward_cosine
 from torchspec.geometry import normal_from_angles
 from torchspec.lights import Kernel, Lights
-from torchspec.render import render
+from torchspec.quadrature import Quadrature
+from torchspec.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -29,7 +30,7 @@ def test_render_matches_brute_force(name, path, tolerance):
         # the value, and in the cases that light the lobe up (even seeds) its specular part alone
         for k_d, target in ((0.3, expected), (0.0, specular))[: 2 - seed % 2]:
             maps = SVBRDF(*pixel_tensors(normal, k_d, alpha, rotation))
-            value = render(maps, lights, VIEW, path=path)[0, 0, 0].item()
+            value = render(maps, lights, VIEW, quadrature=Quadrature(path=path))[0, 0, 0].item()
             error = abs(value - target) / max(abs(target), 1e-12)
             assert error <= tolerance, (
                 f"{name} {path} seed {seed} k_d {k_d}: relative error {error:.3g} ({value:.6g} vs {target:.6g})"
@@ -67,7 +68,7 @@ def test_reference_when_the_product_lies_beyond_the_horizon():
         sigma=0.08,
     )
     for path, tolerance in (("reference", 1e-4), ("auto", 1e-3)):
-        value = render(maps, lights, VIEW, path=path)[0, 0, 0].item()
+        value = render(maps, lights, VIEW, quadrature=Quadrature(path=path))[0, 0, 0].item()
         assert abs(value - expected) <= tolerance * expected, (path, value, expected)
 
 
@@ -106,7 +107,7 @@ def test_shapes_chunks_and_devices():
     assert value.shape == (4, 5, 7, 3) and value.dtype == torch.float32
     flat = render(maps.flatten(), lights, VIEW.float())
     torch.testing.assert_close(value.reshape(20, 7, 3), flat)
-    module = importlib.import_module("torchspec.render")
+    module = importlib.import_module("torchspec.rendering")
 
     budget = module.BUDGET
     module.BUDGET = 64  # one pixel per chunk
@@ -130,7 +131,7 @@ def test_bad_inputs():
         torch.tensor([[0.0, 0.0, 1.0]]), Kernel("supergaussian", "angular", 0.03, 6.0), torch.ones(1, 1), torch.ones(1)
     )
     with pytest.raises(ValueError, match="path 'fast' needs a Gaussian kernel"):
-        render(maps, lights, VIEW.float(), path="fast")
+        render(maps, lights, VIEW.float(), quadrature=Quadrature(path="fast"))
     with pytest.raises(ValueError, match=r"view must have shape \(3,\)"):
         render(maps, lights, VIEW[:2].float())
 

@@ -7,7 +7,7 @@ import torch
 from torchspec.config import ConfigError, load_config
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import Kernel, Lights
-from torchspec.render import render
+from torchspec.rendering import render
 from torchspec.simulate import (
     LayoutConfig,
     SceneConfig,

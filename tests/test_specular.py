@@ -6,7 +6,7 @@ import torch
 from torchspec.brdf import SVBRDF
 from torchspec.geometry import angle, from_plane, normalize
 from torchspec.lights import Kernel, Lights, diffuse_directions
-from torchspec.render import render
+from torchspec.rendering import render
 from torchspec.simulate import LayoutConfig, layout
 from torchspec.layout import layout_of
 from torchspec.specular import grid_search, locate_peak, naive_start, specular_residual

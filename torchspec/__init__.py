@@ -24,7 +24,7 @@ from .brdf import SVBRDF
 from .errors import TorchspecError
 from .pipeline import Fit, FitConfig, fit, write_fit
 from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
-from .render import render
+from .rendering import render
 
 __all__ = [
     "Fit",

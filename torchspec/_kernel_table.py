@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from .errors import TorchspecError
-from .lights import _PAD, Kernel, _bspline_weights
+from .lights import SPLINE_PAD, Kernel, bspline_weights
 
 ANGLES = 2.0
 """Radial symmetry: copies of a sample per table pixel of arc length on its ring."""
@@ -49,11 +49,11 @@ def spline_design(u: Tensor, extent: float, size: int) -> Design:
     """The design of density samples at offsets ``u (M, 2)`` for the table of :class:`Kernel`:
     its cubic B-spline surface, control point ``(row, col)`` at ``(x, y) = ((col + 1/2) 2 e / S - e,
     e - (row + 1/2) 2 e / S)`` and zero beyond the table."""
-    fx = (u[:, 0] / extent + 1.0) * (size / 2.0) - 0.5 + _PAD
-    fy = (1.0 - u[:, 1] / extent) * (size / 2.0) - 0.5 + _PAD
+    fx = (u[:, 0] / extent + 1.0) * (size / 2.0) - 0.5 + SPLINE_PAD
+    fy = (1.0 - u[:, 1] / extent) * (size / 2.0) - 0.5 + SPLINE_PAD
     ix0, iy0 = torch.floor(fx), torch.floor(fy)
-    wx, wy = torch.stack(_bspline_weights(fx - ix0), -1), torch.stack(_bspline_weights(fy - iy0), -1)  # (M, 4)
-    taps = torch.arange(4, device=u.device) - 1 - _PAD
+    wx, wy = torch.stack(bspline_weights(fx - ix0), -1), torch.stack(bspline_weights(fy - iy0), -1)  # (M, 4)
+    taps = torch.arange(4, device=u.device) - 1 - SPLINE_PAD
     col, row = ix0.long()[:, None] + taps, iy0.long()[:, None] + taps  # (M, 4) table columns and rows
     ok = ((row >= 0) & (row < size))[:, :, None] & ((col >= 0) & (col < size))[:, None, :]  # (M, 4, 4)
     weight = wy[:, :, None] * wx[:, None, :] * ok.to(u.dtype)
@@ -180,7 +180,7 @@ def asymmetry(table: Tensor, extent: float, centroid: Tensor) -> float:
     """``|D(u) - D(2 mu - u)| / |D|`` (L2) of the spline density over a fine grid: 0 for a kernel
     symmetric about its centroid."""
     kernel = Kernel("tabulated", table=table, extent=extent)
-    reach = extent * (1.0 + 2.0 * _PAD / table.shape[0])
+    reach = extent * (1.0 + 2.0 * SPLINE_PAD / table.shape[0])
     axis = torch.linspace(-reach, reach, 2 * table.shape[0] + 1, dtype=table.dtype, device=table.device)
     gy, gx = torch.meshgrid(axis, axis, indexing="ij")
     u = torch.stack([gx, gy], -1) + centroid

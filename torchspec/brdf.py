@@ -22,6 +22,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from .errors import TorchspecError
 from .geometry import dot, tangent_frame
 
 __all__ = ["SVBRDF", "lambert", "ward", "ward_cosine", "beckmann_cosine", "reflectance"]
@@ -69,31 +70,31 @@ class SVBRDF:
         ]
         for name, value, tail in checks:
             if tuple(value.shape) != lead + tail:
-                raise ValueError(
+                raise TorchspecError(
                     f"SVBRDF.{name} must have shape {lead + tail} (leading dims of normal {tuple(self.normal.shape)}); "
                     f"got {tuple(value.shape)}."
                 )
         if tuple(self.specular.shape) not in (lead + (count,), lead + (1,)):
-            raise ValueError(
+            raise TorchspecError(
                 f"SVBRDF.specular must have shape {lead + (count,)} or {lead + (1,)}; got {tuple(self.specular.shape)}."
             )
         if (self.specular2 is None) != (self.roughness2 is None):
-            raise ValueError("SVBRDF.specular2 and roughness2 (a second lobe) must be given together.")
+            raise TorchspecError("SVBRDF.specular2 and roughness2 (a second lobe) must be given together.")
         if self.specular2 is not None:
             if tuple(self.specular2.shape) not in (lead + (count,), lead + (1,)):
-                raise ValueError(
+                raise TorchspecError(
                     f"SVBRDF.specular2 must have shape {lead + (count,)} or {lead + (1,)}; "
                     f"got {tuple(self.specular2.shape)}."
                 )
             if tuple(self.roughness2.shape) != lead + (2,):
-                raise ValueError(
+                raise TorchspecError(
                     f"SVBRDF.roughness2 must have shape {lead + (2,)}; got {tuple(self.roughness2.shape)}."
                 )
         if self.rotation is not None and tuple(self.rotation.shape) != lead:
-            raise ValueError(f"SVBRDF.rotation must have shape {lead}; got {tuple(self.rotation.shape)}.")
+            raise TorchspecError(f"SVBRDF.rotation must have shape {lead}; got {tuple(self.rotation.shape)}.")
         channels = _default_channels(count) if self.channels is None else tuple(self.channels)
         if len(channels) != count:
-            raise ValueError(f"SVBRDF.channels must name {count} channels (diffuse has {count}); got {channels}.")
+            raise TorchspecError(f"SVBRDF.channels must name {count} channels (diffuse has {count}); got {channels}.")
         object.__setattr__(self, "channels", channels)
 
     @property

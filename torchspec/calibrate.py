@@ -61,8 +61,8 @@ from ._kernel_table import (
     table_moments,
 )
 from .geometry import reflect
-from .lights import _PAD, Kernel
 from .layout import layout_of
+from .lights import SPLINE_PAD, Kernel
 
 __all__ = [
     "CalibrationError",
@@ -310,7 +310,7 @@ def _fit(
         far = radius[strong].max() if radial else offsets[strong].abs().max()
         extent = min(1.2 * (float(far) + spacing), 0.95)
     step = 2.0 * extent / size
-    reach = extent + _PAD * step
+    reach = extent + SPLINE_PAD * step
     keep = ((radius < reach) if radial else (offsets.abs().amax(-1) < reach)) & (weight > 0)  # (P, K)
     at = torch.stack([radius, torch.zeros_like(radius)], -1) if radial else offsets
     taps = blur_taps(blur / step, s) if blur > 0 else None

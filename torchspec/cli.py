@@ -217,16 +217,15 @@ def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
     try:
         with connect(args.scheduler, workers=args.workers) as client:
             return fit_on_cluster(args.capture, client, checkpoint=checkpoint, config=config, frames=args.frames,
-                          progress=not args.quiet, resume=args.resume)
+                                  progress=not args.quiet, resume=args.resume)
     except ClusterError as error:  # printed by main like an unreadable file: the message names the address or tile
         raise OSError(str(error)) from error
 
 
 def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .config import load_config
-    from .fit import FitConfig, FitInterrupted, fit, write_fit
+    from .pipeline import FitConfig, FitInterrupted, fit, write_fit
 
-<<<<<<< HEAD
     config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
     if args.model is not None:
         config = replace(config, model=args.model)
@@ -256,107 +255,6 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
           f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
           f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
           f"median relative residual {stats['median_residual']:.2e}")
-=======
-        demo.run(args.output, size=args.size, progress=not args.quiet)
-    elif args.command == "simulate":
-        from .config import load_config
-        from .simulate import SimulationConfig, simulate, write_simulation
-
-        config = load_config(args.config, SimulationConfig)
-        result = write_simulation(args.output, simulate(config, root=args.output))
-        print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
-              f"{''.join(result.channels)}, with truth/")
-    elif args.command == "fit":
-        from .config import load_config
-        from .pipeline import FitConfig, FitInterrupted, fit, write_fit
-
-        config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
-        if args.model is not None:
-            config = replace(config, model=args.model)
-        checkpoint = args.output / CHECKPOINT
-        if args.workers is not None and args.workers < 1:
-            parser.error(f"--workers must be >= 1; got {args.workers}")
-        try:
-            if args.scheduler is None and args.workers is None:
-                result = fit(
-                    args.capture,
-                    config=config,
-                    frames=args.frames,
-                    progress=not args.quiet,
-                    checkpoint=checkpoint,
-                    resume=args.resume,
-                )
-            else:
-                result = _fit_on_cluster(args, config, checkpoint)
-        except FitInterrupted as stop:
-            again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
-            print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
-                  f"continue with: torchspec {again} --resume", file=sys.stderr)
-            return 130
-        write_fit(args.output, result)
-        shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
-        stats = result.stats
-        print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
-              f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
-              f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
-              f"median relative residual {stats['median_residual']:.2e}")
-    elif args.command == "render":
-        from .relight import render_capture
-
-        report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path)
-        print(f"wrote {report['frames']} frames to {args.output}")
-        if report.get("psnr_db") is not None:
-            print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
-                  f"relative RMS error {100 * report['relative_rms']:.2f} %")
-    elif args.command == "export":
-        from .export import export
-
-        written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
-        print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
-    elif args.command == "info":
-        import json
-
-        from .info import UNUSABLE, format_report, inspect_capture
-
-        report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
-        print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
-        return 2 if report["verdict"] == UNUSABLE else 0
-    elif args.command == "calibrate":
-        import json
-
-        from .calibrate import calibrate, write_kernel
-
-        result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
-                           symmetry=args.symmetry, mirror_alpha=args.mirror_alpha)
-        light = write_kernel(args.output, result)
-        print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
-        print(result.summary())
-        print(f"capture manifest light entry (kernel file beside capture.json): {json.dumps(light)}")
-    elif args.command == "dome-emulator":
-        import math
-
-        from .dome.emulator import serve
-
-        return serve(speed=math.radians(args.speed), arm_speed=args.arm_speed, faults=args.fault,
-                     stall_seconds=args.stall_seconds, homed=not args.unhomed)
-    elif args.command == "acquire":
-        from .dome.acquire import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
-        from .dome.client import DomeClient
-
-        light = load_light(args.light)
-        camera = open_camera(args.camera, light, channels=args.channels.split(","), pattern=args.pattern,
-                             timeout=args.frame_timeout, trigger=args.trigger)
-        try:
-            with DomeClient(args.port, timeout=args.timeout, move_timeout=args.move_timeout) as client:
-                capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
-                                  resume=args.resume, progress=not args.quiet)
-        except (AcquisitionStopped, AcquisitionInterrupted) as stop:
-            again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
-            print(f"torchspec acquire: {stop} Continue with: torchspec {again} --resume", file=sys.stderr)
-            return 130 if isinstance(stop, AcquisitionInterrupted) else 1
-        print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
-              f"{''.join(capture.channels)}")
->>>>>>> h1
     return 0
 
 

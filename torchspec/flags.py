@@ -31,9 +31,10 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
-from .jacobian import sandwich_terms
 from .layout import kernel_variance, light_spacing, mirror_point
+from .least_squares import sandwich_terms
 from .lights import Lights
+from .quadrature import Quadrature
 
 __all__ = [
     "FLAGS",
@@ -86,24 +87,30 @@ def describe(flags: Tensor) -> dict[str, int]:
 
 
 def residual_samples(
-    svbrdf: SVBRDF, observed: Tensor, inverse_noise: Tensor, lights: Lights, view: Tensor, **quadrature
+    svbrdf: SVBRDF,
+    observed: Tensor,
+    inverse_noise: Tensor,
+    lights: Lights,
+    view: Tensor,
+    *,
+    quadrature: Quadrature = Quadrature(),
 ) -> tuple[Tensor, Tensor, Tensor]:
     """What :func:`peak_checks` takes, per sample ``(n, K)``: the squared residual in units of the
     noise summed over channels, and the samples less the fitted diffuse part (mean over channels);
     and the lobe's signal-to-noise ratio ``(n,)`` (``weak_lobe`` below :data:`WEAK_LOBE_SNR`).
-    A fit has them from its deviations' pass (:func:`torchspec.jacobian.sandwich_terms`); this
+    A fit has them from its deviations' pass (:func:`torchspec.least_squares.sandwich_terms`); this
     computes them alone.
 
     Args:
         svbrdf: the fitted maps ``(n,)``; observed: ``(n, K, C)``; inverse_noise: ``(n, K, C)`` one
             over each sample's noise, 0 for invalid samples.
-        quadrature: ``path``, ``order``, ``reference_order``, ``clamp`` of the model's evaluation.
+        quadrature: the model's evaluation (:class:`torchspec.quadrature.Quadrature`).
     """
     c = svbrdf.diffuse.shape[-1]
     size = 5 + c + svbrdf.specular.shape[-1]
     select = torch.eye(size, dtype=observed.dtype, device=observed.device)
     out = sandwich_terms(
-        svbrdf, lights, view, observed, inverse_noise, inverse_noise, select, samples=True, **quadrature
+        svbrdf, lights, view, observed, inverse_noise, inverse_noise, select, quadrature=quadrature, samples=True
     )
     return out[3], out[4], out[5]
 
@@ -124,7 +131,7 @@ def peak_checks(
         svbrdf: the fitted maps ``(n,)`` (with a lobe: ``k_s > 0``).
         z2, excess: ``(n, K)`` from :func:`residual_samples` (or the fit's deviations pass).
         valid: ``(n, K)`` the samples used.
-        lights, view: as for :func:`torchspec.render.render`.
+        lights, view: as for :func:`torchspec.rendering.render`.
         reach: the frames within ``reach`` blurred widths of the peak are its neighbourhood.
 
     Returns:

@@ -1,4 +1,4 @@
-"""Jacobians of :func:`torchspec.render.render` for fitting, two ways.
+"""Jacobians of :func:`torchspec.rendering.render` for fitting, two ways.
 
 The parameters of a pixel, in this order (``P = 2 + C + C_s + 3``):
 
@@ -19,10 +19,12 @@ Pixels are independent, so each column of the Jacobian is one derivative for all
   differs from the derivative of the quadrature by the quadrature's own error (1e-3 of the
   derivative at most on the fast path, see ``tests/test_jacobian.py``). The diffuse clamp,
   where it acts, takes its gradient from the nodes of its value
-  (:func:`torchspec.lights.clamped_diffuse`).
+  (:func:`torchspec.diffuse.clamped_diffuse`).
 
-A fit may take fewer nodes (``order``, ``reference_order``, ``clamp="fast"``: ``torchspec.fit``'s
-``quadrature``) and fuse the node loops with ``torch.compile`` (``compile``).
+A fit may take fewer nodes (a :class:`torchspec.quadrature.Quadrature` with ``order``,
+``reference_order`` and ``clamp="fast"``: ``QUADRATURES["fit"]``) and fuse the node loops with
+``torch.compile`` (its ``compile``). :mod:`torchspec.least_squares` contracts the pieces of the
+Jacobian (:func:`jacobian_parts`, :func:`assemble`) into a fit's sums.
 """
 
 from __future__ import annotations
@@ -35,31 +37,36 @@ from torch import Tensor
 from .brdf import SVBRDF
 from .geometry import angles_from_normal, normal_derivative, normal_from_angles
 from .lights import Lights, diffuse_directions
-from .render import (
-    BUDGET,
-    CLAMPS,
-    FAST_ORDER,
-    FIXED_SIZES,
-    REFERENCE_ORDER,
-    _at_nodes,
-    _diffuse,
-    _fallback,
-    _fast_rule,
-    _fused,
-    _pick,
-    _pixels,
-    _rules,
-    choose_path,
-    render,
-)
+from .errors import TorchspecError
+from .fusion import FIXED_SIZES, fused
+from .lobe import at_nodes, lobe_frame, pick
+from .nodes import fallback_rule, fast_rule, node_rules
+from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
+from .diffuse import diffuse_integral
+from .rendering import render
 
-__all__ = ["jacobian", "normal_equations", "sandwich_terms", "parameters", "MODES"]
+__all__ = [
+    "jacobian",
+    "parameters",
+    "from_parameters",
+    "jacobian_parts",
+    "assemble",
+    "pixels_per_chunk",
+    "MODES",
+]
 
 MODES = ("analytic", "forward")
 
 
 def parameters(svbrdf: SVBRDF) -> Tensor:
-    """The parameter vectors ``(*, P)`` of ``svbrdf`` in the order of this module."""
+    """The parameter vectors ``(*, P)`` of ``svbrdf`` in the order of this module.
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> maps = SVBRDF(n, torch.ones(1, 3), torch.ones(1, 1), torch.full((1, 2), 0.1))
+        >>> parameters(maps).shape  # 2 angles, 3 k_d, 1 k_s, alpha_x, alpha_y, rotation
+        torch.Size([1, 9])
+    """
     rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[..., 0])
     parts = [angles_from_normal(svbrdf.normal), svbrdf.diffuse, svbrdf.specular, svbrdf.roughness, rotation[..., None]]
     if svbrdf.specular2 is not None:
@@ -67,8 +74,9 @@ def parameters(svbrdf: SVBRDF) -> Tensor:
     return torch.cat(parts, -1)
 
 
-def _svbrdf(params: Tensor, channels: tuple[str, ...], grey: bool, second: int | None = None) -> SVBRDF:
-    """The SVBRDF of :func:`parameters`; ``second``: the second lobe's ``k_s`` count, if it has one."""
+def from_parameters(params: Tensor, channels: tuple[str, ...], grey: bool, second: int | None = None) -> SVBRDF:
+    """The SVBRDF of the parameter vectors ``params (*, P)`` of :func:`parameters`: ``grey``, one
+    ``k_s``; ``second``: the second lobe's ``k_s`` count, if it has one."""
     count = len(channels)
     cs = 1 if grey else count
     at = [2, 2 + count, 2 + count + cs, 4 + count + cs]
@@ -93,58 +101,49 @@ def jacobian(
     view: Tensor,
     *,
     mode: str = "analytic",
-    path: str = "auto",
-    order: int | None = None,
+    quadrature: Quadrature = Quadrature(),
     diffuse_only: bool = False,
-    clamp: str = "exact",
-    compile: bool = False,
-    reference_order: int | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Values and Jacobian of :func:`torchspec.render.render` with respect to each pixel's
+    """Values and Jacobian of :func:`torchspec.rendering.render` with respect to each pixel's
     parameters (:func:`parameters`).
 
     Args:
         svbrdf: leading dims ``*``, ``C`` channels; ``rotation`` may be ``None`` (0).
-        lights, view, path: as for :func:`torchspec.render.render`.
+        lights, view: as for :func:`torchspec.rendering.render`.
         mode: ``analytic`` or ``forward``.
-        order: Gauss-Hermite nodes per axis of the fast rule (``FAST_ORDER`` by default), as
-            for :func:`torchspec.render.render`; the analytic mode only.
+        quadrature: as for :func:`torchspec.rendering.render`; the forward mode takes the
+            renderer's own (any path, no ``order``, ``reference_order``, fast ``clamp`` or
+            ``compile``).
         diffuse_only: the model without its lobe (``k_s`` taken as 0, the lobe not integrated):
             the values and the same columns, those of ``k_s`` and the lobe's shape being 0.
             Analytic mode only.
-        clamp: the rule of the diffuse clamp (:data:`torchspec.render.CLAMPS`): ``exact``, the
-            renderer's, or ``fast``, a fit's. Analytic mode only.
-        reference_order: radii of the reference rule (``REFERENCE_ORDER`` by default; a tabulated
-            kernel's two per pixel of its table at least), as ``order``.
-        compile: fuse the integrations over nodes with ``torch.compile`` (3-4x faster on the
-            CPU, after a one-off compilation of ~50 s, ~10 s from torch's cache). Analytic mode only.
 
     Returns:
         ``(values (*, K, C), jacobian (*, K, C, P))``.
+
+    Raises:
+        TorchspecError: a bad ``mode`` or ``quadrature``, or options the forward mode lacks.
     """
     if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}; got {mode!r}.")
-    if clamp not in CLAMPS:
-        raise ValueError(f"clamp must be one of {sorted(CLAMPS)}; got {clamp!r}.")
-    custom = diffuse_only or order is not None or reference_order is not None or clamp != "exact" or compile
-    if custom and mode != "analytic":
-        raise ValueError("diffuse_only, order, reference_order, clamp and compile need mode='analytic'.")
-    for name, value in (("order", order), ("reference_order", reference_order)):
-        if value is not None and value < 1:
-            raise ValueError(f"{name} must be >= 1; got {value}.")
+        raise TorchspecError(f"mode must be one of {MODES}; got {mode!r}.")
+    check_quadrature(quadrature)
+    if (diffuse_only or not quadrature.default or quadrature.compile) and mode != "analytic":
+        raise TorchspecError(
+            "diffuse_only, and a quadrature's order, reference_order, clamp and compile, need mode='analytic'."
+        )
     lead = svbrdf.shape
     flat = svbrdf.flatten()
     grey = flat.specular.shape[-1] == 1 and flat.diffuse.shape[-1] != 1
     second = None if flat.specular2 is None else flat.specular2.shape[-1]
     params = parameters(flat)
-    chunk = _chunk(lights.directions.shape[0], order)
+    chunk = pixels_per_chunk(lights.directions.shape[0], quadrature)
     values = jacs = None  # filled in place: the Jacobian is the largest tensor of a fit, held once
     for start in range(0, max(params.shape[0], 1), chunk):  # one (empty) chunk for no pixels
         part = params[start : start + chunk]
         if mode == "forward":
 
             def forward(p):
-                return render(_svbrdf(p, flat.channels, grey, second), lights, view, path=path)
+                return render(from_parameters(p, flat.channels, grey, second), lights, view, quadrature=quadrature)
 
             eye = torch.eye(part.shape[-1], dtype=part.dtype, device=part.device)
             columns = []
@@ -153,17 +152,10 @@ def jacobian(
                 columns.append(column)
             jac = torch.stack(columns, -1)
         else:
-            parts = _parts(
-                _svbrdf(part, flat.channels, grey, second),
-                lights,
-                view,
-                path,
-                diffuse_only,
-                (order, reference_order),
-                clamp,
-                compile,
+            parts = jacobian_parts(
+                from_parameters(part, flat.channels, grey, second), lights, view, quadrature, diffuse_only
             )
-            value, jac = _assemble(*parts)
+            value, jac = assemble(*parts)
         if values is None:
             values = value.new_empty((params.shape[0], *value.shape[1:]))
             jacs = jac.new_empty((params.shape[0], *jac.shape[1:]))
@@ -172,11 +164,11 @@ def jacobian(
     return values.reshape(*lead, *values.shape[1:]), jacs.reshape(*lead, *jacs.shape[1:])
 
 
-def _chunk(frames: int, order: int | None) -> int:
-    """Pixels per chunk. Chunks bound the memory, as render's do (a few hundred MB of node tensors
-    at most); smaller ones cost time in per-call overhead (8x smaller took 2x longer, analytic and
-    forward)."""
-    return max(1, BUDGET // (frames * (order or FAST_ORDER) ** 2))
+def pixels_per_chunk(frames: int, quadrature: Quadrature) -> int:
+    """Pixels per chunk of ``frames`` frames: :data:`~torchspec.quadrature.BUDGET` elements of
+    the fast rule's nodes. Chunks bound the memory, as the renderer's do; smaller ones cost time
+    in per-call overhead."""
+    return max(1, BUDGET // (frames * quadrature.orders(None)[0] ** 2))
 
 
 def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
@@ -208,13 +200,13 @@ def _frame_derivatives(n: Tensor, rotation: Tensor) -> tuple[Tensor, Tensor]:
 def _lobe_gradients(lx: Tensor, ly: Tensor, pixels, frame_ds: Tensor | None, frame_dt: Tensor | None):
     """The lobe ``L`` at nodes ``(N, F, Q)`` and its derivatives, componentwise (each ``(N, F, Q)``):
     ``dL/dn`` (x, y, z) and ``dL/d(alpha_x, alpha_y, rotation)``, the rotation's ``None`` for an
-    isotropic lobe. Written like :func:`torchspec.render._lobe_at`, without 3-vectors: fused by
-    torch.compile, sums over the nodes of these run 2x faster than of stacked ``(N, F, Q, 3)`` ones.
+    isotropic lobe. Written like :func:`torchspec.lobe.lobe_at`, without 3-vectors, so that
+    torch.compile fuses the sums over the nodes.
 
     ``frame_ds = frame_dt = None`` for isotropic lobes (``alpha_x = alpha_y``): the lobe is then
     ``exp(-(|h|^2 / <h, n>^2 - 1) / alpha^2)`` whatever the tangent frame, so the frame's
-    derivatives drop out and the rotation's column is 0 (1.7x faster)."""
-    wz, ci, front, (hx, hy, hz), hn = _at_nodes(lx, ly, pixels)
+    derivatives drop out and the rotation's column is 0."""
+    wz, ci, front, (hx, hy, hz), hn = at_nodes(lx, ly, pixels)
     (sx, sy, sz), (tx, ty, tz) = pixels.s, pixels.t
     co = pixels.cos_view
     hn = torch.where(front, hn, torch.ones_like(hx))
@@ -258,24 +250,25 @@ def _stack(parts: tuple, like: Tensor) -> Tensor:
     return torch.stack([torch.zeros_like(like) if c is None else c for c in parts], -1)
 
 
-def _parts(
+def jacobian_parts(
     svbrdf: SVBRDF,
     lights: Lights,
     view: Tensor,
-    path: str,
+    quadrature: Quadrature,
     diffuse_only: bool = False,
-    order: tuple[int | None, int | None] = (None, None),
-    clamp: str = "exact",
-    compiled: bool = False,
 ) -> tuple:
-    """Per pixel and frame, what the values and every column are made of (:func:`_assemble`):
-    the diffuse and specular integrals, their derivatives in the normal and the lobe's shape,
-    ``dn/d(angles)``, the frames' scale and the coefficients."""
-    chosen = choose_path(lights, path)
+    """Per pixel of a flat ``svbrdf (N,)`` and frame, what the values and every column are made
+    of (:func:`assemble`): the diffuse and specular integrals ``(N, K)``, their derivatives in the
+    normal and the lobe's shape ``(N, K, 3)``, ``dn/d(angles) (N, 3, 2)``, the frames' scale
+    ``(1, K, C or 1)`` and the coefficients ``k_d (N, C)``, ``k_s (N, C_s)`` (then the second
+    lobe's integral, derivatives and ``k_s2``, if it has one)."""
+    chosen = choose_path(lights, quadrature.path)
+    compiled = quadrature.compile
     like = svbrdf.diffuse
     lights = lights.to(dtype=like.dtype, device=like.device)
     view = view.to(dtype=like.dtype, device=like.device)
     kernel, centre = lights.kernel, lights.directions
+    orders = quadrature.orders(kernel)
     rotation = svbrdf.rotation if svbrdf.rotation is not None else torch.zeros_like(svbrdf.normal[:, 0])
     n = svbrdf.normal
     # dn / d(a, b) (N, 3, 2) of n ~ (tan a, tan b, 1).
@@ -284,7 +277,7 @@ def _parts(
     # Diffuse: <n, d_k> and its gradient d_k; where the clamp acts, the kernel's direction over
     # the part in front of the normal's horizon.
     direction = centre if kernel.kind == "point" else diffuse_directions(lights)
-    diffuse, d_diffuse = _diffuse(n, lights, direction, gradient=True, clamp=clamp, compiled=compiled)
+    diffuse, d_diffuse = diffuse_integral(n, lights, direction, gradient=True, clamp=quadrature.clamp, compile=compiled)
 
     # Specular: the value's nodes, held fixed.
     if diffuse_only:
@@ -293,13 +286,13 @@ def _parts(
         no_lobe = torch.zeros_like(svbrdf.specular)
         svbrdf = SVBRDF(n, svbrdf.diffuse, no_lobe, svbrdf.roughness, rotation, svbrdf.channels)
     else:
-        spec, d_spec_n, d_spec_shape = _lobe_parts(svbrdf, lights, view, chosen, order, rotation, compiled)
+        spec, d_spec_n, d_spec_shape = _lobe_parts(svbrdf, lights, view, chosen, orders, rotation, compiled)
 
     scale = lights.scale[None]  # (1, K, C or 1)
     second = ()
     if svbrdf.specular2 is not None and not diffuse_only:
         lobe2 = SVBRDF(n, svbrdf.diffuse, svbrdf.specular2, svbrdf.roughness2, rotation, svbrdf.channels)
-        second = (*_lobe_parts(lobe2, lights, view, chosen, order, rotation, compiled), svbrdf.specular2.contiguous())
+        second = (*_lobe_parts(lobe2, lights, view, chosen, orders, rotation, compiled), svbrdf.specular2.contiguous())
     # Contiguous coefficients: slices of the solver's parameters sit at offsets torch.compile guards on.
     return (
         diffuse,
@@ -315,15 +308,16 @@ def _parts(
     )
 
 
-def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, order, rotation, compiled: bool) -> tuple:
+def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, orders, rotation, compiled: bool) -> tuple:
     """The lobe's integrals ``(N, K)`` and their derivatives in the normal and its shape
-    ``(N, K, 3)`` (:func:`_parts`), on the path ``chosen``."""
+    ``(N, K, 3)`` (:func:`jacobian_parts`), on the path ``chosen`` with the orders
+    ``(fast, reference)``."""
     kernel, centre = lights.kernel, lights.directions
     n = svbrdf.normal
     isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
     frames = (None, None) if isotropic else _frame_derivatives(n, rotation)
     if chosen == "point":
-        pixels = _pixels(svbrdf, view)
+        pixels = lobe_frame(svbrdf, view)
         frame_ds, frame_dt = frames
         lx, ly = centre[None, :, None, 0], centre[None, :, None, 1]
         lobe, d_n, d_shape = _lobe_gradients(lx, ly, pixels, frame_ds, frame_dt)
@@ -331,22 +325,19 @@ def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, order
         d_spec_n = _stack(tuple(c[..., 0] for c in d_n), spec)
         d_spec_shape = _stack(tuple(None if c is None else c[..., 0] for c in d_shape), spec)
     else:
-        pixels = _pixels(svbrdf, view)
+        pixels = lobe_frame(svbrdf, view)
         frame_ds, frame_dt = frames
-        orders = {"fast": order[0] or FAST_ORDER, "reference": order[1] or REFERENCE_ORDER}
-        if kernel.kind == "tabulated":
-            orders["reference"] = max(orders["reference"], 2 * max(kernel.table.shape))
         if chosen == "reference":
-            rule, fallback = _rules(kernel, centre, pixels, chosen, orders)
-            spec, d_spec_n, d_spec_shape = _fused(_integrate_gradients, compiled, n.shape[0])(
+            rule, fallback = node_rules(kernel, centre, pixels, chosen, orders)
+            spec, d_spec_n, d_spec_shape = fused(_integrate_gradients, compiled, n.shape[0])(
                 kernel, centre[None], pixels, frame_ds, frame_dt, *(r.detach() for r in rule)
             )
         else:  # the fast rule's nodes, then their integration: one pass each when fused (in one,
-            # the compiler computes the pairs' moments again for each node and output: ~20x slower)
-            lx, ly, area, reaches = _fused(_fast_rule, compiled, n.shape[0])(
-                kernel, centre[None], pixels, orders["fast"]
+            # the compiler would compute the pairs' moments again for each node and output)
+            lx, ly, area, reaches = fused(fast_rule, compiled, n.shape[0])(
+                kernel, centre[None], pixels, orders[0]
             )
-            spec, d_spec_n, d_spec_shape = _fused(_integrate_gradients, compiled, n.shape[0])(
+            spec, d_spec_n, d_spec_shape = fused(_integrate_gradients, compiled, n.shape[0])(
                 kernel,
                 centre[None],
                 pixels,
@@ -357,14 +348,14 @@ def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, order
                 area.detach(),
             )
             auto = chosen == "auto"
-            fallback = _fallback(kernel, centre, pixels, reaches, orders["reference"], compiled) if auto else None
+            fallback = fallback_rule(kernel, centre, pixels, reaches, orders[1], compiled) if auto else None
         if fallback is not None:
             # Broadcast unlike the main call: compiled apart (a second compilation, once).
             p, k, rule = fallback
-            value, d_value_n, d_value_shape = _fused(_integrate_fallback, compiled, p.shape[0])(
+            value, d_value_n, d_value_shape = fused(_integrate_fallback, compiled, p.shape[0])(
                 kernel,
                 centre[k][:, None],
-                _pick(pixels, p),
+                pick(pixels, p),
                 None if isotropic else frame_ds[p],
                 None if isotropic else frame_dt[p],
                 *(r.detach() for r in rule),
@@ -376,8 +367,8 @@ def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, order
     return spec, d_spec_n, d_spec_shape
 
 
-def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s, *second) -> tuple[Tensor, Tensor]:
-    """Values ``(N, K, C)`` and the Jacobian ``(N, K, C, 2 + C + C_s + 3)`` from :func:`_parts`
+def assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s, *second) -> tuple[Tensor, Tensor]:
+    """Values ``(N, K, C)`` and the Jacobian ``(N, K, C, 2 + C + C_s + 3)`` from :func:`jacobian_parts`
     (``+ C_s2 + 2`` columns with a second lobe: ``second = (spec2, d_spec2_n, d_spec2_shape, k_s2)``)."""
     count = k_d.shape[-1]
     like = k_d
@@ -410,224 +401,6 @@ def _assemble(diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, 
     d_angles = d_angles * scale[..., None]  # (N, K, C, 2)
     return value, torch.cat([d_angles, d_kd, *(c for lobe in columns for c in lobe)], -1)
 
-
-def _normal(parts: tuple, observed: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``0.5 |r|^2 (N,)``, ``J^T J`` and ``J^T r`` of ``r = weight (value - observed)`` in all of
-    :func:`_assemble`'s columns, ``J = weight dvalue/dparams`` (one pass over the frames when
-    fused; every model shares the compiled code, and picks its columns after)."""
-    value, jac = _assemble(*parts)
-    r = (value - observed) * weight
-    js = jac * weight[..., None]
-    return 0.5 * (r * r).sum((1, 2)), torch.einsum("nkcp,nkcq->npq", js, js), torch.einsum("nkcp,nkc->np", js, r)
-
-
-def _normal_gram(parts: tuple, observed: Tensor, weight: Tensor, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`_normal` for ``torch.compile``, already in the model's parameters: the same sums from the
-    nine quantities per pixel and frame that every column is made of (the diffuse and specular
-    integrals, their derivatives in the two angles and the lobe's shape), without the Jacobian.
-
-    ``J^T J = sum_c S_c^T A_c G_c A_c^T S_c`` with ``G_c = sum_k w_c^2 f f^T`` the Gram matrix of
-    the quantities ``f`` (9 x 9 per channel), ``A_c`` the seven rows of channel ``c``'s Jacobian
-    (angles, its ``k_d``, its ``k_s``, shape) as combinations of them (the coefficients), and
-    ``S_c = rows[0, c]`` those rows as the model's parameters (:func:`_channel_rows`). Each sum over
-    the frames is one fused reduction: 4x faster than :func:`_normal` compiled (its Jacobian and
-    its contraction by batched products of small matrices), within float rounding of it.
-    """
-    diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s = parts
-    value = (k_d[:, None, :] / math.pi * diffuse[..., None] + k_s[:, None, :] * spec[..., None]) * scale
-    r = (value - observed) * weight
-    ws = weight * scale  # (N, K, C): each sample's weight in the columns
-    # Sums over the last axis, not products of small matrices (which the compiler leaves as bmm calls).
-    diffuse_angles = (d_diffuse[..., None] * dn[:, None]).sum(-2)  # (N, K, 2)
-    spec_angles = (d_spec_n[..., None] * dn[:, None]).sum(-2)
-    f = torch.cat([diffuse[..., None], spec[..., None], diffuse_angles, spec_angles, d_spec_shape], -1)  # (N, K, 9)
-    gram = ((ws * ws)[..., None, None] * (f[:, :, None, :, None] * f[:, :, None, None, :])).sum(1)  # (N, C, 9, 9)
-    moment = ((ws * r)[..., None] * f[:, :, None, :]).sum(1)  # (N, C, 9)
-    kd, ks = k_d / math.pi, k_s.expand_as(k_d)  # (N, C)
-    z, one = torch.zeros_like(kd), torch.ones_like(kd)
-    coefficients = torch.stack(  # (N, C, 7, 9); stacked, 1.3x faster than columns built directly
-        [
-            torch.stack([z, z, kd, z, ks, z, z, z, z], -1),  # the angles: k_d / pi dD + k_s dS
-            torch.stack([z, z, z, kd, z, ks, z, z, z], -1),
-            torch.stack([one / math.pi, z, z, z, z, z, z, z, z], -1),  # k_d: D / pi
-            torch.stack([z, one, z, z, z, z, z, z, z], -1),  # k_s: S
-            torch.stack([z, z, z, z, z, z, ks, z, z], -1),  # the shape: k_s dS
-            torch.stack([z, z, z, z, z, z, z, ks, z], -1),
-            torch.stack([z, z, z, z, z, z, z, z, ks], -1),
-        ],
-        -2,
-    )
-    columns = (rows[:, :, :, :, None] * coefficients[:, :, :, None, :]).sum(2)  # (N, C, P, 9)
-    half = (columns[..., :, None, :] * gram[:, :, None, :, :]).sum(-1)  # (N, C, P, 9)
-    hess = (half[:, :, :, None, :] * columns[:, :, None, :, :]).sum((1, -1))
-    grad = (columns * moment[:, :, None, :]).sum((1, -1))
-    return 0.5 * (r * r).sum((1, 2)), hess, grad
-
-
-def _channel_rows(select: Tensor, channels: int, grey: bool) -> Tensor:
-    """``(C, 7, P)``: the seven columns of channel ``c``'s Jacobian that are not 0 (the two angles,
-    its ``k_d``, its ``k_s`` or the grey one, the lobe's shape) as the model's parameters ``select``."""
-    last, ks = select.shape[0], 2 + channels
-    picks = [[0, 1, 2 + c, ks if grey else ks + c, last - 3, last - 2, last - 1] for c in range(channels)]
-    return select[torch.tensor(picks, device=select.device)]
-
-
-def normal_equations(
-    svbrdf: SVBRDF,
-    lights: Lights,
-    view: Tensor,
-    observed: Tensor,
-    weight: Tensor,
-    select: Tensor,
-    *,
-    path: str = "auto",
-    order: int | None = None,
-    reference_order: int | None = None,
-    diffuse_only: bool = False,
-    clamp: str = "exact",
-    compile: bool = False,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The least-squares normal equations of ``r = weight (render - observed)`` in the parameters
-    ``params @ select``, without the Jacobian ``(N, K, C, P)`` in memory: what Levenberg-Marquardt
-    needs (:class:`torchspec.lm.NormalEquations`).
-
-    Args:
-        svbrdf: ``N`` pixels (flat), ``C`` channels.
-        observed: ``(N, K, C)``; weight: ``(N, K, C)`` (0 drops a sample).
-        select: ``(2 + C + C_s + 3, P)``: the model's parameters as combinations of this
-            module's columns (:meth:`torchspec.models.Model.selection`).
-        path, order, reference_order, diffuse_only, clamp, compile: as for :func:`jacobian`;
-            with ``compile`` the assembly and the sums over frames are fused too.
-
-    Returns:
-        ``(cost (N,), J^T J (N, P, P), J^T r (N, P))``, ``cost = 0.5 |r|^2``.
-    """
-    options = dict(path=path, orders=(order, reference_order), diffuse_only=diffuse_only, clamp=clamp, compile=compile)
-    return _contract(_normal, svbrdf, lights, view, observed, (weight,), select, gram=_normal_gram, **options)
-
-
-def _contract(
-    function, svbrdf, lights, view, observed, weights, select, *, path, orders, diffuse_only, clamp, compile, gram=None
-):
-    """``function(parts, observed, *weights) -> (cost, matrix, matrix or vector)`` over chunks of
-    pixels, the matrices and vectors taken to the model's columns ``select``; compiled, ``gram``
-    instead when given (the same, in the model's columns from :func:`_channel_rows`)."""
-    if clamp not in CLAMPS:
-        raise ValueError(f"clamp must be one of {sorted(CLAMPS)}; got {clamp!r}.")
-    n, k = svbrdf.diffuse.shape[0], lights.directions.shape[0]
-    expected = (n, k, svbrdf.diffuse.shape[-1])
-    names = ("weight",) if len(weights) == 1 else ("noise_weight", "fit_weight")
-    for name, value in zip(("observed", *names), (observed, *weights), strict=True):
-        if tuple(value.shape) != expected:
-            raise ValueError(f"{name} must have shape {expected}; got {tuple(value.shape)}.")
-    chunk = _chunk(k, orders[0])
-    # One memory layout for the compiled code whatever the caller's (a weight broadcast over channels, ...).
-    observed, weights = observed.contiguous(), [w.contiguous() for w in weights]
-    count = svbrdf.diffuse.shape[-1]
-    grey = svbrdf.specular.shape[-1] == 1 and count != 1
-    channel_rows = None
-    if compile and gram is not None and svbrdf.specular2 is None:  # gram: one lobe
-        # (1, C, 7, P): a first axis of 1 is never taken for the batch (torchspec.render._compiled),
-        # and the models' parameter counts P share one compiled graph.
-        channel_rows = _channel_rows(select, count, grey)[None]
-        torch._dynamo.maybe_mark_dynamic(channel_rows, 3)
-    out = []
-    for start in range(0, max(n, 1), chunk):
-        part = svbrdf[start : start + chunk]
-        parts = _parts(part, lights, view, path, diffuse_only, orders, clamp, compile)
-        rows = slice(start, start + chunk)
-        if channel_rows is not None and part.diffuse.shape[0] > 1:
-            out.append(
-                _fused(gram, True, part.diffuse.shape[0])(
-                    parts, observed[rows], *[w[rows] for w in weights], channel_rows
-                )
-            )
-            continue
-        fused = _fused(function, compile, part.diffuse.shape[0])
-        cost, first, second, *rest = fused(parts, observed[rows], *[w[rows] for w in weights])
-        second = second @ select if second.dim() == 2 else select.T @ second @ select
-        out.append((cost, select.T @ first @ select, second, *rest))
-    return tuple(torch.cat(column) for column in zip(*out, strict=True))
-
-
-def _sandwich(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``0.5 chi^2 (N,)`` with ``noise`` (one over each sample's noise), then ``J^T W^2 J`` and
-    ``J^T W^2 S W^2 J`` with ``W`` the fit's weights and ``S`` the samples' variances (in one pass)."""
-    return _sandwich_sums(*_assemble(*parts), observed, noise, fit)[:3]
-
-
-def _sandwich_sums(value: Tensor, jac: Tensor, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple:
-    """:func:`_sandwich`'s sums from the values and the Jacobian, and the noise-weighted residual."""
-    r = (value - observed) * noise
-    sigma = torch.where(noise > 0, 1.0 / torch.where(noise > 0, noise, torch.ones_like(noise)), torch.zeros_like(noise))
-    bread = jac * fit[..., None]
-    meat = bread * (fit * sigma)[..., None]
-    return (
-        0.5 * (r * r).sum((1, 2)),
-        torch.einsum("nkcp,nkcq->npq", bread, bread),
-        torch.einsum("nkcp,nkcq->npq", meat, meat),
-        r,
-    )
-
-
-def _sandwich_samples(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple:
-    """:func:`_sandwich`, and per sample ``(N, K)``: the squared residual in units of the noise summed
-    over channels, and the mean over the valid channels of the samples less the diffuse part; then
-    the lobe's signal-to-noise ratio ``(N,)``, the norm of its part of the values in noise units."""
-    value, jac = _assemble(*parts)
-    cost, bread, meat, r = _sandwich_sums(value, jac, observed, noise, fit)
-    diffuse, _, spec, _, _, _, scale, k_d, k_s, *second = parts
-    valid = (noise > 0).to(observed.dtype)
-    lambertian = k_d[:, None, :] / math.pi * diffuse[..., None] * scale
-    excess = ((observed - lambertian) * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
-    lobe = k_s[:, None, :] * spec[..., None]
-    if second:  # both lobes
-        lobe = lobe + second[3][:, None, :] * second[0][..., None]
-    lobe = lobe * scale * noise  # the lobes' part, in units of the noise
-    return cost, bread, meat, (r * r).sum(-1), excess, (lobe * lobe).sum((1, 2)).sqrt()
-
-
-def sandwich_terms(
-    svbrdf: SVBRDF,
-    lights: Lights,
-    view: Tensor,
-    observed: Tensor,
-    noise_weight: Tensor,
-    fit_weight: Tensor,
-    select: Tensor,
-    *,
-    path: str = "auto",
-    order: int | None = None,
-    reference_order: int | None = None,
-    diffuse_only: bool = False,
-    clamp: str = "exact",
-    compile: bool = False,
-    samples: bool = False,
-) -> tuple[Tensor, ...]:
-    """What the covariance of a weighted least-squares estimate needs, in one pass over the frames:
-    the estimate minimised ``|W (render - observed)|^2`` (``W = fit_weight``) while each sample has
-    the variance ``1 / noise_weight^2``; its covariance is ``A^-1 B A^-1`` (the sandwich; the
-    inverse Fisher information when ``W`` is ``noise_weight``).
-
-    Args:
-        svbrdf, lights, view, observed, select, path, order, reference_order, diffuse_only, clamp,
-            compile: as for :func:`normal_equations`.
-        noise_weight: ``(N, K, C)`` one over each sample's noise (0 drops a sample).
-        fit_weight: ``(N, K, C)`` the weights the estimate was fitted with.
-        samples: also return, per sample ``(N, K)``, the squared residual in units of the noise
-            (summed over channels) and the samples less the model's diffuse part (mean over the
-            valid channels), and per pixel the lobe's signal-to-noise ratio (the norm of the lobe's
-            part of the values in units of the noise; both lobes' with a second): what
-            :mod:`torchspec.flags` needs, from the same pass.
-
-    Returns:
-        ``(0.5 chi^2 (N,), A = J^T W^2 J (N, P, P), B = J^T W^2 S W^2 J (N, P, P))`` with ``chi^2``
-        the residual in units of the noise and ``S`` the samples' variances; with ``samples``,
-        then ``z2 (N, K)``, ``excess (N, K)`` and ``lobe_snr (N,)``.
-    """
-    options = dict(path=path, orders=(order, reference_order), diffuse_only=diffuse_only, clamp=clamp, compile=compile)
-    function = _sandwich_samples if samples else _sandwich
-    return _contract(function, svbrdf, lights, view, observed, (noise_weight, fit_weight), select, **options)
 
 
 def _integrate_fallback(*args):

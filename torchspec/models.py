@@ -32,9 +32,12 @@ from torch import Tensor
 
 from .brdf import SVBRDF
 from .geometry import angles_from_normal, normal_from_angles
-from .jacobian import jacobian, normal_equations
+from .errors import TorchspecError
+from .jacobian import jacobian
+from .least_squares import normal_equations
 from .lights import Lights
 from .lm import Bounds, NormalEquations
+from .quadrature import Quadrature
 
 __all__ = ["Model", "MODELS", "get_model", "ALPHA_BOUNDS"]
 
@@ -159,11 +162,7 @@ class Model:
         view: Tensor,
         channels: tuple[str, ...],
         *,
-        path: str = "auto",
-        order: int | None = None,
-        reference_order: int | None = None,
-        clamp: str = "exact",
-        compile: bool = False,
+        quadrature: Quadrature = Quadrature(),
         normal: bool = False,
     ) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor] | NormalEquations]:
         """The solver's residual function for these pixels: ``(params (M, P), index (M,)) ->
@@ -174,15 +173,13 @@ class Model:
             observed: ``(N, K, C)`` recorded values.
             weight: ``(N, K)`` or ``(N, K, C)``: 0 drops a sample; a per-pixel scale evens the
                 costs of bright and dark pixels.
-            path, order, reference_order, clamp, compile: the model's quadrature
-                (:func:`torchspec.jacobian.jacobian`).
+            quadrature: the model's quadrature (:class:`torchspec.quadrature.Quadrature`).
             normal: return the :class:`~torchspec.lm.NormalEquations` instead
-                (:func:`torchspec.jacobian.normal_equations`): the same solver steps without the
-                Jacobian in memory, and with ``compile`` one fused pass over the frames.
+                (:func:`torchspec.least_squares.normal_equations`): the same solver steps without
+                the Jacobian in memory, and with ``quadrature.compile`` one fused pass over the
+                frames.
         """
         w = weight if weight.dim() == 3 else weight[..., None]
-
-        quadrature = {"path": path, "order": order, "reference_order": reference_order, "clamp": clamp}
         if normal:
             select = self.selection(len(channels), observed)
 
@@ -196,9 +193,8 @@ class Model:
                     observed[index],
                     wi,
                     select,
+                    quadrature=quadrature,
                     diffuse_only=not self.lobe,
-                    compile=compile,
-                    **quadrature,
                 )
                 return NormalEquations(*out)
 
@@ -206,7 +202,7 @@ class Model:
 
         def fn(params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
             svbrdf = self.unpack(params, channels)
-            value, full = jacobian(svbrdf, lights, view, diffuse_only=not self.lobe, compile=compile, **quadrature)
+            value, full = jacobian(svbrdf, lights, view, quadrature=quadrature, diffuse_only=not self.lobe)
             wi = w[index]
             r = ((value - observed[index]) * wi).flatten(1)
             jac = self.select(full, len(channels)) * wi[..., None]
@@ -228,7 +224,12 @@ MODELS = {
 
 
 def get_model(name: str) -> Model:
-    """The model called ``name``; a clear error lists the known ones."""
+    """The model called ``name``; a clear error lists the known ones.
+
+    Example:
+        >>> get_model("ward-iso").size(3)  # 2 angles, 3 k_d, a grey k_s, one alpha
+        7
+    """
     if name not in MODELS:
-        raise ValueError(f"model must be one of {sorted(MODELS)}; got {name!r}.")
+        raise TorchspecError(f"model must be one of {sorted(MODELS)}; got {name!r}.")
     return MODELS[name]

@@ -1,7 +1,7 @@
 """Relighting: predict every frame of a capture from SVBRDF maps (``torchspec render``).
 
 Reads the maps (a fit, or a capture's ``truth/``) and the capture's light list, renders each frame
-with :func:`torchspec.render.render` tile by tile (memory is bounded by a tile of rows), and
+with :func:`torchspec.rendering.render` tile by tile (memory is bounded by a tile of rows), and
 writes the predicted frames under the manifest's file names with a copy of the manifest, so the
 output is itself a capture. Against the capture's own frames it reports the PSNR (peak: the
 capture's maximum) and the relative RMS error.
@@ -15,7 +15,8 @@ from pathlib import Path
 import torch
 
 from .io import CaptureError, read_capture, read_svbrdf, write_capture
-from .render import render
+from .quadrature import Quadrature
+from .rendering import render
 
 __all__ = ["render_capture", "psnr"]
 
@@ -62,7 +63,7 @@ def render_capture(
     flat = svbrdf.flatten().to(dtype)
     view = torch.tensor(capture.view, dtype=dtype)
     parts = [
-        render(flat[i : i + TILE_PIXELS], lights, view, path=path, lobe=lobe)
+        render(flat[i : i + TILE_PIXELS], lights, view, quadrature=Quadrature(path=path), lobe=lobe)
         for i in range(0, flat.shape[0], TILE_PIXELS)
     ]
     values = torch.cat(parts).reshape(capture.height, capture.width, len(capture.frames), len(capture.channels))

@@ -26,7 +26,7 @@ from .brdf import SVBRDF
 from .geometry import angle, from_plane
 from .lights import Kernel, Lights
 from .models import MODELS
-from .render import render
+from .rendering import render
 
 __all__ = ["REGIONS", "score", "heldout_psnr", "write_previews", "relit_strip", "write_report", "display"]
 

@@ -1,5 +1,5 @@
 """Simulated captures: a procedural SVBRDF (:mod:`torchspec.synth`) rendered through
-:func:`torchspec.render.render` under a light layout, recorded by the sensor model, and written
+:func:`torchspec.rendering.render` under a light layout, recorded by the sensor model, and written
 in the capture format with its ``truth/``.
 
 A config (YAML, loaded strictly: an unknown key is an error) names the scene, the light, the
@@ -22,7 +22,7 @@ from .config import ConfigError
 from .geometry import from_plane
 from .io import Capture, Frame, LightSpec, Maps, write_capture
 from .lights import Kernel, Lights
-from .render import render
+from .rendering import render
 from .synth import MirrorConfig, PaintingConfig, SensorConfig, mirror, painting, sense
 
 __all__ = [

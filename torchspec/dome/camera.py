@@ -5,7 +5,7 @@ which returns the frame as a linear-radiance image ``(C, H, W)`` (what a capture
 ``frames/*.exr`` hold, exposure included). Two are provided:
 
 - :class:`SimulatedCamera` renders a known SVBRDF (maps, or a procedural scene of
-  :mod:`torchspec.synth`) under the light at ``direction`` with :func:`torchspec.render.render`
+  :mod:`torchspec.synth`) under the light at ``direction`` with :func:`torchspec.rendering.render`
   and records it with :func:`torchspec.synth.sense` - the simulator's renderer and sensor, one
   frame at a time. Its noise is seeded by the frame index, so a frame taken again (an
   acquisition resumed) is the same frame, bit for bit.
@@ -36,7 +36,8 @@ from ..config import ConfigError
 from ..errors import TorchspecError
 from ..io import ExrError, LightSpec, read_exr
 from ..lights import Kernel, Lights
-from ..render import render
+from ..quadrature import Quadrature
+from ..rendering import render
 from ..simulate import LightConfig, SceneConfig
 from ..synth import SensorConfig, mirror, painting, sense
 
@@ -106,7 +107,7 @@ class SimulatedCameraConfig:
 class SimulatedCamera:
     """A camera looking straight down at a known SVBRDF lit by the dome's light.
 
-    Each frame is :func:`torchspec.render.render` of the scene under one light centred on the
+    Each frame is :func:`torchspec.rendering.render` of the scene under one light centred on the
     requested direction (the kernel, irradiance and view given here), recorded by
     :func:`torchspec.synth.sense` with a generator seeded by ``(sensor.seed, index)``: frames
     are deterministic per index, and independent of the order they are taken in.
@@ -121,7 +122,7 @@ class SimulatedCamera:
         sensor: exposure, shot and read noise, saturation and the noise seed.
         channels: the ``C`` channel names (by default the maps' names).
         view: the direction towards the camera.
-        path: the quadrature of :func:`torchspec.render.render`.
+        path: the quadrature of :func:`torchspec.rendering.render`.
 
     Example:
         >>> camera = SimulatedCamera(SceneConfig(), {"kernel": "gaussian", "domain": "projected", "sigma": 0.08})
@@ -190,7 +191,7 @@ class SimulatedCamera:
         centre = torch.as_tensor(direction).to(dtype=like.dtype, device=like.device).reshape(1, 3)
         ones = torch.ones(1, dtype=like.dtype, device=like.device)
         lights = Lights(centre, self.kernel, self.irradiance, ones)
-        values = render(self.svbrdf, lights, self.view, path=self.path)  # (H, W, 1, C)
+        values = render(self.svbrdf, lights, self.view, quadrature=Quadrature(path=self.path))  # (H, W, 1, C)
         noise = _generator(self.sensor.seed, index)
         recorded, _ = sense(values[:, :, 0].permute(2, 0, 1), self.sensor, generator=noise)
         return recorded

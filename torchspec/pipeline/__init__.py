@@ -29,7 +29,7 @@ from .cluster import ClusterError, connect, fit_on_cluster
 from .in_process import fit
 from .result import Fit, write_fit
 from .selection import ModelFit
-from .settings import AUTO, COMPILE_PIXELS, INITS, LADDER, MODEL_CODES, QUADRATURES, FitConfig, select_frames
+from .settings import AUTO, COMPILE_PIXELS, INITS, LADDER, MODEL_CODES, FitConfig, select_frames
 from .smoothing import smooth_choice
 from .start import StartingPoint, starting_point
 from .tile import TileResult
@@ -40,7 +40,6 @@ __all__ = [
     "INITS",
     "LADDER",
     "MODEL_CODES",
-    "QUADRATURES",
     "Checks",
     "ClusterError",
     "Fit",

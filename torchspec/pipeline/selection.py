@@ -19,7 +19,7 @@ from ..brdf import SVBRDF
 from ..lm import DIVERGED, LMResult
 from ..models import get_model
 from .samples import TileSamples
-from .settings import MODEL_CODES, QUADRATURES, FitConfig
+from .settings import MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
 from .start import StartingPoint
 from .uncertainty import PeakSamples, sensor_noise, uncertainty
@@ -66,9 +66,7 @@ def assess(solved: Solved, data: TileSamples, sensor: Tensor, config: FitConfig)
             data.weight[index, :, None].expand(-1, -1, c),
             data.lights,
             data.view,
-            path=config.path,
-            quadrature=QUADRATURES[config.quadrature],
-            compile=config.compile,
+            quadrature=config.rule,
         )
         chi2, std, peak = found.chi2, found.std, found.peak
     else:

@@ -1,17 +1,18 @@
 """The settings of a fit (:class:`FitConfig`, ``configs/fit.yaml``) and the choices they name.
 
-:data:`LADDER` is the order in which ``auto`` tries the lobed models, :data:`QUADRATURES` the
+:data:`LADDER` is the order in which ``auto`` tries the lobed models, :attr:`FitConfig.rule` the
 rules of the model's integrations, :func:`select_frames` the frames a SPEC picks.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..config import ConfigError
 from ..lm import LMConfig
 from ..models import MODELS, get_model
+from ..quadrature import QUADRATURES, Quadrature
 
 __all__ = [
     "AUTO",
@@ -19,7 +20,6 @@ __all__ = [
     "INITS",
     "LADDER",
     "MODEL_CODES",
-    "QUADRATURES",
     "FitConfig",
     "select_frames",
 ]
@@ -35,13 +35,6 @@ MODEL_CODES = tuple(MODELS)
 COMPILE_PIXELS = 1 << 17
 """``FitConfig.compile=None`` compiles the model for fits of at least this many pixels (the
 one-off compilation pays for itself on large fits only)."""
-QUADRATURES = {
-    # name: the lobe's Gauss-Hermite nodes per axis (fast rule) and radii (reference rule), and the
-    # rule of the diffuse clamp (torchspec.jacobian.jacobian's order, reference_order and clamp)
-    "fit": {"order": 3, "reference_order": 8, "clamp": "fast"},
-    "render": {"order": None, "reference_order": None, "clamp": "exact"},
-}
-"""The quadrature rules of ``FitConfig.quadrature``: keyword arguments of the model's evaluation."""
 
 
 @dataclass(frozen=True)
@@ -95,10 +88,10 @@ class FitConfig:
         shadow: samples below this fraction of the pixel's median are shadows.
         trim, cut: of the robust photometric stereo.
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
-        path: the quadrature path of the model (:func:`torchspec.render.render`).
+        path: the quadrature path of the model (:func:`torchspec.rendering.render`).
         quadrature: ``fit`` (the default): 3 x 3 nodes per frame for the lobe (8 radii where
             the reference rule takes over) and the clamp's fast rule
-            (:data:`torchspec.render.CLAMPS`): within 1e-3 of a pixel's largest value;
+            (:data:`torchspec.quadrature.CLAMPS`): within 1e-3 of a pixel's largest value;
             ``render``: the renderer's own rules (1e-6).
         compile: fuse the model's integrations with ``torch.compile`` (faster solver steps after
             a one-off compilation). A failed compilation warns and fits without. ``None``: when
@@ -187,6 +180,12 @@ class FitConfig:
     def noise_known(self) -> bool:
         """Whether the fit estimates the sensor's noise: the criterion, deviations and peak checks need it."""
         return self.uncertainty or self.model == AUTO
+
+    @property
+    def rule(self) -> Quadrature:
+        """The model's quadrature in a fit: the preset ``quadrature`` names
+        (:data:`torchspec.quadrature.QUADRATURES`) on ``path``, compiled when ``compile``."""
+        return replace(QUADRATURES[self.quadrature], path=self.path, compile=bool(self.compile))
 
 
 def select_frames(spec: str | None, count: int) -> list[int]:

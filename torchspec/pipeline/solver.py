@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from torch import Tensor
 
@@ -14,7 +14,7 @@ from ..brdf import SVBRDF
 from ..lm import LMResult, bounded, solve
 from ..models import get_model
 from .samples import TileSamples
-from .settings import QUADRATURES, FitConfig
+from .settings import FitConfig
 
 __all__ = ["Solved", "solve_pixels", "compiled_or_eager"]
 
@@ -52,19 +52,17 @@ class Solved:
 
 def solve_pixels(name: str, index: Tensor, start: SVBRDF, data: TileSamples, config: FitConfig) -> Solved:
     """Fit model ``name`` to pixels ``index (m,)`` of ``data`` from ``start (m,)``, minimising the
-    residual weighted by ``data.weight`` (``config.lm``, ``config.path``, ``config.quadrature``,
-    ``config.compile``)."""
+    residual weighted by ``data.weight`` (``config.lm`` and ``config.rule``)."""
     model = get_model(name)
     channels = data.channels
     bounds = model.bounds(len(channels))
-    quadrature = QUADRATURES[config.quadrature]
+    rule = config.rule
     params = bounds.to_free(model.pack(start))
     observed, weight = data.observed[index], data.weight[index]
 
     def run(compile: bool):
         fn = model.residuals(
-            observed, weight, data.lights, data.view, channels, path=config.path, compile=compile, normal=True,
-            **quadrature,
+            observed, weight, data.lights, data.view, channels, quadrature=replace(rule, compile=compile), normal=True
         )
         return solve(bounded(fn, bounds), params, config=config.lm)
 

@@ -6,14 +6,15 @@ peak checks take (:func:`uncertainty`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
 from ..geometry import normal_derivative
-from ..jacobian import sandwich_terms
+from ..least_squares import sandwich_terms
+from ..quadrature import Quadrature
 from ..lights import Lights
 from ..lm import DIVERGED
 from ..models import Model, get_model
@@ -95,9 +96,7 @@ def uncertainty(
     lights: Lights,
     view: Tensor,
     *,
-    path: str,
-    quadrature: dict,
-    compile: bool,
+    quadrature: Quadrature,
 ) -> Uncertainty:
     """The fit's ``chi^2 = sum ((render - observed) weight)^2`` per pixel, ``weight (m, K, C)``
     being one over each sample's noise, the standard deviations of its parameters there and its
@@ -105,13 +104,13 @@ def uncertainty(
 
     The estimate minimised ``|fit_weight (render - observed)|^2``, not the noise-weighted residual
     (it is fitted before the noise is known): its covariance is the sandwich ``A^-1 B A^-1``
-    (:func:`torchspec.jacobian.sandwich_terms`), larger than the inverse Fisher information
+    (:func:`torchspec.least_squares.sandwich_terms`), larger than the inverse Fisher information
     ``J^T S^-1 J`` (the Cramer-Rao bound) wherever the samples' noise differs within a pixel (shot
     noise at a specular peak).
 
     Args:
         model: the fitted model; svbrdf: its solution ``(m,)``; observed: ``(m, K, C)``.
-        path, quadrature, compile: of the model's evaluation (``FitConfig``'s).
+        quadrature: of the model's evaluation (:attr:`FitConfig.rule`), compiled when it says so.
     """
     n, c = svbrdf.diffuse.shape
     select = model.selection(c, weight)
@@ -128,14 +127,12 @@ def uncertainty(
             weight,
             fit_weight,
             select,
-            path=path,
+            quadrature=replace(quadrature, compile=fused),
             diffuse_only=not model.lobe,
-            compile=fused,
             samples=True,
-            **quadrature,
         )
 
-    cost, bread, meat, z2, excess, lobe_snr = compiled_or_eager(run, compile)
+    cost, bread, meat, z2, excess, lobe_snr = compiled_or_eager(run, quadrature.compile)
     return Uncertainty(2.0 * cost, _deviations(model, svbrdf, bread, meat, weight), PeakSamples(z2, excess, lobe_snr))
 
 
