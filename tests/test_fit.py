@@ -185,14 +185,14 @@ def test_the_fits_quadrature_changes_little(painting):
         assert err < 2e-3, f"{name}: max relative difference {err:.3g}"
 
 
-def _fitmodule():
+def _solver_module():
     import importlib
 
     return importlib.import_module("torchspec.pipeline.solver")
 
 
 def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
-    module = _fitmodule()
+    module = _solver_module()
 
     def broken(function):
         raise RuntimeError("no C++ compiler here")
