@@ -101,8 +101,10 @@ def private_imports(folders: tuple[str, ...] = SCANNED) -> list[str]:
                         owner = ".".join(parts[:at])  # the package or module that holds the private part
                         if inside and _is_module(parts[: at + 1]):
                             continue  # an explicit internal module
-                        owner_package = owner if _is_module(parts[:at]) and (ROOT.joinpath(*parts[:at]) / "__init__.py").is_file() else owner.rpartition(".")[0]
-                        if inside and owner_package != "torchspec" and (package == owner_package or package.startswith(owner_package + ".")):
+                        is_package = (ROOT.joinpath(*parts[:at]) / "__init__.py").is_file()
+                        owner_package = owner if is_package else owner.rpartition(".")[0]
+                        own = package == owner_package or package.startswith(owner_package + ".")
+                        if inside and owner_package != "torchspec" and own:
                             continue  # a private name of the importer's own subpackage
                         found.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {'.'.join(parts)}")
                         break

@@ -35,10 +35,10 @@ from _common import parse_args, scipy_fit
 from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.pipeline import FitConfig, starting_point
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.models import get_model
+from torchspec.pipeline import FitConfig, starting_point
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import PaintingConfig, SensorConfig
 

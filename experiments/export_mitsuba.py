@@ -10,7 +10,8 @@ default normal-map shadowing function kept, as the captures were rendered). For 
 frames predicted by ``torchspec render`` from the same maps with the format's Ward lobe (the data
 README's ceiling of a perfect Ward fit) and the Beckmann lobe.
 
-    python experiments/export_mitsuba.py [--config experiments/configs/export_mitsuba.yaml] [--output experiments/results]
+    python experiments/export_mitsuba.py [--config experiments/configs/export_mitsuba.yaml]
+        [--output experiments/results]
 """
 
 from __future__ import annotations

@@ -133,8 +133,12 @@ def _kernel(light: LightConfig) -> Kernel:
 
 def _dome_available() -> bool:
     try:
-        from torchspec.dome import DomeClient, DomeEmulator, SimulatedCamera  # noqa: F401
-        from torchspec.dome.acquire import acquire  # noqa: F401
+        from torchspec.dome import (  # noqa: F401
+            DomeClient,
+            DomeEmulator,
+            SimulatedCamera,
+            acquire,  # noqa: F401
+        )
     except ImportError:
         return False
     return True
@@ -169,8 +173,7 @@ def _acquire(settings: Settings, tilt_deg: float, light: LightConfig) -> tuple[t
     """Noise-free frames ``(P, K)`` acquired on the emulated dome: the emulator on a pseudo-terminal,
     the serial client, a simulated camera rendering the mirror, ``torchspec.dome.acquire`` writing
     the capture (an extended light recorded as ``unknown``, as before calibration), read back."""
-    from torchspec.dome import DomeClient, DomeEmulator, LightSettings, SimulatedCamera
-    from torchspec.dome.acquire import acquire
+    from torchspec.dome import DomeClient, DomeEmulator, LightSettings, SimulatedCamera, acquire
     from torchspec.io import LightSpec
 
     top = settings.theta_max_deg

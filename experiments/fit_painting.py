@@ -32,9 +32,9 @@ from _common import ROOT, parse_args  # noqa: E402
 from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.brdf import SVBRDF  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.pipeline import FitConfig, fit, select_frames  # noqa: E402
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
+from torchspec.pipeline import FitConfig, fit, select_frames  # noqa: E402
 from torchspec.rendering import render  # noqa: E402
 from torchspec.report import score  # noqa: E402
 

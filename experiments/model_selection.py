@@ -17,7 +17,8 @@ simulated one.
 ``ward-dual`` (its ``ladder``), to show what trying two lobes costs where no pixel has them, and
 ``auto`` with its choice smoothed (``smooth``).
 
-    python experiments/model_selection.py [--config experiments/configs/model_selection.yaml] [--output experiments/results]
+    python experiments/model_selection.py [--config experiments/configs/model_selection.yaml]
+        [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ from _common import ROOT, parse_args
 
 from torchspec.atomic import write_json
 from torchspec.config import from_mapping, load_config
-from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.report import REGIONS, score
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.synth import PaintingConfig, SensorConfig

@@ -13,7 +13,8 @@ at once, the fast and auto paths against the reference, the error relative to ea
 brightest frame; then the pairs where auto and reference disagree most, and some random lit pairs,
 are integrated by the brute force to check the reference itself.
 
-    python experiments/render_accuracy.py [--config experiments/configs/render_accuracy.yaml] [--output experiments/results]
+    python experiments/render_accuracy.py [--config experiments/configs/render_accuracy.yaml]
+        [--output experiments/results]
 """
 
 from __future__ import annotations

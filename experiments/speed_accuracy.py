@@ -17,7 +17,8 @@ Error: the median angular error of the normal and the median relative error of `
 truly lobed pixels (the gilding left out: its lobe is anisotropic and coloured), against the truth.
 Time: the fastest of ``repeats`` runs, over the pixels of the image.
 
-    python experiments/speed_accuracy.py [--config experiments/configs/speed_accuracy.yaml] [--output experiments/results]
+    python experiments/speed_accuracy.py [--config experiments/configs/speed_accuracy.yaml]
+        [--output experiments/results]
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ from bench_fit import _capture, _scipy, _scores  # noqa: E402
 
 from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.pipeline import FitConfig, fit, starting_point  # noqa: E402
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
+from torchspec.pipeline import FitConfig, fit, starting_point  # noqa: E402
 
 
 @dataclass(frozen=True)

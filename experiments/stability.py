@@ -59,15 +59,15 @@ import torchspec as ts
 from torchspec.atomic import atomic_path, save_figure, write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.pipeline import MODEL_CODES, FitConfig, fit
 from torchspec.flags import bit, untrusted
-from torchspec.layout import mirror_point
 from torchspec.geometry import angles_from_normal, from_plane, normal_from_angles, normalize
 from torchspec.io import Capture, Frame, LightSpec, write_capture
 from torchspec.jacobian import jacobian
+from torchspec.layout import mirror_point
 from torchspec.lights import Kernel, Lights
 from torchspec.lm import STATUS
 from torchspec.models import get_model
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit
 from torchspec.rendering import render
 
 F64 = torch.float64

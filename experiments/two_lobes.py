@@ -36,13 +36,13 @@ from _common import parse_args, scipy_fit
 from torchspec.atomic import write_json
 from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, starting_point
-from torchspec.pipeline.samples import TileSamples
-from torchspec.pipeline.solver import solve_pixels
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import Lights
 from torchspec.models import get_model
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, starting_point
+from torchspec.pipeline.samples import TileSamples
+from torchspec.pipeline.solver import solve_pixels
 from torchspec.rendering import render
 from torchspec.report import REGIONS
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation

@@ -8,10 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from conftest import SHARED
-from torchspec.io import Capture, Frame, LightSpec
 
+from torchspec.io import Capture, Frame, LightSpec
 
 DATA = SHARED
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"needs the shared development data {DATA}; absent here")

@@ -57,3 +57,30 @@ def test_no_function_of_a_package_hides_a_module_of_that_package():
             if value is not None and not inspect.ismodule(value):
                 hidden.append(f"{package.__name__}.{name} is a {type(value).__name__}, hiding the module")
     assert not hidden, "\n".join(hidden)
+
+
+def test_every_module_the_readme_and_the_architecture_name_imports():
+    """``torchspec.X.Y`` in README.md and docs/architecture.md: each is a module (``import`` works
+    and gives a module, not a function that hides it) or a public name of one."""
+    import re
+
+    text = (ROOT / "README.md").read_text() + (ROOT / "docs" / "architecture.md").read_text()
+    named = sorted(set(re.findall(r"\btorchspec(?:\.[A-Za-z_][A-Za-z0-9_]*)+", text)))
+    assert len(named) > 10, named
+    unresolved = []
+    for dotted in named:
+        parts = dotted.split(".")
+        for cut in range(len(parts), 0, -1):  # the longest importable prefix, then attributes
+            try:
+                value = importlib.import_module(".".join(parts[:cut]))
+            except ImportError:
+                continue
+            try:
+                for attribute in parts[cut:]:
+                    value = getattr(value, attribute)
+            except AttributeError:
+                unresolved.append(dotted)
+            break
+        else:
+            unresolved.append(dotted)
+    assert not unresolved, f"named in the docs but not found: {unresolved}"

@@ -264,9 +264,9 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
 def test_fit_with_a_calibrated_kernel(tmp_path):
     from dataclasses import replace
 
-    from torchspec.pipeline import FitConfig, fit
     from torchspec.geometry import angle
     from torchspec.io import LightSpec, read_capture, read_svbrdf, write_capture
+    from torchspec.pipeline import FitConfig, fit
 
     source = read_capture(DATA / "mirror-dev-1d")
     result = calibrate(source, size=16, mirror_alpha=0.005)

@@ -20,10 +20,10 @@ import cloudpickle  # noqa: E402 (installed with distributed)
 from capture_cases import write_small_painting  # noqa: E402
 
 from torchspec.cli import CHECKPOINT, main  # noqa: E402
-from torchspec.pipeline import ClusterError, FitConfig, FitInterrupted, connect, fit, write_fit  # noqa: E402
-from torchspec.pipeline import fit_on_cluster as fit_on  # noqa: E402
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
 from torchspec.io.exr import ExrError, read_exr, write_exr  # noqa: E402
+from torchspec.pipeline import ClusterError, FitConfig, FitInterrupted, connect, fit, write_fit  # noqa: E402
+from torchspec.pipeline import fit_on_cluster as fit_on  # noqa: E402
 
 TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")

@@ -11,8 +11,8 @@ import numpy as np
 import png
 import pytest
 import torch
-
 from conftest import SHARED
+
 from torchspec.brdf import SVBRDF
 from torchspec.cli import main
 from torchspec.export import ExportError, ExportWarning, export, export_gltf, export_mitsuba, export_png16
@@ -22,9 +22,10 @@ from torchspec.quadrature import Quadrature
 from torchspec.relight import psnr
 from torchspec.rendering import render
 
-
 RELIGHT = SHARED / "painting-dev-relight"
-needs_data = pytest.mark.skipif(not RELIGHT.is_dir(), reason=f"needs the shared development data {RELIGHT}; absent here")
+needs_data = pytest.mark.skipif(
+    not RELIGHT.is_dir(), reason=f"needs the shared development data {RELIGHT}; absent here"
+)
 F64 = torch.float64
 
 
@@ -139,7 +140,8 @@ def test_mitsuba_render_is_diffuse_plus_beckmann(tmp_path, channels, turns):
         direction = direction / direction.norm()
         irradiance = torch.tensor([[1.5, 0.7, 2.0][:channels]], dtype=F64)
         lights = Lights(direction, Kernel("point"), irradiance, torch.ones(1, dtype=F64))
-        expected = render(svbrdf.flatten(), lights, view, quadrature=Quadrature(path="point"), lobe="beckmann").reshape(5, 7, channels)
+        point = Quadrature(path="point")
+        expected = render(svbrdf.flatten(), lights, view, quadrature=point, lobe="beckmann").reshape(5, 7, channels)
         scene = export_mitsuba(svbrdf, tmp_path, light=direction[0].tolist(), irradiance=irradiance[0].tolist())
         got = _render_mitsuba(mi, scene)[:, :, :channels]
         error = ((got - expected).abs().max() / expected.abs().max()).item()

@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.cli import main
-from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
+from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
 
 
 @pytest.fixture(scope="module")

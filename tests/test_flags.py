@@ -9,7 +9,6 @@ import torch
 from capture_cases import write_painting
 
 from torchspec.brdf import SVBRDF
-from torchspec.pipeline import FitConfig, fit, write_fit
 from torchspec.flags import (
     FLAGS,
     UNTRUSTED,
@@ -24,6 +23,7 @@ from torchspec.geometry import from_plane, normalize
 from torchspec.io.exr import read_exr
 from torchspec.layout import mirror_point
 from torchspec.lights import Kernel, Lights
+from torchspec.pipeline import FitConfig, fit, write_fit
 from torchspec.rendering import render
 
 F64 = torch.float64

@@ -15,8 +15,8 @@ import torch
 from capture_cases import write_small_painting
 
 from torchspec.cli import CHECKPOINT
-from torchspec.pipeline import FitConfig, FitInterrupted, fit
 from torchspec.io import read_svbrdf
+from torchspec.pipeline import FitConfig, FitInterrupted, fit
 
 TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")

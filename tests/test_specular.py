@@ -5,10 +5,10 @@ import torch
 
 from torchspec.brdf import SVBRDF
 from torchspec.geometry import angle, from_plane, normalize
+from torchspec.layout import layout_of
 from torchspec.lights import Kernel, Lights, diffuse_directions
 from torchspec.rendering import render
 from torchspec.simulate import LayoutConfig, layout
-from torchspec.layout import layout_of
 from torchspec.specular import grid_search, locate_peak, naive_start, specular_residual
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)

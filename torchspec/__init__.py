@@ -22,8 +22,8 @@ from . import (
 from ._version import __version__
 from .brdf import SVBRDF
 from .errors import TorchspecError
-from .pipeline import Fit, FitConfig, fit, write_fit
 from .io import read_capture, read_svbrdf, write_capture, write_svbrdf
+from .pipeline import Fit, FitConfig, fit, write_fit
 from .rendering import render
 
 __all__ = [

@@ -521,8 +521,8 @@ def calibrate(
         >>> calibration = calibrate("mirror-dev-1d")  # doctest: +SKIP
         >>> write_kernel("kernel.exr", calibration)  # doctest: +SKIP
     """
-    from .pipeline import select_frames
     from .io import Capture, read_capture
+    from .pipeline import select_frames
 
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))

@@ -311,7 +311,7 @@ def _dome_emulator(parser: argparse.ArgumentParser, args: argparse.Namespace) ->
 
 
 def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    from .dome.acquire import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
+    from .dome.acquisition import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
     from .dome.client import DomeClient
 
     light = load_light(args.light)

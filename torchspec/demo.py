@@ -21,8 +21,8 @@ from pathlib import Path
 import torch
 
 from .atomic import save_figure, write_json
-from .pipeline import FitConfig, fit, select_frames, write_fit
 from .io import read_capture
+from .pipeline import FitConfig, fit, select_frames, write_fit
 from .report import display, heldout_psnr, relit_strip, score, write_previews, write_report
 from .simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from .synth import PaintingConfig, SensorConfig

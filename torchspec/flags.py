@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
+from .errors import TorchspecError
 from .layout import kernel_variance, light_spacing, mirror_point
 from .least_squares import sandwich_terms
 from .lights import Lights
@@ -70,7 +71,7 @@ UNTRUSTED = ("diverged", "few_samples", "undetermined", "peak_misfit", "astray")
 def bit(name: str) -> int:
     """The bit of flag ``name``."""
     if name not in FLAGS:
-        raise ValueError(f"unknown flag {name!r}; the flags are {FLAGS}.")
+        raise TorchspecError(f"unknown flag {name!r}; the flags are {FLAGS}.")
     return 1 << FLAGS.index(name)
 
 

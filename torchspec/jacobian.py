@@ -35,14 +35,14 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
-from .geometry import angles_from_normal, normal_derivative, normal_from_angles
-from .lights import Lights, diffuse_directions
+from .diffuse import diffuse_integral
 from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
+from .geometry import angles_from_normal, normal_derivative, normal_from_angles
+from .lights import Lights, diffuse_directions
 from .lobe import at_nodes, lobe_frame, pick
 from .nodes import fallback_rule, fast_rule, node_rules
 from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
-from .diffuse import diffuse_integral
 from .rendering import render
 
 __all__ = [

@@ -68,7 +68,7 @@ def layout_of(l: Tensor) -> Layout:
         1
     """
     if l.dim() != 2 or l.shape[-1] != 2 or l.shape[0] < 3:
-        raise ValueError(f"light positions must have shape (K, 2) with K >= 3; got {tuple(l.shape)}.")
+        raise TorchspecError(f"light positions must have shape (K, 2) with K >= 3; got {tuple(l.shape)}.")
     centre = l.mean(0)
     _, s, vh = torch.linalg.svd(l - centre, full_matrices=False)
     if s[1] <= 1e-6 * s[0]:

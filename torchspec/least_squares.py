@@ -12,9 +12,11 @@ import math
 import torch
 from torch import Tensor
 
+from .brdf import SVBRDF
 from .errors import TorchspecError
 from .fusion import fused
 from .jacobian import assemble, jacobian_parts, pixels_per_chunk
+from .lights import Lights
 from .quadrature import Quadrature, check_quadrature
 
 __all__ = ["normal_equations", "sandwich_terms"]

@@ -105,7 +105,9 @@ class Kernel:
             if not bool(torch.isfinite(self.table).all()) or bool((self.table < 0).any()) or not self.table.sum() > 0:
                 raise TorchspecError("a tabulated kernel's Kernel.table must be finite, >= 0 and not all zero.")
             if self.domain != "projected":
-                raise TorchspecError(f"a tabulated kernel lives in the projected domain; got Kernel.domain {self.domain!r}.")
+                raise TorchspecError(
+                    f"a tabulated kernel lives in the projected domain; got Kernel.domain {self.domain!r}."
+                )
         if self.kind in ("gaussian", "supergaussian"):
             # Once per kernel, as a Python float: a constant of the compiled graphs, not work (and a graph
             # break) in each density call.

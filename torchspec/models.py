@@ -31,8 +31,8 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF
-from .geometry import angles_from_normal, normal_from_angles
 from .errors import TorchspecError
+from .geometry import angles_from_normal, normal_from_angles
 from .jacobian import jacobian
 from .least_squares import normal_equations
 from .lights import Lights

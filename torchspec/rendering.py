@@ -35,9 +35,9 @@ import torch
 from torch import Tensor
 
 from .brdf import SVBRDF, beckmann_cosine, lambert
+from .diffuse import diffuse_integral
 from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
-from .diffuse import diffuse_integral
 from .geometry import from_plane
 from .lights import Lights, diffuse_directions
 from .lobe import lobe_at, lobe_frame, pick

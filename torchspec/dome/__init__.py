@@ -1,7 +1,7 @@
 """The light dome: its serial protocol, a client for it, a virtual dome on a pseudo-terminal, the
 camera interface and the acquisition loop. ``docs/dome-protocol.md`` specifies the protocol."""
 
-from .acquire import (
+from .acquisition import (
     AcquisitionError,
     AcquisitionInterrupted,
     AcquisitionStopped,

@@ -154,7 +154,9 @@ class SimulatedCamera:
         like = dict(dtype=svbrdf.diffuse.dtype, device=svbrdf.diffuse.device)
         values = [float(irradiance)] if isinstance(irradiance, (int, float)) else [float(v) for v in irradiance]
         if len(values) not in (1, count) or not all(v > 0 for v in values):
-            raise TorchspecError(f"irradiance must be a positive number or {count} positive numbers; got {irradiance!r}.")
+            raise TorchspecError(
+                f"irradiance must be a positive number or {count} positive numbers; got {irradiance!r}."
+            )
         self.svbrdf = svbrdf
         self.kernel = kernel
         self.irradiance = torch.tensor(values, **like)[None]  # (1, 1) or (1, C)

@@ -436,7 +436,9 @@ def parse_fault(text: str) -> tuple[str, int, str | None]:
     """A CLI fault ``KIND[:COUNT[:COMMAND]]`` (e.g. ``drop:3``, ``garble:1:MOVE``) as inject's arguments."""
     parts = text.split(":")
     if not 1 <= len(parts) <= 3 or parts[0] not in FAULTS:
-        raise TorchspecError(f"--fault must be KIND[:COUNT[:COMMAND]] with KIND one of {', '.join(FAULTS)}; got {text!r}.")
+        raise TorchspecError(
+            f"--fault must be KIND[:COUNT[:COMMAND]] with KIND one of {', '.join(FAULTS)}; got {text!r}."
+        )
     if len(parts) >= 2 and not parts[1].isdigit():
         raise TorchspecError(f"--fault's COUNT must be a positive integer; got {parts[1]!r} in {text!r}.")
     count = int(parts[1]) if len(parts) >= 2 else 1

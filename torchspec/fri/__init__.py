@@ -23,7 +23,6 @@ import torch
 from torch import Tensor
 
 from ..errors import TorchspecError
-
 from . import pulses
 from ._coefficients import frequency_list, scattered, uniform
 from ._multi import locate_multi

@@ -22,6 +22,7 @@ import torch
 
 from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
+from ..errors import TorchspecError
 from ..lights import Kernel, Lights
 from ._manifest import (
     FORMAT,
@@ -128,12 +129,17 @@ class Capture:
                 pixels, and the most negative value).
 
         Example:
-            >>> capture = read_capture("painting-dev")  # doctest: +SKIP
+            >>> from tempfile import mkdtemp
+            >>> from torchspec.demo import scene
+            >>> from torchspec.simulate import simulate, write_simulation
+            >>> folder = f"{mkdtemp()}/sim"  # a simulated 8 x 8 painting, 88 frames
+            >>> _ = write_simulation(folder, simulate(scene(size=8), root=folder))
+            >>> capture = read_capture(folder)
             >>> capture.read_frames([0, 5]).shape
-            torch.Size([2, 3, 48, 48])
+            torch.Size([2, 3, 8, 8])
         """
         if nonfinite not in ("raise", "keep", "ignore"):
-            raise ValueError(f"nonfinite must be 'raise', 'keep' or 'ignore'; got {nonfinite!r}.")
+            raise TorchspecError(f"nonfinite must be 'raise', 'keep' or 'ignore'; got {nonfinite!r}.")
         count = len(self.frames)
         picked = range(count) if indices is None else [self._index(i) for i in _as_list(indices)]
         out = torch.empty((0, len(self.channels), self.height, self.width), dtype=dtype, device=device)
@@ -298,7 +304,12 @@ def read_capture(path: str | Path) -> Capture:
             kernel file does not exist.
 
     Example:
-        >>> capture = read_capture("../shared/data/painting-dev")  # doctest: +SKIP
+        >>> from tempfile import mkdtemp
+        >>> from torchspec.demo import scene
+        >>> from torchspec.simulate import simulate, write_simulation
+        >>> folder = f"{mkdtemp()}/sim"  # a simulated 8 x 8 painting, 88 frames
+        >>> _ = write_simulation(folder, simulate(scene(size=8), root=folder))
+        >>> capture = read_capture(folder)
         >>> len(capture.frames), capture.channels, capture.light.kernel
         (88, ('R', 'G', 'B'), 'gaussian')
     """
@@ -367,7 +378,15 @@ def write_capture(
         CaptureError: the manifest is invalid, or the frames, kernel or truth do not match it.
 
     Example:
-        >>> written = write_capture("out", capture, capture.read_frames())  # doctest: +SKIP
+        >>> from tempfile import mkdtemp
+        >>> from torchspec.demo import scene
+        >>> from torchspec.simulate import simulate, write_simulation
+        >>> folder = f"{mkdtemp()}/sim"  # a simulated 8 x 8 painting, 88 frames
+        >>> _ = write_simulation(folder, simulate(scene(size=8), root=folder))
+        >>> capture = read_capture(folder)
+        >>> copy = write_capture(f"{folder}-copy", capture, capture.read_frames())
+        >>> copy.root.name, len(copy.frames)
+        ('sim-copy', 88)
     """
     root = Path(path)
     if root.name == MANIFEST:

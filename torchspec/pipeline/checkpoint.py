@@ -16,6 +16,7 @@ import torch
 
 from .._version import __version__
 from ..atomic import atomic_path, read_json, write_json
+from ..errors import TorchspecError
 from ..io import Capture
 from .settings import FitConfig
 
@@ -79,13 +80,13 @@ def read_tile(path: Path) -> tuple[int, TileResult]:
     """The first pixel and the :class:`~torchspec.pipeline.tile.TileResult` saved in ``path`` (on the CPU).
 
     Raises:
-        ValueError: ``path`` is not a readable tile (written atomically: damage from outside).
+        TorchspecError: ``path`` is not a readable tile (written atomically: damage from outside).
     """
     try:
         saved = torch.load(path, map_location="cpu", weights_only=False)
         return int(saved["first"]), saved["tile"]
     except Exception as error:
-        raise ValueError(f"{path} is not a readable tile ({type(error).__name__}: {error}); remove it.") from error
+        raise TorchspecError(f"{path} is not a readable tile ({type(error).__name__}: {error}); remove it.") from error
 
 
 def open_checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, TileResult]:
@@ -93,26 +94,26 @@ def open_checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, TileResu
     same job, none for a new one.
 
     Raises:
-        ValueError: the folder holds another job (naming what differs), or an unfinished one that
+        TorchspecError: the folder holds another job (naming what differs), or an unfinished one that
             is not to be resumed (its work is never silently dropped), or an unreadable tile.
     """
     state = folder / STATE
     if not state.is_file():
         if resume and folder.exists() and any(folder.glob("tile-*.pt")):
-            raise ValueError(f"{folder} holds tiles but no {STATE}; remove {folder} to start over.")
+            raise TorchspecError(f"{folder} holds tiles but no {STATE}; remove {folder} to start over.")
         folder.mkdir(parents=True, exist_ok=True)
         write_json(state, job)
         return {}
-    saved = read_json(state, ValueError, "")
+    saved = read_json(state, TorchspecError, "")
     finished = sorted(folder.glob("tile-*.pt"))
     if not resume:
-        raise ValueError(
+        raise TorchspecError(
             f"{folder} holds an unfinished fit ({len(finished)} tile(s) done): continue it with --resume "
             f"(resume=True), or remove {folder} to start over."
         )
     differ = [key for key in job if saved.get(key) != job[key]]
     if differ:
-        raise ValueError(
+        raise TorchspecError(
             f"{folder} holds a fit of another job (its {', '.join(differ)} differ from this one's), so resuming "
             f"it would mix two fits; run the same command as before, or remove {folder} to start over."
         )

@@ -41,6 +41,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..atomic import read_json, write_json
+from ..errors import TorchspecError
 from ..io import Capture
 from ..lights import Lights
 from ..photometric import peak_of, sample_masks, saturation_level
@@ -93,7 +94,7 @@ def connect(scheduler: str | None = None, *, workers: int | None = None, timeout
         timeout: seconds to wait for the scheduler.
 
     Raises:
-        ValueError: neither or both of ``scheduler`` and ``workers``, or ``workers < 1``.
+        TorchspecError: neither or both of ``scheduler`` and ``workers``, or ``workers < 1``.
         ClusterError: the scheduler cannot be reached (the message names the address).
 
     Example:
@@ -109,7 +110,7 @@ def connect(scheduler: str | None = None, *, workers: int | None = None, timeout
             "pip install 'torchspec[dask]'."
         ) from error
     if (scheduler is None) == (workers is None):
-        raise ValueError(f"connect needs one of scheduler and workers; got {scheduler=}, {workers=}.")
+        raise TorchspecError(f"connect needs one of scheduler and workers; got {scheduler=}, {workers=}.")
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout=timeout, set_as_default=False)
@@ -122,7 +123,7 @@ def connect(scheduler: str | None = None, *, workers: int | None = None, timeout
             yield client
         return
     if workers < 1:
-        raise ValueError(f"workers must be >= 1; got {workers}.")
+        raise TorchspecError(f"workers must be >= 1; got {workers}.")
     environ = {f"distributed.nanny.pre-spawn-environ.{name}": None for name in UNSET_ENVIRON}
     with dask.config.set(environ):  # read by each nanny as it starts (and kept for its restarts)
         cluster = LocalCluster(
@@ -210,7 +211,7 @@ def fit_on_cluster(
     Raises:
         ClusterError: a worker cannot see the capture or the checkpoint, or a tile failed after
             its retries (the message names the tile; the finished tiles stay in ``checkpoint``).
-        CaptureError, ConfigError, ValueError: as :func:`torchspec.pipeline.fit`.
+        CaptureError, ConfigError, TorchspecError: as :func:`torchspec.pipeline.fit`.
         FitInterrupted: a ``KeyboardInterrupt``; the finished tiles are saved.
 
     Example:
@@ -231,9 +232,7 @@ def fit_on_cluster(
     folder.mkdir(parents=True, exist_ok=True)
     _check_workers(client, capture, folder)  # before a job is recorded in the folder
     done = open_checkpoint(folder, job_record(capture, picked, config, tile, pixels), resume)
-    stale = sorted({int(p.stem.split("-")[1]) for p in folder.glob("tile-*.pt")} - set(done))
-    if stale:  # a worker skips a tile that is there: only this job's may be
-        raise ValueError(f"{folder} holds tiles of no recorded job (first pixels {stale[:3]}); remove {folder}.")
+    _refuse_stale_tiles(folder, done)
     job = _Job(capture, picked, config, tile, lights, view, light_context(lights), folder)
     firsts = list(range(0, pixels, tile))
     todo = [first for first in firsts if first not in done]
@@ -254,7 +253,6 @@ def fit_on_cluster(
     except KeyboardInterrupt as interrupt:
         raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
     ordered = [parts[first] for first in firsts]
-    masked = _masked(ordered, capture)
     threads = client.nthreads()
     stats = run_stats(
         capture=capture,
@@ -264,9 +262,8 @@ def fit_on_cluster(
         pixels=pixels,
         tile=tile,
         resumed=len(done),
-        # worker-seconds, summed over the tasks (the tiles' stages too); "total" is the wall time
-        seconds={**seconds, "read": report.pop("read"), "masks": report.pop("masks")},
-        masked=masked,
+        seconds={**seconds, "read": report.pop("read"), "masks": report.pop("masks")},  # worker-seconds; total: wall
+        masked=_masked(ordered, capture),
         cluster={
             "scheduler": client.scheduler.address,
             "workers": len(threads),
@@ -275,6 +272,13 @@ def fit_on_cluster(
         },
     )
     return assemble(ordered, height=h, width=w, channels=capture.channels, stats=stats, started=started)
+
+
+def _refuse_stale_tiles(folder: Path, done: dict) -> None:
+    """A worker skips a tile that is already written: only the recorded job's tiles may be."""
+    stale = sorted({int(p.stem.split("-")[1]) for p in folder.glob("tile-*.pt")} - set(done))
+    if stale:
+        raise TorchspecError(f"{folder} holds tiles of no recorded job (first pixels {stale[:3]}); remove {folder}.")
 
 
 def _warn_small_tiles(config: FitConfig, tile: int, stack_bytes: int) -> None:
@@ -397,7 +401,7 @@ def _with_level(client, job: _Job, report: dict, progress: bool, retries: int) -
     if config.saturation is not None:
         level = float(config.saturation)
     elif (job.folder / LEVEL).is_file():
-        saved = read_json(job.folder / LEVEL, ValueError, f"Remove {job.folder} to start over.")["level"]
+        saved = read_json(job.folder / LEVEL, TorchspecError, f"Remove {job.folder} to start over.")["level"]
         level = math.inf if saved is None else float(saved)
     else:
         h, row = job.capture.height, len(job.picked) * len(job.capture.channels) * job.capture.width

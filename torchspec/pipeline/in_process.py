@@ -44,7 +44,7 @@ def fit(
             :class:`~torchspec.pipeline.checkpoint.FitInterrupted`. The caller removes the folder
             once the maps are written.
         resume: continue the fit whose tiles ``checkpoint`` holds (the same capture, frames,
-            settings and tiling, else ``ValueError``): the maps are identical to an
+            settings and tiling, else ``TorchspecError``): the maps are identical to an
             uninterrupted fit's. Without it, a checkpoint holding tiles is an error (never
             silently dropped).
 

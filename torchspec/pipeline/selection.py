@@ -184,7 +184,7 @@ def select_models(
         start's peak-location quality per pixel ``(n,)`` (1 for the pixels without a lobe).
     """
     ladder = config.ladder_climbed
-    ps, channels = start.diffuse, data.channels
+    channels = data.channels
     choice = Choice.empty(start, ladder, data.observed.shape[1], channels)
     first = []
     index = (~lobe).nonzero()[:, 0]

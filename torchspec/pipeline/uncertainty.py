@@ -14,11 +14,11 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..geometry import normal_derivative
 from ..least_squares import sandwich_terms
-from ..quadrature import Quadrature
 from ..lights import Lights
 from ..lm import DIVERGED
 from ..models import Model, get_model
 from ..noise import affine_noise
+from ..quadrature import Quadrature
 from .solver import Solved, compiled_or_eager
 
 __all__ = ["NOISE_PIXELS", "PeakSamples", "Uncertainty", "sensor_noise", "uncertainty"]

@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ..atomic import read_json, write_json
 from .._version import __version__
+from ..atomic import read_json, write_json
 from ..errors import TorchspecError
 from ..io import Capture, ExrError, Frame, LightSpec, read_capture, read_exr, write_exr
 from ..io._manifest import MANIFEST, parse_manifest, to_manifest
@@ -41,8 +41,8 @@ from .plan import (
     AcquisitionError,
     LightSettings,
     as_tuple,
-    dome_direction,
     dome_angles,
+    dome_direction,
     load_light,
     parse_layout,
     plan_directions,

@@ -18,7 +18,7 @@ import torch
 
 from torchspec.cli import main
 from torchspec.dome import DomeClient, DomeDisconnected, DomeEmulator, DomeFault, DomeTimeout
-from torchspec.dome.acquire import (
+from torchspec.dome.acquisition import (
     PLAN,
     AcquisitionError,
     AcquisitionInterrupted,
@@ -31,14 +31,14 @@ from torchspec.dome.acquire import (
 )
 from torchspec.dome.camera import CameraError, FolderCamera, SimulatedCamera
 from torchspec.dome.protocol import DomeIdentity, DomeStatus
-from torchspec.pipeline import fit
 from torchspec.geometry import angle
 from torchspec.info import OK, inspect_capture
 from torchspec.io import CaptureError, read_capture, write_exr
+from torchspec.pipeline import fit
 from torchspec.simulate import LayoutConfig, SceneConfig, layout
 from torchspec.synth import PaintingConfig, SensorConfig, painting
 
-ACQ = importlib.import_module("torchspec.dome.acquire")  # the module: torchspec.dome.acquire is the function
+ACQ = importlib.import_module("torchspec.dome.acquisition")
 
 GAUSSIAN = {"kernel": "gaussian", "domain": "projected", "sigma": 0.08}
 POINT = {"kernel": "point"}  # cheap to render: the loop's logic does not depend on the kernel
