@@ -173,3 +173,24 @@ def test_two_lobes_runs(tmp_path):
     assert base["scipy_pixels"] == 2 and base["scipy_ms_per_pixel"] > 0
     assert base["scipy"]["alpha2"] == pytest.approx(base["torchspec"]["alpha2"], rel=0.05, abs=1e-3)
     assert json.loads((tmp_path / "tiny.json").read_text())["coverage"].keys() == result["coverage"].keys()
+
+
+def test_identical_outputs_finds_every_difference(tmp_path):
+    """``experiments/identical_outputs.py``: equal saved fits compare identical (NaN equal to NaN); a
+    changed tensor or number is named; timings are left out of the JSON comparison."""
+    import torch
+
+    proof = _load("identical_outputs")
+    saved = {"quality": torch.tensor([0.5, float("nan")]), "stats": {"models": {"diffuse": 3}}}
+    for name in ("old", "new", "changed"):
+        (tmp_path / name).mkdir()
+    torch.save(saved, tmp_path / "old" / "auto.pt")
+    torch.save(saved, tmp_path / "new" / "auto.pt")
+    torch.save({**saved, "quality": torch.tensor([0.5, 0.0])}, tmp_path / "changed" / "auto.pt")
+    assert proof.compare(tmp_path / "old", tmp_path / "new") == []
+    assert proof.compare(tmp_path / "old", tmp_path / "changed") == ["auto quality"]
+    committed = {"rows": [{"psnr": 60.0, "seconds": 1.0, "nan": float("nan")}]}
+    assert proof.numbers(committed, {"rows": [{"psnr": 60.0, "seconds": 2.0, "nan": float("nan")}]}) == []
+    assert proof.numbers(committed, {"rows": [{"psnr": 61.0, "seconds": 1.0, "nan": float("nan")}]}) == [
+        "/rows[0]/psnr: 60.0 against 61.0"
+    ]
