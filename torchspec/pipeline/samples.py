@@ -61,6 +61,11 @@ class TileSamples:
             channels=channels,
         )
 
+    def relative_rms(self, cost: Tensor, index: Tensor | slice = slice(None)) -> Tensor:
+        """A fit's RMS residual relative to each pixel's level, from its solver's cost
+        ``0.5 sum (r / level)^2`` over the valid samples of pixels ``index`` (NaN where a fit failed)."""
+        return (2.0 * cost / (self.count[index] * len(self.channels))).sqrt()
+
     def inverse_noise(self, sensor: Tensor, index: Tensor, floor: float) -> Tensor:
         """One over the noise of each sample of pixels ``index (m,)``, ``(m, K, C)`` (0 for invalid
         samples): the sensor's standard deviation ``sqrt(a y + b)`` (``sensor = (a, b)``), floored at

@@ -64,7 +64,7 @@ def plain_alternative(
     start_plain = plain_start(start, data.channels)[index]
     fit = assess(solve_pixels("diffuse", index, start_plain, data, config), data, sensor, config)
     tried["diffuse"] = tried.get("diffuse", 0) + index.numel()
-    few_at, result, c = few[index], fit.result, len(data.channels)
+    few_at, result = few[index], fit.result
     alone = with_flags(
         solver_flags(result.status, few_at),
         ("undetermined", ~fit.std["normal"].isfinite() & ~few_at),
@@ -76,7 +76,7 @@ def plain_alternative(
         ("criterion", fit.criterion),
         ("status", result.status),
         ("iterations", result.iterations),
-        ("residual", torch.nan_to_num((2.0 * result.cost / (data.count[index] * c)).sqrt(), nan=math.inf)),
+        ("residual", torch.nan_to_num(data.relative_rms(result.cost, index), nan=math.inf)),
         ("quality", quality_of(start.diffuse.quality[index], result.status, alone)),
         ("flags", alone),
         ("std_normal", fit.std["normal"]),

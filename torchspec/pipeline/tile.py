@@ -104,8 +104,7 @@ def fit_pixels(
     flags, checks = check_choice(choice, data, few, config)
     times["checks"] = time.perf_counter() - t0
 
-    c = y.shape[-1]
-    rms = (2.0 * choice.cost / (data.count * c)).sqrt()
+    rms = data.relative_rms(choice.cost)
     quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
     plain = None
     if config.smooth > 0:  # the alternative of each lobed pixel, for the image's choice (smoothing)
