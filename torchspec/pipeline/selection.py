@@ -10,7 +10,7 @@ solution, on the pixels it leaves unexplained (:func:`select_models`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import torch
 from torch import Tensor
@@ -18,13 +18,14 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..lm import DIVERGED, LMResult
 from ..models import get_model
+from .prediction import held_out, light_folds, prediction_error, predicts_better
 from .samples import TileSamples
-from .settings import MODEL_CODES, FitConfig
+from .settings import AUTO, MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
 from .start import StartingPoint
 from .uncertainty import PeakSamples, sensor_noise, uncertainty
 
-__all__ = ["ModelFit", "Choice", "assess", "select_models"]
+__all__ = ["ModelFit", "Choice", "assess", "resolved", "select_models"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,8 @@ class Choice:
         peak: the chosen fits' :class:`PeakSamples` (zeros where not computed).
         deviation: standard deviations as :class:`~torchspec.pipeline.uncertainty.Uncertainty`'s
             (NaN where not computed).
+        prediction: ``(n,)`` the chosen fit's error predicting left-out frames
+            (:func:`~torchspec.pipeline.prediction.prediction_error`; NaN where not computed).
         tried: pixels fitted per model.
     """
 
@@ -106,6 +109,7 @@ class Choice:
     misfit: Tensor
     peak: PeakSamples
     deviation: dict[str, Tensor]
+    prediction: Tensor
     tried: dict[str, int] = field(default_factory=dict)
 
     @staticmethod
@@ -140,14 +144,17 @@ class Choice:
             misfit=torch.zeros(n, dtype=torch.bool, device=device),
             peak=PeakSamples(zeros((n, frames)), zeros((n, frames)), zeros(n)),
             deviation=deviation,
+            prediction=ps.diffuse.new_full((n,), nan),
         )
 
-    def take(self, fit: ModelFit) -> None:
-        """Keep ``fit`` where its criterion is the lowest so far (everywhere without a noise
-        estimate), in place."""
+    def take(self, fit: ModelFit, better: Tensor | None = None, held_out: Tensor | None = None) -> None:
+        """Keep ``fit`` where ``better (m,)`` holds (by default: where its criterion is the lowest
+        so far, or everywhere without a noise estimate), with its left-out residuals ``held_out``
+        (``(m, S, K, C)``, :mod:`~torchspec.pipeline.prediction`) when given, in place."""
         model, index, result = get_model(fit.name), fit.index, fit.result
         nothing = fit.chi2 == -math.inf
-        better = (fit.criterion < self.criterion[index]) | nothing
+        if better is None:
+            better = (fit.criterion < self.criterion[index]) | nothing
         bic = torch.where(nothing, torch.full_like(fit.criterion, math.nan), fit.criterion)
         pick, chosen, mine = index[better], fit.svbrdf[better], self.svbrdf
         mine.normal[pick], mine.diffuse[pick] = chosen.normal, chosen.diffuse
@@ -172,12 +179,16 @@ class Choice:
         if fit.peak is not None:
             self.peak.z2[pick], self.peak.excess[pick] = fit.peak.z2[better], fit.peak.excess[better]
             self.peak.lobe_snr[pick] = fit.peak.lobe_snr[better]
+        if held_out is not None:
+            self.prediction[pick] = prediction_error(held_out[better])
 
 
 def select_models(
-    start: StartingPoint, lobe: Tensor, data: TileSamples, config: FitConfig
+    start: StartingPoint, lobe: Tensor, data: TileSamples, config: FitConfig, folds: Tensor | None = None
 ) -> tuple[Choice, Tensor, Tensor]:
-    """Fit and choose each pixel's model (module docstring) for pixels with a lobe ``lobe (n,)``.
+    """Fit and choose each pixel's model (module docstring) for pixels with a lobe ``lobe (n,)``;
+    ``folds (S, K)``: the frames' folds of ``auto``'s choice (:func:`~torchspec.pipeline.prediction.light_folds`
+    of the fit's lights by default).
 
     Returns:
         The :class:`Choice`, the sensor's noise ``(a, b)`` (zeros when not estimated) and the
@@ -199,19 +210,147 @@ def select_models(
     if first and config.noise_known:
         c = len(channels)
         sensor = torch.stack(sensor_noise(first, start.lobe, data.observed, data.valid, data.level, c))
-    index, init = data.observed.new_zeros(0, dtype=torch.long), None
-    for solved in first:
-        fit = assess(solved, data, sensor, config)
+    if config.model == AUTO:
+        _climb(start, lobe, first, data, sensor, config, folds, choice)
+        return choice, sensor, found_quality
+    for solved in first:  # a forced model: each pixel's one fit
+        choice.take(assess(solved, data, sensor, config))
+    return choice, sensor, found_quality
+
+
+def _climb(
+    start: StartingPoint,
+    lobe: Tensor,
+    first: list[Solved],
+    data: TileSamples,
+    sensor: Tensor,
+    config: FitConfig,
+    folds: Tensor | None,
+    choice: Choice,
+) -> None:
+    """``auto``'s ladder, in ``choice``, from the ``first`` fits (``diffuse`` where no peak was
+    detected, the ladder's first model where one was: ``lobe``).
+
+    A pixel without a detected peak whose fit leaves a misfit is fitted with the ladder's first
+    model too (from the specular start and from a broad lobe about the photometric-stereo normal:
+    a broad lobe leaves no peak to detect); each next model is tried, from the previous one's
+    solution, where that leaves a misfit. A model is kept where it predicts the left-out frames
+    better than the one kept so far (:func:`~torchspec.pipeline.prediction.predicts_better`),
+    the first lobe than the pixel's fit without one (for a detected peak, one step from the
+    photometric-stereo fit; where the lobe is not kept, that fit is then made)."""
+    ladder, channels = config.ladder, data.channels
+    if folds is None:
+        folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
+    fits = {solved.name: solved for solved in first}
+    plain = plain_start(start, channels)  # each pixel's fit without a lobe, where made
+    misfit = lobe.new_zeros(0, dtype=torch.long)
+    if "diffuse" in fits:
+        fit = assess(fits["diffuse"], data, sensor, config)
         choice.take(fit)
-        if solved.name != "diffuse":
-            index, init = fit.index[fit.unexplained], fit.svbrdf[fit.unexplained]
+        plain = _placed(plain, fit.index, fit.svbrdf)
+        misfit = fit.index[fit.unexplained]
+    candidates = [fits[ladder[0]]] if ladder[0] in fits else []
+    if misfit.numel():
+        candidates.append(_broad_fit(start, misfit, data, config))
+    if not candidates:
+        return
+    heldout = data.observed.new_zeros((lobe.shape[0], folds.shape[0], *data.observed.shape[1:]))
+    diffuse = get_model("diffuse")
+
+    def predicted(model, svbrdf: SVBRDF, index: Tensor) -> Tensor:
+        inverse = data.inverse_noise(sensor, index, config.noise_floor)
+        return held_out(model, svbrdf, index, data, inverse, folds, config)
+
+    def compare(fit: ModelFit) -> Tensor:
+        index = fit.index
+        mine = predicted(get_model(fit.name), fit.svbrdf, index)
+        better = predicts_better(mine, heldout[index], config.predict_z) & (fit.criterion < math.inf)
+        better &= resolved(fit, config.resolve)
+        choice.take(fit, better, mine)
+        heldout[index[better]] = mine[better]
+        return better
+
+    fit = assess(_joined(candidates), data, sensor, config)
+    heldout[fit.index] = predicted(diffuse, plain[fit.index], fit.index)
+    kept = compare(fit)
+    rejected = fit.index[~kept & lobe[fit.index]]
+    if rejected.numel():  # a detected peak that no lobe predicts: the pixel's fit without one
+        choice.take(assess(solve_pixels("diffuse", rejected, plain[rejected], data, config), data, sensor, config))
+    index, init = fit.index[fit.unexplained], fit.svbrdf[fit.unexplained]
     for name in ladder[1:]:  # each from the previous one's solution, where it leaves a misfit
+        if get_model(name).dual:  # where one lobe leaves a misfit as large as a second lobe's
+            keep = data.relative_rms(choice.cost[index], index) > config.dual_rms
+            index, init = index[keep], init[keep]
         if index.numel() == 0:
             break
         fit = assess(solve_pixels(name, index, init, data, config), data, sensor, config)
-        choice.take(fit)
+        compare(fit)
         index, init = index[fit.unexplained], fit.svbrdf[fit.unexplained]
-    return choice, sensor, found_quality
+
+
+def _placed(svbrdf: SVBRDF, index: Tensor, values: SVBRDF) -> SVBRDF:
+    """``svbrdf`` (one lobe or none) with the pixels ``index`` set to ``values``."""
+    out = svbrdf[torch.arange(svbrdf.shape[0], device=index.device)]  # a copy
+    out.normal[index], out.diffuse[index] = values.normal, values.diffuse
+    return out
+
+
+def resolved(fit: ModelFit, bound: float) -> Tensor:
+    """``(m,)`` bool: a ``ward-dual`` fit's two lobes each have a roughness the data determine (a
+    standard deviation below ``bound`` times the roughness); True for the other models. Two lobes
+    whose shapes the samples do not resolve (a lobe sharper than the light's kernel, whose samples
+    show only its integral) predict the frames the fit saw, and nothing else: a light of another
+    size (a point light) would see them at any height."""
+    if not get_model(fit.name).dual or not fit.std:
+        return torch.ones_like(fit.unexplained)
+    first = fit.std["roughness"][:, 0] < bound * fit.svbrdf.roughness[:, 0]
+    second = fit.std["roughness2"][:, 0] < bound * fit.svbrdf.roughness2[:, 0]
+    return first & second
+
+
+def _broad_fit(start: StartingPoint, index: Tensor, data: TileSamples, config: FitConfig) -> Solved:
+    """The ladder's first model on pixels ``index`` without a detected peak, from two starts: the
+    specular start (:attr:`FitConfig.init`) and a broad lobe (``alpha = FitConfig.broad_alpha``)
+    about the photometric-stereo normal, each pixel keeping the solution of lower cost."""
+    name, channels = config.ladder[0], data.channels
+    peak = solve_pixels(name, index, start.svbrdf(channels)[index], data, config)
+    ps = start.diffuse
+    level = start.level[index, None]
+    alpha = level.new_full((index.shape[0], 2), config.broad_alpha)
+    broad_start = SVBRDF(ps.normal[index], 0.5 * ps.diffuse[index], level, alpha, None, channels)
+    broad = solve_pixels(name, index, broad_start, data, config)
+    lower = broad.result.cost < peak.result.cost
+    return _joined([peak, broad], lower)
+
+
+def _joined(parts: list[Solved], second: Tensor | None = None) -> Solved:
+    """One :class:`Solved` of one model: the concatenation of ``parts`` (sorted by pixel), or with
+    ``second (m,)``, the second's solution where it holds and the first's elsewhere (same pixels)."""
+    if second is not None:
+
+        def pick(items):
+            return torch.where(second.view(-1, *[1] * (items[0].dim() - 1)), items[1], items[0])
+
+        return Solved(parts[0].name, parts[0].index, _fields(parts, pick, "svbrdf"), _fields(parts, pick, "result"))
+    if len(parts) == 1:
+        return parts[0]
+    index = torch.cat([part.index for part in parts])
+    order = torch.argsort(index)
+
+    def join(items):
+        return torch.cat(items)[order]
+
+    return Solved(parts[0].name, index[order], _fields(parts, join, "svbrdf"), _fields(parts, join, "result"))
+
+
+def _fields(parts: list[Solved], combine, name: str):
+    """The dataclass ``name`` of ``parts`` with each tensor field ``combine(items)`` of theirs."""
+    items = [getattr(part, name) for part in parts]
+    values = {}
+    for f in fields(items[0]):
+        these = [getattr(item, f.name) for item in items]
+        values[f.name] = combine(these) if isinstance(these[0], Tensor) else these[0]
+    return type(items[0])(**values)
 
 
 def plain_start(start: StartingPoint, channels: tuple[str, ...]) -> SVBRDF:

@@ -74,6 +74,26 @@ class FitConfig:
         select_z: ``auto`` tries the next larger model where the fit's chi-square exceeds its
             degrees of freedom by more than ``select_z`` of its standard deviations
             (``dof + select_z sqrt(2 dof)``): the residual is not noise.
+        predict_z: ``auto`` keeps a larger model where it predicts the frames left out of its fit
+            better than the model kept so far by more than ``predict_z`` standard deviations of
+            what the noise would make the difference (:mod:`torchspec.pipeline.prediction`).
+        folds: the frames are split into this many folds, each left out in turn, for ``auto``'s
+            prediction; fold_regions: also leave out whole regions of the light domain (sectors),
+            besides folds scattered over it.
+        resolve: ``auto`` keeps ``ward-dual`` only where each lobe's roughness is determined within
+            ``resolve`` of its value (one standard deviation): two lobes the samples do not
+            resolve predict nothing but the frames fitted.
+        dual_rms: ``auto`` tries ``ward-dual`` only where the best fit of one lobe leaves a relative
+            RMS residual above ``dual_rms`` (of the pixel's level): a second lobe is a large
+            structure (two lobes fitted to what one lobe of another shape leaves, such as a
+            Beckmann lobe's tails, cost the most of the ladder's time and predict nothing better).
+        trust_rms: a pixel whose chosen model leaves a misfit (a residual above the noise) with a
+            relative RMS above ``trust_rms`` of its level is flagged ``poor_fit``, untrusted
+            (quality 0): no model of the ladder explains it (a shadow, an interreflection, a
+            material of another kind), and its maps are not to be used.
+        broad_alpha: the roughness of the broad-lobe start of ``auto``'s pixels that show no peak
+            but whose fit without a lobe leaves a misfit (a broad lobe is absorbed by a tilted
+            normal and leaves no peak to detect).
         init: the specular start: ``fri`` (FRI peak location), ``naive`` (photometric-stereo
             normal, ``alpha = naive_alpha``) or ``grid`` (dense search).
         detect: a pixel gets a lobe when its residual peaks above ``detect`` times its noise
@@ -108,6 +128,13 @@ class FitConfig:
     ladder: tuple[str, ...] = LADDER
     smooth: float = 0.0
     select_z: float = 3.0
+    predict_z: float = 3.0
+    folds: int = 5
+    fold_regions: bool = False
+    broad_alpha: float = 0.25
+    resolve: float = 0.5
+    dual_rms: float = 0.03
+    trust_rms: float = 0.05
     uncertainty: bool = True
     flag_peak_misfit: float = 3.0
     flag_astray: float = 2.0
@@ -145,6 +172,18 @@ class FitConfig:
                 f"FitConfig.ladder must name one or more models with a lobe, each once "
                 f"(of {[name for name in MODELS if get_model(name).lobe]}); got {list(ladder)!r}."
             )
+        if not (self.predict_z >= 0 and math.isfinite(self.predict_z)):
+            raise ConfigError(f"FitConfig.predict_z must be >= 0 and finite; got {self.predict_z!r}.")
+        if not self.trust_rms > 0:
+            raise ConfigError(f"FitConfig.trust_rms must be > 0; got {self.trust_rms!r}.")
+        if not self.dual_rms >= 0:
+            raise ConfigError(f"FitConfig.dual_rms must be >= 0; got {self.dual_rms!r}.")
+        if not self.resolve > 0:
+            raise ConfigError(f"FitConfig.resolve must be > 0; got {self.resolve!r}.")
+        if self.folds < 2:
+            raise ConfigError(f"FitConfig.folds must be >= 2; got {self.folds!r}.")
+        if not 0 < self.broad_alpha <= 1:
+            raise ConfigError(f"FitConfig.broad_alpha must be in (0, 1]; got {self.broad_alpha!r}.")
         if not self.select_z >= 0:
             raise ConfigError(f"FitConfig.select_z must be >= 0; got {self.select_z!r}.")
         if not (self.smooth >= 0 and math.isfinite(self.smooth)):
@@ -157,9 +196,7 @@ class FitConfig:
         if self.init not in INITS:
             raise ConfigError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
         if self.quadrature not in QUADRATURES:
-            raise ConfigError(
-                f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}."
-            )
+            raise ConfigError(f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}.")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"FitConfig.dtype must be 'float32' or 'float64'; got {self.dtype!r}.")
         positive = ("detect", "noise_floor", "naive_alpha", "memory_gib")

@@ -129,7 +129,7 @@ def fit_pixels(
         quality=quality,
         status=choice.status,
         iterations=choice.iterations,
-        lobe=lobe,
+        lobe=choice.code > 0,
         model=choice.code,
         criterion=choice.criterion,
         std=choice.deviation,

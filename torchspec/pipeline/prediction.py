@@ -1,0 +1,179 @@
+"""The prediction stage: how well a fit predicts the frames it was not fitted to.
+
+``auto`` chooses each pixel's model by what it predicts, not by how well it fits the frames it saw
+(a larger model always fits those better: it also fits the model's error, a lobe of another
+shape, shadows, errors of the lights). The frames are split into folds (:func:`light_folds`): the
+frames of each fold are left out, the model refitted on the others, and the left-out frames
+predicted (:func:`held_out`). The refit is one Gauss-Newton step from the solution on all frames
+(the solver's objective without the fold's samples, from where its gradient on all samples
+vanishes): exact for a model linear in its parameters, and for the small changes a fold makes
+(approximate leave-group-out cross-validation); a parameter the other folds do not determine (a
+lobe whose peak only the left-out frames saw) takes a large step, and its prediction fails as a
+refit's would. Cost: one evaluation of the model's Jacobian per fitted model and pixel.
+
+A larger model is kept only where it predicts the left-out samples better than the model chosen
+so far by more than the noise would make it (:func:`predicts_better`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..lm import bounded
+from ..models import Model
+from .samples import TileSamples
+from .settings import FitConfig
+
+__all__ = ["CHUNK_SAMPLES", "DAMPING", "light_folds", "held_out", "predicts_better", "prediction_error"]
+
+CHUNK_SAMPLES = 1 << 24
+"""Pixels are taken in chunks of at most this many Jacobian entries (pixels x samples x parameters)."""
+DAMPING = 1e-4
+"""The refit's damping, relative to ``diag(J^T J)``: a parameter the other folds do not determine
+takes a large but finite step."""
+
+
+def light_folds(directions: Tensor, folds: int, regions: bool = True) -> Tensor:
+    """Each frame's fold, per scheme: ``(S, K)`` long in ``[0, folds)``.
+
+    The first scheme scatters the folds over the light domain (the frames ordered row by row in the
+    l-plane, each row's folds in turn from a shift of the previous row's), so that each fold's
+    frames have neighbours in the others; with ``regions``, the second leaves out whole regions of
+    the domain: ``folds`` sectors of equal count about the lights' centre, by azimuth. Every fold
+    holds at least half the mean count of frames.
+
+    Args:
+        directions: ``(K, 3)`` the frames' light directions.
+        folds: the folds per scheme (at most ``K // 2``, at least 2: each of at least two frames).
+    """
+    k = directions.shape[0]
+    device = directions.device
+    plane = directions[:, :2].double().cpu()
+    folds = max(2, min(folds, k // 2))
+    # Row by row (y descending, then x), each row's folds shifted from the previous row's, so that
+    # a light's neighbours along its row and across rows fall in other folds.
+    rows = torch.round(plane[:, 1] / max(float(_spacing(plane)), 1e-9)).long()
+    order = sorted(range(k), key=lambda i: (-int(rows[i]), float(plane[i, 0])))
+    shift = 1 if folds <= 3 else 2
+    scattered = torch.empty(k, dtype=torch.long)
+    row, rank, at = None, 0, -1
+    for i in order:
+        if int(rows[i]) != row:
+            row, rank, at = int(rows[i]), 0, at + 1
+        scattered[i] = (rank + shift * at) % folds
+        rank += 1
+    if bool((torch.bincount(scattered, minlength=folds) < 0.5 * k / folds).any()):  # short rows
+        scattered[torch.tensor(order)] = torch.arange(k) % folds
+    schemes = [scattered]
+    if regions:
+        centred = plane - plane.mean(0)
+        azimuth = torch.atan2(centred[:, 1], centred[:, 0])
+        sector = torch.empty(k, dtype=torch.long)
+        sector[torch.argsort(azimuth)] = (torch.arange(k) * folds) // k
+        schemes.append(sector)
+    return torch.stack(schemes).to(device)
+
+
+def _spacing(plane: Tensor) -> Tensor:
+    """The median distance from a light to its nearest neighbour in the l-plane."""
+    if plane.shape[0] < 2:
+        return plane.new_tensor(1.0)
+    distance = torch.cdist(plane, plane)
+    distance.fill_diagonal_(math.inf)
+    return distance.min(-1).values.median()
+
+
+def held_out(
+    model: Model,
+    svbrdf: SVBRDF,
+    index: Tensor,
+    data: TileSamples,
+    inverse_noise: Tensor,
+    folds: Tensor,
+    config: FitConfig,
+) -> Tensor:
+    """The residuals of each sample predicted with its fold left out, in units of its noise:
+    ``(m, S, K, C)`` (0 for invalid samples).
+
+    Args:
+        model: the fitted model; svbrdf: its solution on pixels ``index (m,)`` of ``data``.
+        inverse_noise: ``(m, K, C)`` one over each sample's noise
+            (:meth:`~torchspec.pipeline.samples.TileSamples.inverse_noise`).
+        folds: ``(S, K)`` each frame's fold per scheme (:func:`light_folds`).
+        config: the fit's settings (the quadrature).
+    """
+    m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
+    schemes, count = folds.shape[0], int(folds.max()) + 1
+    out = data.observed.new_zeros((m, schemes, k, c))
+    if m == 0:
+        return out
+    bounds = model.bounds(c)
+    rule = replace(config.rule, compile=False)  # the Jacobian itself: the fused code sums it away
+    p = model.size(c)
+    chunk = max(1, CHUNK_SAMPLES // (k * c * p))
+    # member[s, f, k]: frame k is in fold f of scheme s.
+    member = folds[:, None, :] == torch.arange(count, device=folds.device)[None, :, None]
+    member = member.to(data.observed.dtype)
+    for start in range(0, m, chunk):
+        rows = slice(start, start + chunk)
+        at = index[rows]
+        weight = data.weight[at]
+        fn = bounded(
+            model.residuals(data.observed[at], weight, data.lights, data.view, data.channels, quadrature=rule),
+            bounds,
+        )
+        free = bounds.to_free(model.pack(svbrdf[rows]))
+        r, jac = fn(free, torch.arange(free.shape[0], device=free.device))
+        n = r.shape[0]
+        r, jac = r.view(n, k, c), jac.view(n, k, c, p)
+        # Per fold: the fold's J^T J and J^T r, and the normal equations without it.
+        jj = torch.einsum("nkcp,nkcq->nkpq", jac, jac)  # per frame
+        jr = torch.einsum("nkcp,nkc->nkp", jac, r)
+        fold_jj = torch.einsum("sfk,nkpq->nsfpq", member, jj)
+        fold_jr = torch.einsum("sfk,nkp->nsfp", member, jr)
+        rest_jj = jj.sum(1)[:, None, None] - fold_jj
+        rest_jr = jr.sum(1)[:, None, None] - fold_jr
+        step = _damped_solve(rest_jj, -rest_jr)  # (n, S, F, P)
+        # Each frame takes its own fold's step: predicted residual r + J step.
+        per_frame = torch.einsum("sfk,nsfp->nskp", member, step)
+        predicted = r[:, None] + torch.einsum("nkcp,nskp->nskc", jac, per_frame)
+        # r = (render - observed) / level on valid samples: to noise units.
+        scale = data.level[at, None, None, None] * inverse_noise[rows, None]
+        out[rows] = predicted * scale
+    return out
+
+
+def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:
+    """``(matrix + DAMPING diag(matrix)) x = rhs``, batched; 0 where singular even so."""
+    diagonal = matrix.diagonal(dim1=-2, dim2=-1)
+    damping = DAMPING * diagonal + torch.finfo(matrix.dtype).eps * diagonal.amax(-1, keepdim=True)
+    damped = matrix + torch.diag_embed(damping.clamp(min=torch.finfo(matrix.dtype).tiny))
+    solution, info = torch.linalg.solve_ex(damped, rhs)
+    ok = (info == 0)[..., None] & solution.isfinite().all(-1, keepdim=True)
+    return torch.where(ok, solution, torch.zeros_like(solution))
+
+
+def prediction_error(residual: Tensor) -> Tensor:
+    """A fit's left-out prediction error per pixel ``(m,)``: the mean over its schemes of the
+    squared left-out residuals (noise units) summed over samples (:func:`held_out`'s)."""
+    return residual.square().sum((2, 3)).mean(1)
+
+
+def predicts_better(candidate: Tensor, current: Tensor, z: float) -> Tensor:
+    """``(m,)`` bool: ``candidate``'s left-out residuals ``(m, S, K, C)`` predict better than
+    ``current``'s by more than the noise would make them.
+
+    With ``d = e_current^2 - e_candidate^2`` per sample, in noise units, the candidate's
+    improvement ``sum d`` must exceed ``z`` standard deviations of what noise alone would give it:
+    two models whose predictions differ by ``delta`` on a sample differ in ``d`` by ``2 e delta``,
+    of variance ``4 delta^2`` (``e`` of unit variance), so the bound is ``2 z sqrt(sum delta^2)``.
+    Averaged over the schemes; in every scheme the candidate must predict better.
+    """
+    gain = (current.square() - candidate.square()).sum((2, 3))  # (m, S)
+    spread = 2.0 * (current - candidate).square().sum((2, 3)).sqrt()
+    return (gain.mean(1) > z * spread.mean(1)) & (gain > 0).all(1)
