@@ -386,7 +386,7 @@ def test_smoothing_takes_lobes_only_where_the_neighbours_outweigh_them(dual, tmp
     # predict_z = 0: each pixel's choice alone keeps any lobe that predicts better at all, so the
     # peaks detected in the matte region's noise keep lobes for smoothing to take away.
     plain = fit(dual, config=FitConfig(predict_z=0.0, tile=150), frames="::2")
-    smooth = fit(dual, config=FitConfig(predict_z=0.0, smooth=20.0, tile=150), frames="::2")  # tiles: the image's choice
+    smooth = fit(dual, config=FitConfig(predict_z=0.0, smooth=20.0, tile=150), frames="::2")  # the image's choice
     assert plain.stats["smoothed"] is None
     dropped = (plain.model > 0) & (smooth.model == 0)
     assert smooth.stats["smoothed"] == int(dropped.sum()) and not bool(((plain.model == 0) & (smooth.model > 0)).any())
