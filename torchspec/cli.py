@@ -35,7 +35,45 @@ def build_parser() -> argparse.ArgumentParser:
     _add_map_commands(commands)
     _add_capture_commands(commands)
     _add_dome_commands(commands)
+    _add_import_command(commands)
     return parser
+
+
+# --- torchspec import (RTI captures: .lp + photographs) ------------------------------------------
+
+
+def _add_import_command(commands) -> None:
+    """``import``."""
+    command = commands.add_parser("import", help="import an RTI capture: .lp light file + JPEG/PNG/TIFF/RAW photos")
+    command.add_argument("source", type=Path, help="an .lp light file, or a folder holding one (or a lights.txt)")
+    command.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
+    command.add_argument("--transfer", default=None, metavar="{srgb,linear,gamma:G}",
+                         help="the photographs' tone curve, decoded to linear (default: srgb for 8 and 16-bit files, "
+                              "linear for float and RAW)")
+    command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
+    command.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import warnings
+
+    from .io.rti import import_rti
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the notes are printed below, once each
+        result = import_rti(args.source, args.output, transfer=args.transfer, overwrite=args.overwrite,
+                            progress=not args.quiet)
+    for note in result.notes:
+        print(f"torchspec import: note: {note}", file=sys.stderr)
+    capture = result.capture
+    print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
+          f"{''.join(capture.channels)} from {result.light_file.path} (images matched by {result.matched}; "
+          f"transfer {result.transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
+          f"{shlex.quote(str(args.output))}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------
 
 
 def _add_simulation_commands(commands) -> None:
@@ -339,6 +377,7 @@ COMMANDS = {
     "calibrate": _calibrate,
     "dome-emulator": _dome_emulator,
     "acquire": _acquire,
+    "import": _import,
 }
 """Each subcommand's function: ``(parser, args) -> exit status``."""
 
