@@ -52,6 +52,32 @@ def _add_import_command(commands) -> None:
                               "linear for float and RAW)")
     command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
+    sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
+    sphere.add_argument("folder", type=Path, help="the sphere's photographs, one per light (natural order)")
+    sphere.add_argument("-o", "--output", type=Path, required=True, help="the .lp to write (a .json beside)")
+    where = sphere.add_mutually_exclusive_group(required=True)
+    where.add_argument("--mask", type=Path, help="an image, white on the sphere")
+    where.add_argument("--circle", type=float, nargs=3, metavar=("CX", "CY", "R"), help="the sphere's outline, pixels")
+
+
+def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import torch
+
+    from .io.images import read_photo
+    from .io.rti import photographs
+    from .sphere import Circle, circle_from_mask, sphere_directions, write_lp
+
+    images = photographs(args.folder)
+    if len(images) < 1:
+        raise TorchspecError(f"{args.folder} must hold the sphere's photographs; got none.")
+    circle = Circle(*args.circle) if args.circle else circle_from_mask(args.mask)
+    frames = torch.stack([torch.from_numpy(read_photo(path).pixels).permute(2, 0, 1) for path in images])
+    result = sphere_directions(frames, circle)
+    write_lp(args.output, [path.name for path in images], result)
+    print(f"wrote {args.output}: {len(images)} lights from a sphere at ({circle.cx:.1f}, {circle.cy:.1f}), radius "
+          f"{circle.r:.1f} px; uncertainty {float(result.uncertainty_deg.median()):.2f} deg (median), "
+          f"{float(result.uncertainty_deg.max()):.2f} deg (largest)")
+    return 0
 
 
 def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -378,6 +404,7 @@ COMMANDS = {
     "dome-emulator": _dome_emulator,
     "acquire": _acquire,
     "import": _import,
+    "calibrate-sphere": _calibrate_sphere,
 }
 """Each subcommand's function: ``(parser, args) -> exit status``."""
 

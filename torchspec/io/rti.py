@@ -39,7 +39,7 @@ from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
 from .lp import LightFile, read_light_file
 
-__all__ = ["RTIImportError", "Imported", "find_light_file", "match_images", "import_rti"]
+__all__ = ["RTIImportError", "Imported", "find_light_file", "match_images", "import_rti", "photographs"]
 
 CLIP = 1.0
 """The linear value of a clipped sample, whatever the transfer."""
@@ -103,8 +103,9 @@ def _natural(name: str) -> list:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
-def _photographs(folder: Path) -> list[Path]:
-    """The folder's image files that may be frames, in natural order."""
+def photographs(folder: Path) -> list[Path]:
+    """The folder's image files that may be frames, in natural order (``2`` before ``10``); files
+    whose name holds ``mask`` or ``normal`` are not frames."""
     suffixes = IMAGE_SUFFIXES + RAW_SUFFIXES
     files = [
         path
@@ -135,38 +136,37 @@ def match_images(lights: LightFile) -> tuple[list[Path], str, list[str]]:
         RTIImportError: an image cannot be found; the message names each missing one and its line.
     """
     folder = lights.path.parent
-    photographs = _photographs(folder)
+    found_photos = photographs(folder)
     if lights.named:
         listing = {path.name.lower(): path for path in folder.iterdir() if path.is_file()}
         stems: dict[str, list[Path]] = {}
-        for path in photographs:
+        for path in found_photos:
             stems.setdefault(path.stem.lower(), []).append(path)
         found = [_by_name(folder, entry.name, listing, stems) for entry in lights.entries]
         if all(path is not None for path in found):
             return found, "name", []
-        if not any(found) and len(photographs) == len(lights.entries):
+        if not any(found) and len(found_photos) == len(lights.entries):
             note = (
-                f"{lights.path}: no image is named as in the light file; the {len(photographs)} photographs of "
-                f"{folder} are matched by order ({photographs[0].name} to line {lights.entries[0].line}, ...)."
+                f"{lights.path}: no image is named as in the light file; the {len(found_photos)} photographs of "
+                f"{folder} are matched by order ({found_photos[0].name} to line {lights.entries[0].line}, ...)."
             )
-            return photographs, "order", [note]
+            return found_photos, "order", [note]
         missing = [entry for entry, path in zip(lights.entries, found, strict=True) if path is None]
         shown = "; ".join(f"{entry.name!r} (line {entry.line})" for entry in missing)
         raise RTIImportError(
             f"{lights.path}: {len(missing)} of {len(lights.entries)} images are missing from {folder}: {shown}. "
             "Restore them, or fix their names in the light file."
         )
-    if len(photographs) != len(lights.entries):
+    if len(found_photos) != len(lights.entries):
         raise RTIImportError(
             f"{lights.path} lists {len(lights.entries)} directions without image names, so the images are matched by "
-            f"order; but {folder} holds {len(photographs)} photographs. Keep exactly one photograph per light."
+            f"order; but {folder} holds {len(found_photos)} photographs. Keep exactly one photograph per light."
         )
     note = (
-        f"{lights.path} names no images: its {len(photographs)} directions are matched by order to the photographs "
-        f"of {folder} in natural order ({photographs[0].name}, {photographs[1].name if len(photographs) > 1 else ''} "
-        "...)."
+        f"{lights.path} names no images: its {len(found_photos)} directions are matched by order to the photographs "
+        f"of {folder} in natural order ({', '.join(path.name for path in found_photos[:2])} ...)."
     )
-    return photographs, "order", [note]
+    return found_photos, "order", [note]
 
 
 def _exposures(exifs: list[dict[str, float]], images: list[Path], notes: list[str]) -> list[float]:
