@@ -176,7 +176,7 @@ def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
         "psnr_db": math.inf if mse == 0 else 10 * math.log10(1 / mse),
         "ssim": ssim,
         "worst_brightness_ratio": float(ratio[worst]),
-        "worst_frame": worst,
+        "worst_frame": worst,  # its index in the frames scored
     }
 
 
@@ -213,9 +213,11 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
     for name, basis in BASES.items():
         values, seconds = polynomial(basis, d[fitted], codes[fitted], test_d)
         rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth)})
+        rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]  # the frame's index in the target
     for model in settings.models:
         values, seconds, fit = torchspec_predict(capture, fitted, _lights(target_capture, predicted), model, settings)
         row = {"method": f"torchspec {model}", "fit_seconds": seconds, **scores(SRGB.encode(values.clamp(0, 1)), truth)}
+        row["worst_frame"] = predicted[row["worst_frame"]]
         row["lobe_share"] = float(fit.lobe.double().mean())
         row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
         rows.append(row)
