@@ -310,6 +310,15 @@ def test_existing_output_is_refused_unless_overwrite(tmp_path):
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
+def test_output_holding_the_photographs_is_refused(tmp_path):
+    lp = _capture(tmp_path / "rti")
+    with pytest.raises(RTIImportError, match="must not hold the capture's own files"):
+        import_rti(lp, tmp_path, overwrite=True)
+    with pytest.raises(RTIImportError, match="must not hold the capture's own files"):
+        import_rti(lp, tmp_path / "rti", overwrite=True)
+    assert len(list((tmp_path / "rti").iterdir())) == 6
+
+
 def test_command_line(tmp_path, capsys):
     lp = _capture(tmp_path / "rti")
     assert main(["import", str(lp), "-o", str(tmp_path / "out"), "--quiet"]) == 0

@@ -279,6 +279,12 @@ def import_rti(
     images, matched, notes = match_images(lights)
     notes = list(lights.notes) + notes
     _check_output(output, overwrite)
+    inside = [path for path in (lights.path, *images) if path.resolve().is_relative_to(output.resolve())]
+    if inside:
+        raise RTIImportError(
+            f"{output} must not hold the capture's own files; got {inside[0]} inside it. Write the capture to "
+            "another folder."
+        )
     if isinstance(transfer, str):
         transfer = Transfer.parse(transfer)
     output.parent.mkdir(parents=True, exist_ok=True)
