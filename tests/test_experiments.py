@@ -194,3 +194,58 @@ def test_identical_outputs_finds_every_difference(tmp_path):
     assert proof.numbers(committed, {"rows": [{"psnr": 61.0, "seconds": 1.0, "nan": float("nan")}]}) == [
         "/rows[0]/psnr: 60.0 against 61.0"
     ]
+
+
+def _rti_folder(folder, directions, normals):
+    """A Lambertian relief under point lights as an RTI capture: 8-bit sRGB PNGs and dirs.lp."""
+    import numpy as np
+    from PIL import Image
+
+    folder.mkdir(parents=True)
+    lines = [str(len(directions))]
+    for k, d in enumerate(directions):
+        linear = (normals @ np.asarray(d)).clip(0, None)[..., None] * np.array([0.7, 0.5, 0.3])
+        encoded = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+        Image.fromarray((encoded.clip(0, 1) * 255).round().astype(np.uint8)).save(folder / f"image{k:02d}.png")
+        lines.append(f"image{k:02d}.png {d[0]:.6f} {d[1]:.6f} {d[2]:.6f}")
+    (folder / "dirs.lp").write_text("\n".join(lines) + "\n")
+
+
+def test_rti_relight_runs(tmp_path):
+    """PTM, HSH and torchspec on a tiny relief, as a real capture and as a SynthRTI one (Dome/, Test/,
+    normals.png): HSH and torchspec predict a Lambertian relief's left-out lights, the normals are found."""
+    import math
+
+    import numpy as np
+    from PIL import Image
+
+    y, x = np.mgrid[0:8, 0:8] / 8.0
+    slope = np.stack([0.3 * np.sin(2 * math.pi * x), 0.2 * np.cos(2 * math.pi * y), np.ones_like(x)], -1)
+    normals = slope / np.linalg.norm(slope, axis=-1, keepdims=True)
+
+    def ring(count, elevation, turn):
+        return [
+            (math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation))
+            for a in np.linspace(turn, turn + 2 * math.pi, count, endpoint=False)
+        ]
+
+    dome = ring(6, 0.5, 0.0) + ring(6, 1.0, 0.3)
+    _rti_folder(tmp_path / "data" / "real", dome, normals)
+    _rti_folder(tmp_path / "data" / "synth" / "Dome", dome, normals)
+    _rti_folder(tmp_path / "data" / "synth" / "Test", ring(4, 0.8, 0.7), normals)
+    Image.fromarray(((normals + 1) / 2 * 255).round().astype(np.uint8)).save(tmp_path / "data/synth/Dome/normals.png")
+    result = _main(
+        "rti_relight",
+        tmp_path,
+        f"data: {tmp_path / 'data'}\ncaptures: [real, synth]\ndownsample: 1\nmodels: [auto, diffuse]\nthreads: 1\n",
+    )
+    real, synth = result["captures"]
+    assert real["left_out"] == [2, 7] and real["size"] == [8, 8]
+    methods = {row["method"]: row for row in real["rows"]}
+    assert list(methods) == ["PTM", "HSH", "torchspec auto", "torchspec diffuse"]
+    assert methods["torchspec diffuse"]["psnr_db"] > 35 and methods["torchspec diffuse"]["lobe_share"] == 0
+    assert 0.9 < methods["torchspec diffuse"]["worst_brightness_ratio"] < 1.1
+    assert all(0 <= row["ssim"] <= 1 and row["fit_seconds"] >= 0 for row in real["rows"])
+    assert [row["method"] for row in synth["dome_to_test"]][:2] == ["PTM", "HSH"]
+    assert synth["normals"]["torchspec_deg"] < 3 and synth["normals"]["least_squares_ps_deg"] < 3
+    assert json.loads((tmp_path / "tiny.json").read_text())["captures"][0]["capture"] == "real"

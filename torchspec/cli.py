@@ -35,7 +35,71 @@ def build_parser() -> argparse.ArgumentParser:
     _add_map_commands(commands)
     _add_capture_commands(commands)
     _add_dome_commands(commands)
+    _add_import_command(commands)
     return parser
+
+
+# --- torchspec import (RTI captures: .lp + photographs) ------------------------------------------
+
+
+def _add_import_command(commands) -> None:
+    """``import``."""
+    command = commands.add_parser("import", help="import an RTI capture: .lp light file + JPEG/PNG/TIFF/RAW photos")
+    command.add_argument("source", type=Path, help="an .lp light file, or a folder holding one (or a lights.txt)")
+    command.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
+    command.add_argument("--transfer", default=None, metavar="{srgb,linear,gamma:G}",
+                         help="the photographs' tone curve, decoded to linear (default: srgb for 8 and 16-bit files, "
+                              "linear for float and RAW)")
+    command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
+    command.add_argument("--quiet", action="store_true", help="no progress bar")
+    sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
+    sphere.add_argument("folder", type=Path, help="the sphere's photographs, one per light (natural order)")
+    sphere.add_argument("-o", "--output", type=Path, required=True, help="the .lp to write (a .json beside)")
+    where = sphere.add_mutually_exclusive_group(required=True)
+    where.add_argument("--mask", type=Path, help="an image, white on the sphere")
+    where.add_argument("--circle", type=float, nargs=3, metavar=("CX", "CY", "R"), help="the sphere's outline, pixels")
+
+
+def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import torch
+
+    from .io.images import read_photo
+    from .io.rti import photographs
+    from .sphere import Circle, circle_from_mask, sphere_directions, write_lp
+
+    images = photographs(args.folder)
+    if len(images) < 1:
+        raise TorchspecError(f"{args.folder} must hold the sphere's photographs; got none.")
+    circle = Circle(*args.circle) if args.circle else circle_from_mask(args.mask)
+    frames = torch.stack([torch.from_numpy(read_photo(path).pixels).permute(2, 0, 1) for path in images])
+    result = sphere_directions(frames, circle)
+    write_lp(args.output, [path.name for path in images], result)
+    print(f"wrote {args.output}: {len(images)} lights from a sphere at ({circle.cx:.1f}, {circle.cy:.1f}), radius "
+          f"{circle.r:.1f} px; uncertainty {float(result.uncertainty_deg.median()):.2f} deg (median), "
+          f"{float(result.uncertainty_deg.max()):.2f} deg (largest)")
+    return 0
+
+
+def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import warnings
+
+    from .io.rti import import_rti
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the notes are printed below, once each
+        result = import_rti(args.source, args.output, transfer=args.transfer, overwrite=args.overwrite,
+                            progress=not args.quiet)
+    for note in result.notes:
+        print(f"torchspec import: note: {note}", file=sys.stderr)
+    capture = result.capture
+    print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
+          f"{''.join(capture.channels)} from {result.light_file.path} (images matched by {result.matched}; "
+          f"transfer {result.transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
+          f"{shlex.quote(str(args.output))}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------
 
 
 def _add_simulation_commands(commands) -> None:
@@ -339,6 +403,8 @@ COMMANDS = {
     "calibrate": _calibrate,
     "dome-emulator": _dome_emulator,
     "acquire": _acquire,
+    "import": _import,
+    "calibrate-sphere": _calibrate_sphere,
 }
 """Each subcommand's function: ``(parser, args) -> exit status``."""
 

@@ -42,7 +42,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     Args:
         path: the capture directory, or its ``capture.json``.
         saturation: the sensor's clipping level, as :attr:`torchspec.FitConfig.saturation`;
-            ``None`` detects a clipped plateau over all the frames, as the fit does.
+            ``None``: the level the capture records (:attr:`torchspec.io.Capture.saturation`), else
+            a clipped plateau detected over all the frames, as the fit does.
         progress: show a tqdm bar over the frames.
 
     Returns:
@@ -104,6 +105,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     if count < MIN_FRAMES:
         reasons.append(f"{capture.manifest}: a fit needs at least {MIN_FRAMES} frames; got {count}.")
 
+    if saturation is None:  # the level an imported capture records, as the fit uses it
+        saturation = capture.saturation
     rows, level = _scan(capture, saturation, progress)
     report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
     report["saturation"] = level if math.isfinite(level) else None

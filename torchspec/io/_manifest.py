@@ -26,8 +26,9 @@ VERSIONS = (1,)
 MANIFEST = "capture.json"
 _REQUIRED = ("width", "height", "channels", "camera", "light", "frames")
 # Optional top-level keys read without a warning (kept in Capture.extra): "generator" records
-# how a synthetic capture was made, by the development data's renderer and by torchspec simulate.
-_OPTIONAL = ("generator",)
+# how a synthetic capture was made, by the development data's renderer and by torchspec simulate;
+# "source" where an imported one came from (torchspec import: light file, images, transfer, clipping).
+_OPTIONAL = ("generator", "source")
 _KNOWN = ("format", "version") + _REQUIRED
 _FRAME_KEYS = ("file", "direction", "irradiance", "exposure")
 _LIGHT_KEYS = {"point": (), "gaussian": ("domain", "sigma"), "tabulated": ("file", "extent"), "unknown": ("symmetric",)}

@@ -80,6 +80,8 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     """
     config = config or FitConfig()
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
+    if config.saturation is None and capture.saturation is not None:  # the level an imported capture records
+        config = replace(config, saturation=capture.saturation)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
     if len(picked) < 4:
         raise TorchspecError(

@@ -103,7 +103,8 @@ class FitConfig:
             pixel's level, in the criterion and the deviations (the model's own error: the
             quadrature, a lobe shape the data's material does not follow).
         naive_alpha: the roughness of the naive start.
-        saturation: the sensor's clipping level; ``None`` detects a clipped plateau.
+        saturation: the sensor's clipping level; ``None``: the level the capture records
+            (:attr:`torchspec.io.Capture.saturation`, an imported capture's), else a clipped plateau detected.
         grow: saturated regions are grown by this many pixels.
         shadow: samples below this fraction of the pixel's median are shadows.
         trim, cut: of the robust photometric stereo.

@@ -1,0 +1,64 @@
+"""Light directions from a chrome sphere (torchspec.sphere, torchspec calibrate-sphere)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from torchspec.cli import main
+from torchspec.io.lp import read_light_file
+from torchspec.sphere import Circle, circle_from_mask, sphere_directions
+
+CIRCLE = Circle(cx=40.3, cy=35.7, r=25.0)
+LIGHTS = [
+    (0.0, 0.0, 1.0),
+    (0.5, 0.3, math.sqrt(1 - 0.34)),
+    (-0.6, 0.2, math.sqrt(1 - 0.4)),
+    (0.1, -0.7, math.sqrt(0.5)),
+]
+
+
+def _sphere_frames(lights, circle=CIRCLE, h=72, w=80):
+    """A mirror sphere's highlight (a Gaussian spot of 1 px) where its normal halves light and view."""
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    frames = []
+    for light in lights:
+        half = np.add(light, (0, 0, 1))
+        half /= np.linalg.norm(half)
+        x, y = circle.cx + circle.r * half[0], circle.cy - circle.r * half[1]
+        spot = np.exp(-((cols - x) ** 2 + (rows - y) ** 2) / 2)
+        frames.append(np.repeat(spot[None], 3, 0))
+    return torch.from_numpy(np.stack(frames))
+
+
+def test_directions_from_highlights():
+    result = sphere_directions(_sphere_frames(LIGHTS), CIRCLE)
+    truth = torch.tensor(LIGHTS, dtype=torch.float64)
+    angle = torch.rad2deg(torch.acos((result.directions * truth).sum(-1).clamp(-1, 1)))
+    assert angle.max() < 0.6, angle  # a 25-pixel sphere, a highlight of 1 pixel: within its uncertainty
+    assert (angle < result.uncertainty_deg).all(), (angle, result.uncertainty_deg)
+    assert torch.allclose(result.directions.norm(dim=-1), torch.ones(4, dtype=torch.float64))
+    assert (result.uncertainty_deg > 0).all() and (result.uncertainty_deg < 10).all()
+
+
+def test_circle_from_mask():
+    rows, cols = np.mgrid[0:72, 0:80]
+    mask = ((cols - CIRCLE.cx) ** 2 + (rows - CIRCLE.cy) ** 2 <= CIRCLE.r**2).astype(np.float32)
+    circle = circle_from_mask(mask)
+    assert circle.cx == pytest.approx(CIRCLE.cx, abs=0.05) and circle.cy == pytest.approx(CIRCLE.cy, abs=0.05)
+    assert circle.r == pytest.approx(CIRCLE.r, abs=0.1)
+
+
+def test_command_line_writes_an_lp(tmp_path):
+    frames = _sphere_frames(LIGHTS)
+    for k, frame in enumerate(frames):
+        Image.fromarray((frame.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(tmp_path / f"s.{k}.png")
+    args = ["calibrate-sphere", str(tmp_path), "-o", str(tmp_path / "out" / "dome.lp")]
+    assert main(args + ["--circle", str(CIRCLE.cx), str(CIRCLE.cy), str(CIRCLE.r)]) == 0
+    lights = read_light_file(tmp_path / "out" / "dome.lp")
+    assert [e.name for e in lights.entries] == [f"s.{k}.png" for k in range(4)]
+    got = torch.tensor([e.direction for e in lights.entries], dtype=torch.float64)
+    assert torch.rad2deg(torch.acos((got * torch.tensor(LIGHTS, dtype=torch.float64)).sum(-1).clamp(-1, 1))).max() < 1
+    assert (tmp_path / "out" / "dome.json").is_file()

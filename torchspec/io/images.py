@@ -1,0 +1,301 @@
+"""Photographs as RTI captures hold them: JPEG, PNG and TIFF (8 or 16 bit, or float), and camera RAW
+files, read to ``(H, W, C)`` values in ``[0, 1]`` as encoded, with the tone curve
+(:class:`Transfer`) that turns them into linear radiance.
+
+Readers: Pillow for JPEG, BMP and TGA; pypng for PNG (16-bit colour, which Pillow narrows to 8
+bits); tifffile for TIFF; rawpy (``pip install "torchspec[raw]"``, imported only for a RAW file)
+demosaics RAW files to linear 16-bit sRGB primaries. An integer image's largest code (255 or
+65535) is a clipped sample: it reads as exactly 1, which every transfer keeps at 1, so a capture's
+clipping level is 1 whatever the transfer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import TorchspecError
+
+__all__ = ["IMAGE_SUFFIXES", "RAW_SUFFIXES", "ImageError", "Photo", "Transfer", "read_photo", "exposure_value"]
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".tga")
+RAW_SUFFIXES = (
+    ".dng",
+    ".cr2",
+    ".cr3",
+    ".crw",
+    ".nef",
+    ".nrw",
+    ".arw",
+    ".srf",
+    ".sr2",
+    ".orf",
+    ".rw2",
+    ".raf",
+    ".pef",
+    ".srw",
+    ".3fr",
+    ".iiq",
+    ".erf",
+    ".kdc",
+    ".mrw",
+    ".x3f",
+    ".raw",
+)
+_EXIF_IFD = 0x8769
+_EXIF_TAGS = {"exposure_time": 0x829A, "f_number": 0x829D, "iso": 0x8827}
+
+
+class ImageError(TorchspecError):
+    """A photograph that cannot be read or used; the message names the file."""
+
+
+@dataclass(frozen=True)
+class Transfer:
+    """The tone curve of encoded values ``v`` in ``[0, 1]``: ``srgb`` (IEC 61966-2-1), ``linear``,
+    or ``gamma`` (``v ** gamma``).
+
+    Example:
+        >>> t = Transfer.parse("gamma:2.2")
+        >>> str(t), round(float(t.decode(torch.tensor(0.5))), 4)
+        ('gamma:2.2', 0.2176)
+        >>> srgb = Transfer.parse("srgb")
+        >>> round(float(srgb.encode(srgb.decode(torch.tensor(0.3)))), 6)
+        0.3
+    """
+
+    name: str
+    gamma: float | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> Transfer:
+        """``srgb``, ``linear`` or ``gamma:G`` (``G > 0``); :class:`ImageError` otherwise."""
+        name, _, value = str(text).strip().lower().partition(":")
+        if name in ("srgb", "linear") and not value:
+            return cls(name)
+        if name == "gamma":
+            try:
+                gamma = float(value)
+            except ValueError:
+                gamma = math.nan
+            if math.isfinite(gamma) and gamma > 0:
+                return cls("gamma", gamma)
+        raise ImageError(
+            f"the transfer must be 'srgb', 'linear' or 'gamma:G' with G > 0 (e.g. gamma:2.2); got {text!r}."
+        )
+
+    def __str__(self) -> str:
+        return f"gamma:{self.gamma:g}" if self.name == "gamma" else self.name
+
+    def decode(self, values: torch.Tensor) -> torch.Tensor:
+        """Encoded values in ``[0, 1]`` to linear, elementwise (dtype and device kept)."""
+        if self.name == "linear":
+            return values
+        if self.name == "gamma":
+            return values.clamp(min=0) ** self.gamma
+        return torch.where(values <= 0.04045, values / 12.92, ((values.clamp(min=0) + 0.055) / 1.055) ** 2.4)
+
+    def encode(self, values: torch.Tensor) -> torch.Tensor:
+        """Linear values to encoded ones, the inverse of :meth:`decode` on ``[0, 1]``."""
+        if self.name == "linear":
+            return values
+        if self.name == "gamma":
+            return values.clamp(min=0) ** (1 / self.gamma)
+        low = values * 12.92
+        return torch.where(values <= 0.0031308, low, 1.055 * values.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A photograph as read.
+
+    Attributes:
+        pixels: ``(H, W, C)`` float32 encoded values (integer codes divided by the largest code),
+            ``C`` 1 (grey) or 3 (RGB); an alpha channel is dropped.
+        encoding: ``"8-bit"``, ``"16-bit"``, ``"float"`` or ``"raw"`` (linear 16-bit from rawpy).
+        exif: ``exposure_time`` (s), ``f_number`` and ``iso`` where the file records them.
+        notes: what was assumed or converted, naming the file.
+    """
+
+    pixels: np.ndarray
+    encoding: str
+    exif: dict[str, float] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+    @property
+    def clipped(self) -> bool:
+        """Whether the largest value is a clipping level (an integer image's largest code)."""
+        return self.encoding != "float"
+
+    @property
+    def default_transfer(self) -> Transfer:
+        """sRGB for 8 and 16-bit files, linear for float and RAW files."""
+        return Transfer("srgb") if self.encoding in ("8-bit", "16-bit") else Transfer("linear")
+
+
+def exposure_value(exif: dict[str, float]) -> float | None:
+    """The relative exposure ``t * ISO / N^2`` of EXIF ``exposure_time``, ``iso`` and
+    ``f_number`` (a missing ISO or f-number counts as equal between frames); ``None`` without
+    an exposure time."""
+    if "exposure_time" not in exif:
+        return None
+    return exif["exposure_time"] * exif.get("iso", 1.0) / exif.get("f_number", 1.0) ** 2
+
+
+def _integer(array: np.ndarray, path: Path) -> tuple[np.ndarray, str]:
+    if array.dtype == np.uint8:
+        return array.astype(np.float32) / 255.0, "8-bit"
+    if array.dtype == np.uint16:
+        return array.astype(np.float32) / 65535.0, "16-bit"
+    if array.dtype.kind == "f":
+        return array.astype(np.float32), "float"
+    raise ImageError(
+        f"{path} must hold 8 or 16-bit integer or float samples; got {array.dtype}. Export it as 8 or 16-bit."
+    )
+
+
+def _channels(array: np.ndarray, path: Path, notes: list[str]) -> np.ndarray:
+    """``(H, W, C)`` with ``C`` 1 or 3 from grey, grey + alpha, RGB or RGBA samples."""
+    if array.ndim == 2:
+        array = array[:, :, None]
+    if array.ndim != 3 or array.shape[2] not in (1, 2, 3, 4):
+        raise ImageError(f"{path} must be a greyscale or RGB image; got samples of shape {array.shape}.")
+    if array.shape[2] in (2, 4):
+        notes.append(f"{path}: its alpha channel is not used.")
+        array = array[:, :, :3] if array.shape[2] >= 3 else array[:, :, :1]
+    return array
+
+
+def _with_pillow(path: Path, notes: list[str]) -> tuple[np.ndarray, dict[str, float]]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            image.load()
+            mode = image.mode
+            exif = image.getexif().get_ifd(_EXIF_IFD)
+            if mode == "CMYK":
+                raise ImageError(
+                    f"{path} is a CMYK image; photographs for a fit must be RGB or greyscale. Convert it to RGB "
+                    "with its colour profile (e.g. `magick in.jpg -colorspace sRGB out.jpg`)."
+                )
+            if mode in ("P", "PA", "1", "YCbCr", "LAB", "HSV"):
+                notes.append(f"{path}: {mode} image converted to RGB.")
+                image = image.convert("RGBA" if mode == "PA" else "RGB")
+            array = np.asarray(image)
+            if mode.startswith("I;16"):
+                array = array.astype(np.uint16)
+    except ImageError:
+        raise
+    except Exception as error:  # Pillow's errors for a truncated or foreign file are of many kinds
+        raise ImageError(f"{path} cannot be read as an image: {error}. Re-export or re-copy the file.") from error
+    values = {name: float(exif[tag]) for name, tag in _EXIF_TAGS.items() if tag in exif and _positive(exif[tag])}
+    return array, values
+
+
+def _positive(value) -> bool:
+    try:
+        number = float(value[0] if isinstance(value, tuple) else value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return False
+    return math.isfinite(number) and number > 0
+
+
+def _with_pypng(path: Path) -> np.ndarray:
+    import png
+
+    try:
+        width, height, rows, info = png.Reader(filename=str(path)).asDirect()
+        planes = info["planes"]
+        dtype = np.uint16 if info["bitdepth"] > 8 else np.uint8
+        array = np.vstack([np.asarray(row, dtype=dtype) for row in rows]).reshape(height, width, planes)
+    except Exception as error:  # pypng's FormatError, ChunkError, and zlib's errors of a truncated file
+        raise ImageError(f"{path} cannot be read as a PNG: {error}. Re-export or re-copy the file.") from error
+    if info["bitdepth"] not in (8, 16):  # 1, 2, 4-bit grey: rescale to 8 bits
+        array = (array.astype(np.float64) * 255 / (2 ** info["bitdepth"] - 1)).round().astype(np.uint8)
+    return array
+
+
+def _with_tifffile(path: Path) -> tuple[np.ndarray, dict[str, float]]:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            photometric = page.photometric
+            array = page.asarray()
+            axes = page.axes
+            tags = page.tags.get("ExifTag")
+            exif = dict(tags.value) if tags is not None else {}
+    except Exception as error:  # tifffile's TiffFileError, and the codecs' errors of a truncated file
+        raise ImageError(f"{path} cannot be read as a TIFF: {error}. Re-export or re-copy the file.") from error
+    if photometric == tifffile.PHOTOMETRIC.SEPARATED:
+        raise ImageError(f"{path} is a CMYK TIFF; photographs for a fit must be RGB or greyscale. Export it as RGB.")
+    if axes.startswith("S") and array.ndim == 3:  # planar: samples first
+        array = np.moveaxis(array, 0, -1)
+    values = {}
+    names = {"exposure_time": "ExposureTime", "f_number": "FNumber", "iso": "ISOSpeedRatings"}
+    for name, key in names.items():
+        value = exif.get(key)
+        if isinstance(value, tuple) and len(value) == 2 and value[1]:
+            value = value[0] / value[1]
+        if value is not None and _positive(value):
+            values[name] = float(value)
+    return array, values
+
+
+def _with_rawpy(path: Path) -> np.ndarray:
+    try:
+        import rawpy
+    except ImportError:
+        raise ImageError(
+            f"{path} is a camera RAW file; reading it needs rawpy, an optional dependency: "
+            'pip install "torchspec[raw]" (or convert the RAW files to 16-bit TIFF).'
+        ) from None
+    try:
+        with rawpy.imread(str(path)) as raw:
+            return raw.postprocess(
+                gamma=(1, 1),
+                no_auto_bright=True,
+                output_bps=16,
+                use_camera_wb=True,
+                user_flip=0,
+                output_color=rawpy.ColorSpace.sRGB,
+            )
+    except Exception as error:  # libraw's errors of a truncated or unknown file
+        raise ImageError(f"{path} cannot be read as a camera RAW file: {error}.") from error
+
+
+def read_photo(path: str | Path) -> Photo:
+    """Read a photograph (see the module's docstring for the formats).
+
+    Raises:
+        ImageError: the file is missing, truncated or of an unknown kind, a CMYK image, a RAW file
+            without rawpy installed, or holds samples other than 8/16-bit integer or float.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if not path.is_file():
+        raise ImageError(f"{path} must be an image file; got no such file.")
+    notes: list[str] = []
+    exif: dict[str, float] = {}
+    if suffix in RAW_SUFFIXES:
+        array, encoding = _with_rawpy(path).astype(np.float32) / 65535.0, "raw"
+        return Photo(pixels=_channels(array, path, notes), encoding=encoding, notes=tuple(notes))
+    if suffix == ".png":
+        array = _with_pypng(path)
+    elif suffix in (".tif", ".tiff"):
+        array, exif = _with_tifffile(path)
+    elif suffix in IMAGE_SUFFIXES:
+        array, exif = _with_pillow(path, notes)
+    else:
+        raise ImageError(
+            f"{path} must be an image of a known kind ({', '.join(IMAGE_SUFFIXES)}, or camera RAW); got "
+            f"{suffix or 'no suffix'}."
+        )
+    pixels, encoding = _integer(array, path)
+    return Photo(pixels=_channels(pixels, path, notes), encoding=encoding, exif=exif, notes=tuple(notes))

@@ -1,0 +1,351 @@
+"""``torchspec import``: an RTI capture (photographs and a light file) to a capture of
+``capture-format.md``.
+
+The light file (:mod:`torchspec.io.lp`) is an ``.lp`` (SOURCE, or the one ``.lp`` of the folder
+SOURCE), or a ``lights.txt`` of directions only. Each light's image is found by name (as written,
+then its file name in the light file's folder, in any case, then the same name with another image
+suffix); when no name matches and the folder holds as many photographs as lights, by order; a
+file of directions only is matched by order (names in natural order: ``2`` before ``10``; files
+whose name holds ``mask`` or ``normal`` are not photographs). Otherwise each missing image is named.
+
+Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with one recorded
+transfer, and written as a float32 EXR: point lights (the light file's directions), irradiance 1,
+exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to the median frame's where it differs
+between frames. A clipped sample (an integer image's largest code) reads as exactly 1, the clipping
+level the fit detects (``FitConfig.saturation``); the manifest's ``source`` records the light file,
+the images, the transfer, that level and what was assumed.
+
+The capture is written to a temporary folder beside OUTPUT and renamed to it once complete: a
+failure leaves nothing behind, and an OUTPUT that holds files is replaced only with ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path, PureWindowsPath
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from .._version import __version__
+from ..errors import TorchspecError
+from .capture import Capture, Frame, LightSpec, read_capture, write_capture
+from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
+from .lp import LightFile, read_light_file
+
+__all__ = ["RTIImportError", "Imported", "find_light_file", "match_images", "import_rti", "photographs"]
+
+CLIP = 1.0
+"""The linear value of a clipped sample, whatever the transfer."""
+_NOT_FRAMES = ("mask", "normal")
+_MEMORY = 1 << 30
+"""A frame stack larger than this (bytes) is held in a temporary file instead of memory."""
+
+
+class RTIImportError(TorchspecError):
+    """An RTI capture that cannot be imported; the message names the file (and line)."""
+
+
+@dataclass(frozen=True)
+class Imported:
+    """The result of :func:`import_rti`.
+
+    Attributes:
+        capture: the capture as written (``root`` the output folder).
+        light_file: the light file read.
+        images: each frame's photograph, in frame order.
+        matched: ``"name"`` or ``"order"``.
+        transfer: the tone curve the photographs were decoded with.
+        saturated: clipped pixels (any channel at the clipping level), per frame.
+        notes: what was assumed (also warned about, and kept in the manifest's ``source``).
+    """
+
+    capture: Capture
+    light_file: LightFile
+    images: tuple[Path, ...]
+    matched: str
+    transfer: Transfer
+    saturated: tuple[int, ...]
+    notes: tuple[str, ...]
+
+
+def find_light_file(source: str | Path) -> Path:
+    """The light file of SOURCE: the file itself, or the folder's one ``.lp`` (else its
+    ``lights.txt``). :class:`RTIImportError` when there is none, or several."""
+    source = Path(source)
+    if source.is_file():
+        return source
+    if not source.is_dir():
+        raise RTIImportError(f"{source} must be an .lp light file or a folder holding one; got no such file or folder.")
+    found = sorted(path for path in source.iterdir() if path.suffix.lower() == ".lp" and path.is_file())
+    if len(found) > 1:
+        raise RTIImportError(
+            f"{source} must hold one .lp light file; got {len(found)} ({', '.join(p.name for p in found)}). "
+            "Pass the one to use as SOURCE."
+        )
+    if found:
+        return found[0]
+    if (source / "lights.txt").is_file():
+        return source / "lights.txt"
+    raise RTIImportError(
+        f"{source} must hold an .lp light file (or a lights.txt of directions); got none. Pass the light file "
+        "as SOURCE."
+    )
+
+
+def _natural(name: str) -> list:
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def photographs(folder: Path) -> list[Path]:
+    """The folder's image files that may be frames, in natural order (``2`` before ``10``); files
+    whose name holds ``mask`` or ``normal`` are not frames."""
+    suffixes = IMAGE_SUFFIXES + RAW_SUFFIXES
+    files = [
+        path
+        for path in folder.iterdir()
+        if path.suffix.lower() in suffixes
+        and path.is_file()
+        and not path.name.startswith(".")
+        and not any(word in path.stem.lower() for word in _NOT_FRAMES)
+    ]
+    return sorted(files, key=lambda path: _natural(path.name))
+
+
+def _by_name(folder: Path, name: str, listing: dict[str, Path], stems: dict[str, list[Path]]) -> Path | None:
+    written = name.replace("\\", "/")
+    if not PureWindowsPath(name).is_absolute() and not written.startswith("/") and (folder / written).is_file():
+        return folder / written
+    base = PureWindowsPath(name).name
+    if base.lower() in listing:
+        return listing[base.lower()]
+    same = stems.get(Path(base).stem.lower(), [])
+    return same[0] if len(same) == 1 else None
+
+
+def match_images(lights: LightFile) -> tuple[list[Path], str, list[str]]:
+    """Each light's photograph: ``(paths, "name" or "order", notes)``; see the module's docstring.
+
+    Raises:
+        RTIImportError: an image cannot be found; the message names each missing one and its line.
+    """
+    folder = lights.path.parent
+    found_photos = photographs(folder)
+    if lights.named:
+        listing = {path.name.lower(): path for path in folder.iterdir() if path.is_file()}
+        stems: dict[str, list[Path]] = {}
+        for path in found_photos:
+            stems.setdefault(path.stem.lower(), []).append(path)
+        found = [_by_name(folder, entry.name, listing, stems) for entry in lights.entries]
+        if all(path is not None for path in found):
+            return found, "name", []
+        if not any(found) and len(found_photos) == len(lights.entries):
+            note = (
+                f"{lights.path}: no image is named as in the light file; the {len(found_photos)} photographs of "
+                f"{folder} are matched by order ({found_photos[0].name} to line {lights.entries[0].line}, ...)."
+            )
+            return found_photos, "order", [note]
+        missing = [entry for entry, path in zip(lights.entries, found, strict=True) if path is None]
+        shown = "; ".join(f"{entry.name!r} (line {entry.line})" for entry in missing)
+        raise RTIImportError(
+            f"{lights.path}: {len(missing)} of {len(lights.entries)} images are missing from {folder}: {shown}. "
+            "Restore them, or fix their names in the light file."
+        )
+    if len(found_photos) != len(lights.entries):
+        raise RTIImportError(
+            f"{lights.path} lists {len(lights.entries)} directions without image names, so the images are matched by "
+            f"order; but {folder} holds {len(found_photos)} photographs. Keep exactly one photograph per light."
+        )
+    note = (
+        f"{lights.path} names no images: its {len(found_photos)} directions are matched by order to the photographs "
+        f"of {folder} in natural order ({', '.join(path.name for path in found_photos[:2])} ...)."
+    )
+    return found_photos, "order", [note]
+
+
+def _exposures(exifs: list[dict[str, float]], images: list[Path], notes: list[str]) -> list[float]:
+    """Per-frame exposure relative to the median frame's where EXIF says it differs; else 1."""
+    values = [exposure_value(exif) for exif in exifs]
+    known = [value for value in values if value is not None]
+    if not known or max(known) <= min(known) * (1 + 1e-6):
+        return [1.0] * len(images)
+    if len(known) < len(values):
+        absent = [images[k].name for k, value in enumerate(values) if value is None]
+        notes.append(
+            f"EXIF exposures differ between frames, but {len(absent)} frame(s) record none ({', '.join(absent[:5])}"
+            f"{' ...' if len(absent) > 5 else ''}): every frame is given exposure 1."
+        )
+        return [1.0] * len(images)
+    median = float(np.median(known))
+    notes.append(
+        f"EXIF exposures (t ISO / N^2) differ between frames, {min(known):.4g} to {max(known):.4g}: recorded as "
+        "each frame's exposure relative to the median frame's."
+    )
+    return [value / median for value in values]
+
+
+def _check_output(output: Path, overwrite: bool) -> None:
+    if output.exists() and not output.is_dir():
+        raise RTIImportError(f"{output} must be a folder to write the capture in; got a file.")
+    if output.is_dir() and any(output.iterdir()) and not overwrite:
+        raise RTIImportError(
+            f"{output} already holds files; refusing to replace them. Choose an empty or new folder, or pass "
+            "--overwrite to replace it."
+        )
+
+
+def _frame_name(k: int, image: Path) -> str:
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", image.stem)
+    return f"frames/{k:04d}_{stem}.exr"
+
+
+def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
+    """Decode every photograph into a ``(K, C, H, W)`` float32 array: ``(stack, transfer,
+    encoding, exifs, notes, saturated)``."""
+    stack, size, first, exifs, notes, saturated = None, None, None, [], [], []
+    for k, image in enumerate(tqdm(images, unit="image", desc="import", disable=not progress)):
+        photo = read_photo(image)
+        notes += photo.notes
+        pixels = torch.from_numpy(photo.pixels)
+        if stack is None:
+            first = photo
+            transfer = transfer or photo.default_transfer
+            size = photo.pixels.shape
+            shape = (len(images), size[2], size[0], size[1])
+            if np.prod(shape) * 4 > _MEMORY:
+                stack = np.lib.format.open_memmap(scratch / "stack.npy", mode="w+", dtype=np.float32, shape=shape)
+            else:
+                stack = np.empty(shape, dtype=np.float32)
+        if photo.pixels.shape[:2] != size[:2]:
+            raise ImageError(
+                f"{image} must be {size[1]}x{size[0]} (width x height) like {images[0].name}; got "
+                f"{photo.pixels.shape[1]}x{photo.pixels.shape[0]}. Crop or resize the photographs to one size."
+            )
+        if photo.encoding != first.encoding:
+            raise ImageError(
+                f"{image} must be encoded like {images[0].name} ({first.encoding}) to share one transfer; got "
+                f"{photo.encoding}. Export every photograph the same way."
+            )
+        if photo.pixels.shape[2] != size[2]:  # grey among colour frames: the grey replicated
+            if photo.pixels.shape[2] == 1:
+                notes.append(f"{image}: a greyscale photograph among colour ones; its grey is used for R, G and B.")
+                pixels = pixels.expand(-1, -1, 3)
+            else:
+                raise ImageError(
+                    f"{image} must be greyscale like {images[0].name}; got a colour photograph. Convert every "
+                    "photograph to the same kind (or the first one to colour)."
+                )
+        saturated.append(int((pixels >= CLIP).any(-1).sum()) if first.clipped else 0)
+        stack[k] = transfer.decode(pixels.to(dtype)).permute(2, 0, 1).float().numpy()
+        exifs.append(photo.exif)
+    return stack, transfer, first.encoding, exifs, notes, saturated
+
+
+def import_rti(
+    source: str | Path,
+    output: str | Path,
+    *,
+    transfer: str | Transfer | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> Imported:
+    """Import an RTI capture (see the module's docstring) into ``output``.
+
+    Args:
+        source: an ``.lp`` file (or ``lights.txt``), or a folder holding one.
+        output: the capture folder to write; new, empty, or replaced with ``overwrite``.
+        transfer: ``srgb``, ``linear`` or ``gamma:G``; ``None``: sRGB for 8 and 16-bit
+            photographs, linear for float and RAW ones.
+        overwrite: replace an ``output`` that holds files (only once the new capture is complete).
+        progress: a tqdm bar over the photographs.
+
+    Returns:
+        :class:`Imported`. Notes (what was assumed) are also warned about.
+
+    Raises:
+        TorchspecError: :class:`~torchspec.io.lp.LightFileError` (the file and line),
+            :class:`RTIImportError` (missing images, each named; an output that holds files),
+            :class:`~torchspec.io.images.ImageError` (an unreadable, CMYK or odd-sized photograph);
+            nothing is written then.
+    """
+    output = Path(output)
+    lights = read_light_file(find_light_file(source))
+    images, matched, notes = match_images(lights)
+    notes = list(lights.notes) + notes
+    _check_output(output, overwrite)
+    inside = [path for path in (lights.path, *images) if path.resolve().is_relative_to(output.resolve())]
+    if inside:
+        raise RTIImportError(
+            f"{output} must not hold the capture's own files; got {inside[0]} inside it. Write the capture to "
+            "another folder."
+        )
+    if isinstance(transfer, str):
+        transfer = Transfer.parse(transfer)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=f".{output.name}.import-", dir=output.parent))
+    try:
+        stack, transfer, encoding, exifs, image_notes, saturated = _read_stack(
+            images, transfer, torch.float64, scratch, progress
+        )
+        notes += image_notes
+        exposures = _exposures(exifs, images, notes)
+        frames = tuple(
+            Frame(file=_frame_name(k, image), direction=entry.direction, irradiance=1.0, exposure=exposure)
+            for k, (image, entry, exposure) in enumerate(zip(images, lights.entries, exposures, strict=True))
+        )
+        record = {
+            "importer": f"torchspec {__version__} import",
+            "light_file": str(lights.path),
+            "matched": matched,
+            "images": [str(image.relative_to(lights.path.parent)) for image in images],
+            "lines": [entry.line for entry in lights.entries],
+            "encoding": encoding,
+            "transfer": str(transfer),
+            "saturation": CLIP if encoding != "float" else None,
+            "saturated_pixels": saturated,
+            "exif": exifs if any(exifs) else None,
+            "notes": notes,
+        }
+        channels = ("Y",) if stack.shape[1] == 1 else ("R", "G", "B")
+        capture = Capture(
+            root=scratch / "capture",
+            width=stack.shape[3],
+            height=stack.shape[2],
+            channels=channels,
+            view=(0.0, 0.0, 1.0),
+            light=LightSpec(kernel="point"),
+            frames=frames,
+            extra={"source": record},
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # directions are unit to float round-off: renormalised silently
+            write_capture(scratch / "capture", capture, stack)
+        del stack
+        _replace(scratch / "capture", output, scratch)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    for note in notes:
+        warnings.warn(note, stacklevel=2)
+    written = read_capture(output)
+    return Imported(written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes))
+
+
+def _replace(new: Path, output: Path, scratch: Path) -> None:
+    """Move the complete capture ``new`` to ``output`` by a rename; an existing ``output`` is first
+    moved into ``scratch`` (removed with it), and moved back if the second rename fails."""
+    if output.exists():
+        old = scratch / "replaced"
+        os.replace(output, old)
+        try:
+            os.replace(new, output)
+        except OSError:
+            os.replace(old, output)
+            raise
+    else:
+        os.replace(new, output)
