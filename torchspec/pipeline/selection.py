@@ -1,10 +1,12 @@
-"""Model selection: each pixel's model by the Bayesian information criterion.
+"""Model selection: each pixel's model by what it predicts of frames left out of its fit.
 
 The pixels without a peak are fitted without a lobe, those with one with the first model of the
 ladder from the specular start; their residuals give the sensor's noise, then each fit is assessed
-(:func:`assess`: a :class:`ModelFit`) and kept where its criterion is the lowest so far
-(:class:`Choice`). Each larger model of the ladder is then tried, from the previous one's
-solution, on the pixels it leaves unexplained (:func:`select_models`).
+(:func:`assess`: a :class:`ModelFit`: chi-square, deviations, criterion, misfit). A forced model
+keeps its one fit per pixel. ``auto`` climbs the ladder (:func:`select_models`): a larger model is
+tried, from the previous one's solution, where that leaves a misfit, and kept (:class:`Choice`)
+where it predicts the frames left out of its fit better than the model kept so far by more than
+the noise (:mod:`torchspec.pipeline.prediction`).
 """
 
 from __future__ import annotations

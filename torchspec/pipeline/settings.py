@@ -42,9 +42,9 @@ class FitConfig:
     """Settings of :func:`torchspec.pipeline.fit` (``configs/fit*.yaml``).
 
     Attributes:
-        model: ``auto`` picks each pixel's model by the Bayesian information criterion, trying
-            the larger ones only where the smaller leave a residual above the noise
-            (``ladder``); or one model forced on every pixel that shows a peak
+        model: ``auto`` picks each pixel's model by what it predicts of frames left out of its
+            fit (:mod:`torchspec.pipeline.prediction`), trying the larger ones only where the
+            smaller leave a residual above the noise (``ladder``); or one model forced on every pixel that shows a peak
             (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``), ``ward-iso-colour``,
             ``ward-aniso`` or ``ward-dual`` (two grey isotropic lobes), or ``diffuse`` on every
             pixel. Where some pixel gets ``ward-dual``, the maps have a second lobe
