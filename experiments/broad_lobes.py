@@ -7,8 +7,8 @@ light on a grid, with per-channel irradiance and a per-frame exposure, is fitted
 ``fits`` (``auto`` by default). Per fit:
 
 - ``trusted_off``: the share of the pixels with ``quality >= quality_min`` whose normal is off by
-  more than ``off_deg`` (the denominator: those pixels; the issue's target: <= 0.5 %), and the
-  same count over all pixels;
+  more than ``off_deg`` (the denominator: those pixels; the issue's target: <= 0.5 %), the same
+  count over all pixels, and those pixels' models and how many of them are varnished;
 - the normal's angular error against the truth, median and 90th percentile, over all pixels and
   over the varnished ones;
 - the count of each chosen model on the varnished and on the matte pixels;
@@ -77,6 +77,8 @@ def measure(result, truth, regions: torch.Tensor, settings: Settings) -> dict:
         "trusted_off": int((trusted & off).sum()),
         "trusted_off_share": float((trusted & off).sum() / trusted.sum().clamp(min=1)),
         "trusted_off_share_of_all": float((trusted & off).double().mean()),
+        "trusted_off_by_model": dict(Counter(MODEL_CODES[int(c)] for c in codes[trusted & off])),
+        "trusted_off_varnished": int((trusted & off & varnished).sum()),
         "normal": _spread(error),
         "normal_varnished": _spread(error[varnished]),
         "normal_matte": _spread(error[matte]),
@@ -137,7 +139,8 @@ def _print(rows: list[dict], settings: Settings) -> None:
     for row in rows:
         flags = {k: v for k, v in row["varnished_diffuse"]["flags"].items() if v}
         print(
-            f"{row['fit']}: varnished {row['models_varnished']}; matte {row['models_matte']}; flags of the varnished "
+            f"{row['fit']}: trusted and off: {row['trusted_off_by_model']} ({row['trusted_off_varnished']} varnished); "
+            f"varnished {row['models_varnished']}; matte {row['models_matte']}; flags of the varnished "
             f"diffuse pixels {flags}, their median quality {row['varnished_diffuse']['quality_median']:.2f}"
         )
 

@@ -20,7 +20,7 @@ mirror of the view, the mean over the channels and over the pixels ``auto`` gave
 the fit against the truth rendered with the captures' own lobe.
 
     python experiments/relight_transfer.py [--config experiments/configs/relight_transfer.yaml]
-        [--output experiments/results] [--pairs NAME ...]
+        [--output experiments/results] [--pairs NAME ...] [--rows LABEL ...]
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def _fit_row(label, config, repeats, fitted, predicted, regions, out):
     return row, result
 
 
-def _pair(settings: Settings, pair: Pair, tmp: Path) -> dict | None:
+def _pair(settings: Settings, pair: Pair, tmp: Path, rows_only: list[str] | None = None) -> dict | None:
     found = _folders(settings, pair, tmp)
     if found is None:
         return None
@@ -149,6 +149,7 @@ def _pair(settings: Settings, pair: Pair, tmp: Path) -> dict | None:
     regions = truth.extra["regions"].round().long().flatten() if "regions" in truth.extra else None
     runs = [(name, FitConfig(model=name)) for name in settings.models]
     runs += [(label, from_mapping(values, FitConfig, f"runs.{label}")) for label, values in settings.runs.items()]
+    runs = [(label, config) for label, config in runs if rows_only is None or label in rows_only]
     rows, fits = [], {}
     for label, config in runs:
         repeats = pair.repeats if label in settings.timed else 1
@@ -225,12 +226,17 @@ def main(argv: list[str] | None = None) -> dict:
             raise SystemExit(f"--pairs: {unknown} not in {args.config} (its pairs: {[p.name for p in pairs]})")
         pairs = tuple(p for p in pairs if p.name in args.pairs)
         name += "_" + "+".join(p.name for p in pairs)
+    if args.rows:
+        unknown = sorted(set(args.rows) - {*settings.models, *settings.runs})
+        if unknown:
+            raise SystemExit(f"--rows: {unknown} are neither models nor runs of {args.config}")
+        name += "_" + "+".join(args.rows)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         if settings.warm_up:
             warm_up(Path(tmp) / "warm-up")
         for pair in pairs:
-            result = _pair(settings, pair, Path(tmp))
+            result = _pair(settings, pair, Path(tmp), args.rows)
             if result is not None:
                 results.append(result)
     for result in results:

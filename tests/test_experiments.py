@@ -280,6 +280,7 @@ def test_broad_lobes_measures_what_it_says():
     )
     m = broad.measure(result, truth, regions, broad.Settings(scene=None, lighting=None))
     assert (m["trusted"], m["trusted_off"]) == (4, 1)  # quality >= 0.5: 0, 1, 3, 0.5 deg; 3 deg is off
+    assert m["trusted_off_by_model"] == {"diffuse": 1} and m["trusted_off_varnished"] == 1
     assert m["trusted_off_share"] == pytest.approx(0.25) and m["trusted_off_share_of_all"] == pytest.approx(1 / 6)
     assert m["normal"]["median_deg"] == pytest.approx(2.0) and m["normal_varnished"]["median_deg"] == pytest.approx(
         2.0)
