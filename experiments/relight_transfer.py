@@ -213,6 +213,9 @@ def _only(parser) -> None:
         metavar="NAME",
         help="run these pairs of the config only (the JSON's name then lists them)",
     )
+    parser.add_argument(
+        "--rows", nargs="+", metavar="LABEL", help="fit these rows only (models or runs; the JSON's name lists them)"
+    )
 
 
 def main(argv: list[str] | None = None) -> dict:
