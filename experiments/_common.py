@@ -8,11 +8,14 @@ from pathlib import Path
 ROOT = Path(__file__).parents[1]
 
 
-def parse_args(doc: str, config: str, argv: list[str] | None = None) -> argparse.Namespace:
-    """``--config`` (default ``experiments/configs/<config>``) and ``--output`` (default ``experiments/results``)."""
+def parse_args(doc: str, config: str, argv: list[str] | None = None, *, options=None) -> argparse.Namespace:
+    """``--config`` (default ``experiments/configs/<config>``) and ``--output`` (default ``experiments/results``);
+    ``options(parser)``, if given, adds a script's own."""
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=ROOT / "experiments" / "configs" / config)
     parser.add_argument("--output", type=Path, default=ROOT / "experiments" / "results")
+    if options is not None:
+        options(parser)
     return parser.parse_args(argv)
 
 

@@ -249,3 +249,117 @@ def test_rti_relight_runs(tmp_path):
     assert [row["method"] for row in synth["dome_to_test"]][:2] == ["PTM", "HSH"]
     assert synth["normals"]["torchspec_deg"] < 3 and synth["normals"]["least_squares_ps_deg"] < 3
     assert json.loads((tmp_path / "tiny.json").read_text())["captures"][0]["capture"] == "real"
+
+TINY_PAIR = """
+data: {data}
+models: [auto, diffuse]
+timed: [diffuse]
+warm_up: false
+pairs:
+  - {{name: absent, fitted: no-such-capture, predicted: no-such-relight}}
+  - name: sim
+    repeats: 2
+    simulated:
+      scene: {{painting: {{width: 8, height: 8, seed: 3}}}}
+      fitted:
+        light: {{kernel: gaussian, domain: projected, sigma: 0.08}}
+        layout: {{kind: grid, nx: 8, ny: 8, extent: 0.7, radius: 0.8}}
+        irradiance: [1.0, 0.8, 0.6]
+        exposure: [0.5, 2.0]
+      predicted:
+        light: {{kernel: point}}
+        layout: {{kind: scattered, n: 6, theta_max_deg: 60.0, seed: 2}}
+"""
+
+
+def test_relight_transfer_runs(tmp_path):
+    """A noise-free Ward pair: the true maps predict the other capture best (to float32 rounding of
+    the recorded frames); each fitted row says its models, times and errors; an absent shared pair
+    is skipped, not an error."""
+    result = _main("relight_transfer", tmp_path, TINY_PAIR.format(data=tmp_path / "no-shared-data"))
+    saved = json.loads((tmp_path / "tiny.json").read_text())
+    assert [p["pair"] for p in saved["pairs"]] == ["sim"] and saved["peak"] == result["peak"]
+    rows = {r["row"]: r for r in result["pairs"][0]["rows"]}
+    assert list(rows) == ["auto", "diffuse", "truth"]
+    assert rows["truth"]["psnr_db"] > 100 and all(r["psnr_db"] < rows["truth"]["psnr_db"] for r in rows.values()
+                                                  if r["row"] != "truth")
+    assert rows["diffuse"]["model_share"] == {"diffuse": 1.0}
+    assert rows["auto"]["psnr_db"] > rows["diffuse"]["psnr_db"], "the varnish's lobes predict the point lights"
+    for row in (rows["auto"], rows["diffuse"]):
+        assert sum(row["model_share"].values()) == pytest.approx(1.0)
+        assert 0 <= row["relative_rms"] < 1 and row["fit_seconds"] > 0 and row["fit_cpu_seconds"] > 0
+    assert len(rows["auto"]["fit_seconds_all"]) == 1 and len(rows["diffuse"]["fit_seconds_all"]) == 2
+    assert result["pairs"][0]["mirror"]["pixels"] == round(64 * rows["auto"]["model_share"].get("ward-dual", 0.0))
+
+
+def test_mirror_brightness_of_a_diffuse_surface():
+    """Under a unit point light at the mirror direction of the view about a normal tilted by t, a
+    Lambertian pixel gives k_d / pi cos t; blocks of pixels keep each pixel's own light."""
+    import math
+
+    import torch
+
+    from torchspec.brdf import SVBRDF
+
+    tilt = torch.tensor([0.0, 5.0, 10.0, 20.0, 30.0], dtype=torch.float64).deg2rad()
+    normal = torch.stack([torch.sin(tilt), torch.zeros_like(tilt), torch.cos(tilt)], -1)
+    kd = torch.tensor([[0.2], [0.4], [0.6], [0.8], [1.0]], dtype=torch.float64)
+    maps = SVBRDF(normal, kd, torch.zeros_like(kd), torch.full((5, 2), 0.1, dtype=torch.float64))
+    got = _load("relight_transfer").mirror_brightness(maps, normal, block=2)
+    assert torch.allclose(got, kd[:, 0] / math.pi * torch.cos(tilt), rtol=1e-9)
+
+
+def test_broad_lobes_measures_what_it_says():
+    """``measure`` on a made-up fit: normals off by known angles, qualities and models."""
+    import math
+    from types import SimpleNamespace
+
+    import torch
+
+    from torchspec.flags import FLAGS, bit
+    from torchspec.pipeline import MODEL_CODES
+
+    broad = _load("broad_lobes")
+    off_deg = torch.tensor([0.0, 1.0, 3.0, 10.0, 0.5, 4.0], dtype=torch.float64)
+    tilt = off_deg.deg2rad()
+    fitted = torch.stack([torch.sin(tilt), torch.zeros_like(tilt), torch.cos(tilt)], -1)
+    truth = SimpleNamespace(normal=torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(6, 3))
+    regions = torch.tensor([1, 1, 1, 1, 0, 0])  # varnished x 4, matte x 2
+    d, w = MODEL_CODES.index("diffuse"), MODEL_CODES.index("ward-iso")
+    result = SimpleNamespace(
+        svbrdf=SimpleNamespace(normal=fitted.reshape(2, 3, 3)),
+        quality=torch.tensor([[1.0, 1.0, 1.0], [0.0, 1.0, 0.2]]),
+        model=torch.tensor([[w, w, d], [d, d, d]], dtype=torch.int8),
+        flags=torch.tensor([[0, 0, bit("misfit")], [bit("misfit") | bit("astray"), 0, 0]], dtype=torch.int16),
+    )
+    m = broad.measure(result, truth, regions, broad.Settings(scene=None, lighting=None))
+    assert (m["trusted"], m["trusted_off"]) == (4, 1)  # quality >= 0.5: 0, 1, 3, 0.5 deg; 3 deg is off
+    assert m["trusted_off_by_model"] == {"diffuse": 1} and m["trusted_off_varnished"] == 1
+    assert m["trusted_off_share"] == pytest.approx(0.25) and m["trusted_off_share_of_all"] == pytest.approx(1 / 6)
+    assert m["normal"]["median_deg"] == pytest.approx(2.0) and m["normal_varnished"]["median_deg"] == pytest.approx(
+        2.0)
+    assert m["models_varnished"] == {"ward-iso": 2, "diffuse": 2} and m["models_matte"] == {"diffuse": 2}
+    missed = m["varnished_diffuse"]
+    assert missed["pixels"] == 2 and missed["normal_max_deg"] == pytest.approx(10.0)
+    assert missed["quality_at_least_min"] == 1 and missed["flags"] == {
+        name: {"misfit": 2, "astray": 1}.get(name, 0) for name in FLAGS}
+    assert math.isfinite(missed["quality_median"])
+
+
+def test_broad_lobes_runs(tmp_path):
+    result = _main(
+        "broad_lobes",
+        tmp_path,
+        "scene: {painting: {width: 8, height: 8, seed: 11, ks_range: [0.2, 0.4], alpha_range: [0.2, 0.3], "
+        "gilded: null}}\nlighting: {light: {kernel: gaussian, domain: angular, sigma: 0.06}, "
+        "layout: {kind: grid, nx: 6, ny: 6, extent: 0.6, radius: 0.9}, irradiance: [1.0, 0.85, 0.7], "
+        "exposure: [0.5, 2.0]}\nwarm_up: false\n",
+    )
+    (row,) = result["rows"]
+    assert json.loads((tmp_path / "tiny.json").read_text())["rows"][0].keys() == row.keys()
+    assert row["pixels"] == 64 == row["varnished_pixels"] + row["matte_pixels"] and row["varnished_pixels"] > 0
+    assert sum(row["models_varnished"].values()) == row["varnished_pixels"]
+    assert row["varnished_diffuse"]["pixels"] == row["models_varnished"].get("diffuse", 0)
+    assert 0 <= row["trusted_off"] <= row["trusted"] <= 64 and 0 <= row["trusted_off_share"] <= 1
+    for spread in (row["normal"], row["normal_matte"]):
+        assert 0 <= spread["median_deg"] <= spread["p90_deg"] < 45
