@@ -94,7 +94,8 @@ def _add_map_commands(commands) -> None:
     export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16}", help="the format (see docs/export.md)")
     export.add_argument("-o", "--output", type=Path, required=True, help="the folder to write")
     export.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
-                        help="mitsuba: add a directional emitter lighting from this direction (surface frame)")
+                        help="mitsuba: the directional emitter's direction towards the light (surface frame; "
+                             "default: 45 deg elevation from the upper left, -0.5 0.5 0.707)")
     export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
                         help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1)")
 
@@ -274,6 +275,9 @@ def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
     print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
+    if args.to == "mitsuba" and args.light is None:
+        print("  lit by a directional light at 45 deg elevation from the upper left (the default); "
+              "choose another with --light X Y Z")
     return 0
 
 
