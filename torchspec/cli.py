@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import io
+import os
 import shlex
 import shutil
 import sys
@@ -19,6 +21,9 @@ CHECKPOINT = ".torchspec-fit"
 """The folder, inside a fit's output, of its finished tiles until the maps are written."""
 
 BUG = 70
+PIPE_CLOSED = 141
+"""The exit status when the reader of stdout closed it (``torchspec info | head -2``): 128 + SIGPIPE,
+what a shell reports for a command a closed pipe stopped, as ``yes | head`` does."""
 """The exit status of an internal error (a bug in torchspec): ``EX_SOFTWARE`` of ``sysexits.h``."""
 
 
@@ -173,7 +178,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return COMMANDS[args.command](parser, args)
+        status = COMMANDS[args.command](parser, args)
+        sys.stdout.flush()  # a reader that stopped (torchspec info | head -2) shows here, not at exit
+        return status
+    except BrokenPipeError:  # the reader of stdout stopped reading: nothing to say, and no one to say it to
+        _silence_stdout()
+        return PIPE_CLOSED
     except (TorchspecError, OSError) as exc:  # the user's input or filesystem: say what and where, no traceback
         print(f"torchspec {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -183,6 +193,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchspec {args.command}: internal error: this is a bug in torchspec {__version__}; please report it "
               f"with the traceback above and the command line: torchspec {line}", file=sys.stderr)
         return BUG
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so that Python's flush at exit does not fail on the closed pipe."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, io.UnsupportedOperation):  # no file descriptor (a captured stdout)
+        pass
 
 
 def _rerun() -> str:

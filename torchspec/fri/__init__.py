@@ -238,7 +238,8 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> 
             if n < 2 * m + 1:
                 raise TorchspecError(
                     f"samples has {n} samples along axis {axis - dims} (shape {tuple(samples.shape)}); "
-                    f"num_coefficients={m} needs at least 2M + 1 = {2 * m + 1}. Pass fewer coefficients."
+                    f"locating a peak with {m} Fourier coefficient(s) needs at least 2M + 1 = {2 * m + 1} samples "
+                    "along each axis. Give more samples (light positions), or fewer coefficients."
                 )
         batch = samples.shape[: samples.dim() - dims]
     else:

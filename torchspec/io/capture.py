@@ -175,7 +175,7 @@ class Capture:
                 image, size = _read_rows(file, self.channels, rows)
         except ExrError as error:
             raise CaptureError(
-                f"{self.manifest}: frames[{k}] must be a readable EXR with channels {list(self.channels)}; got: {error}"
+                f"{self.manifest}: frames[{k}] (an EXR with channels {list(self.channels)}): {error}"
             ) from error
         if size != (self.height, self.width):
             raise CaptureError(
@@ -343,6 +343,7 @@ def read_capture(path: str | Path) -> Capture:
         (88, ('R', 'G', 'B'), 'gaussian')
     """
     path = Path(path)
+    _not_a_capture(path)
     manifest = path if path.suffix.lower() == ".json" or path.is_file() else path / MANIFEST
     data = read_json(manifest, CaptureError, f"Pass a capture directory that holds {MANIFEST}.")
     notes: list[str] = []
@@ -363,6 +364,33 @@ def read_capture(path: str | Path) -> Capture:
             "is missing. Restore the kernel image."
         )
     return capture
+
+
+def _not_a_capture(path: Path) -> None:
+    """Refuse, in the user's terms, what is plainly not a capture: a folder that does not exist, a
+    YAML config, an image."""
+    try:
+        exists, is_file = path.exists(), path.is_file()
+    except OSError as error:
+        raise CaptureError(f"the capture {path} must be a path the system can look up; got {error}.") from error
+    if not exists:
+        where = "" if path.parent.is_dir() else f" (nor does its folder {path.parent})"
+        raise CaptureError(
+            f"the capture folder {path} does not exist{where}. Pass a folder that holds {MANIFEST} and the "
+            "frames (docs/capture-format.md); torchspec simulate or torchspec import makes one."
+        )
+    suffix = path.suffix.lower()
+    if is_file and suffix in (".yaml", ".yml"):
+        raise CaptureError(
+            f"{path} is a YAML config, not a capture: a capture is a folder with {MANIFEST} and its frames "
+            "(docs/capture-format.md). A simulation config makes one with: torchspec simulate CONFIG -o CAPTURE; "
+            "a fit config goes to torchspec fit CAPTURE --config CONFIG."
+        )
+    if is_file and suffix in (".exr", ".jpg", ".jpeg", ".png", ".tif", ".tiff"):
+        raise CaptureError(
+            f"{path} is an image, not a capture: pass the folder that holds {MANIFEST} "
+            "(photographs become a capture with: torchspec import SOURCE -o CAPTURE)."
+        )
 
 
 def _is_file(path: Path, key: str) -> bool:
