@@ -58,7 +58,11 @@ class Location:
         std: like ``position``: the standard deviation of the position predicted from the data
             (residual noise over the Fisher information of the estimated spectrum). The noise
             is measured on ``P - D`` degrees of freedom (``P`` coefficients, ``D`` dims), so
-            ``error / std`` follows a Student t with that many; NaN for K >= 2.
+            ``error / std`` follows a Student t with that many; NaN for K >= 2. For 1D uniform
+            samples it adds the error that aliasing explains: point samples of a kernel whose
+            spectrum has not died out by the Nyquist index hold aliases in their coefficients,
+            which bias the position (``experiments/fri_aliasing.py``); the alias beyond noise
+            also counts as noise in ``quality``.
     """
 
     position: Tensor
@@ -176,7 +180,8 @@ def locate(
 
     scale = torch.tensor(call.periods, dtype=y.real.dtype, device=y.device) / (2.0 * math.pi)
     if num_pulses == 1:
-        theta, variance, snr = locate_single(y, dc, call.bands, call.method)
+        size = call.samples.shape[-1] if call.positions is None and dims == 1 else None
+        theta, variance, snr = locate_single(y, dc, call.bands, call.method, size)
         std = variance.sqrt() * scale
         quality = 1.0 / (1.0 + (SNR_HALF_QUALITY / snr) ** 3)
     else:
