@@ -2,7 +2,7 @@
 frame, and add it to the capture, so that a stop at any moment leaves a valid capture of the
 frames done, and ``resume`` continues it to the capture an uninterrupted run would have made.
 
-A capture being acquired is a capture directory (``capture-format.md``) plus ``acquire.json``,
+A capture being acquired is a capture directory (``docs/capture-format.md``) plus ``acquire.json``,
 the plan: the layout, the light, the camera's channels and exposure, the dome's identity and
 every planned frame (file, direction, dome angles). Frame ``k`` goes to ``frames/kkkk.exr``
 (written atomically), then ``capture.json`` is rewritten (atomically) listing frames ``0..k``:

@@ -1,4 +1,4 @@
-"""The manifest ``capture.json`` of ``capture-format.md``: its records (:class:`Frame`,
+"""The manifest ``capture.json`` of ``docs/capture-format.md``: its records (:class:`Frame`,
 :class:`LightSpec`), validation with errors that name the file and the key at fault, and its
 JSON form. :mod:`torchspec.io.capture` reads and writes whole captures with it."""
 
@@ -42,7 +42,7 @@ _SAME_DIRECTION = 1e-9
 
 
 class CaptureError(TorchspecError):
-    """A capture that does not follow ``capture-format.md``; the message names the file, and the
+    """A capture that does not follow ``docs/capture-format.md``; the message names the file, and the
     key or frame at fault."""
 
 
@@ -71,7 +71,7 @@ class Frame:
 
 @dataclass(frozen=True)
 class LightSpec:
-    """The extended light source shared by all frames (``capture-format.md``, table of kernels).
+    """The extended light source shared by all frames (``docs/capture-format.md``, table of kernels).
 
     Attributes:
         kernel: ``"point"``, ``"gaussian"``, ``"tabulated"`` or ``"unknown"``.

@@ -1,4 +1,4 @@
-"""Capture directories of ``capture-format.md``: the manifest ``capture.json``, its frames and an
+"""Capture directories of ``docs/capture-format.md``: the manifest ``capture.json``, its frames and an
 optional tabulated light kernel.
 
 :func:`read_capture` validates the whole manifest and checks that every frame file exists, but
@@ -328,7 +328,7 @@ def read_capture(path: str | Path) -> Capture:
         The capture, ``root`` its directory.
 
     Raises:
-        CaptureError: ``capture.json`` is missing, not JSON, or breaks ``capture-format.md``
+        CaptureError: ``capture.json`` is missing, not JSON, or breaks ``docs/capture-format.md``
             (the message names the key, e.g. ``frames[3].direction``), or a listed frame or
             kernel file does not exist.
 
