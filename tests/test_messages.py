@@ -108,3 +108,20 @@ def test_the_planned_grid_of_an_acquisition():
     }
     assert _planned_grid({"name": "torchspec acquire", "layout": "line:9", "radius": 0.8}) is None
     assert _planned_grid(None) is None
+
+
+def test_warnings_are_one_line_for_the_command(capture, tmp_path):
+    """torchspec as a command shows a warning as 'torchspec: warning: ...', without the Python
+    file and source line of the default format."""
+    root = _copy(capture, tmp_path)
+    manifest = json.loads((root / "capture.json").read_text())
+    manifest["comment"] = "an unknown top-level key: warned about"
+    (root / "capture.json").write_text(json.dumps(manifest))
+    command = [sys.executable, "-m", "torchspec", "render", str(root / "truth"), "--capture", str(root)]
+    path = os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")])
+    done = subprocess.run(
+        [*command, "-o", str(tmp_path / "out")], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": path}
+    )
+    assert done.returncode == 0, done.stderr
+    assert "torchspec: warning: " in done.stderr and "unknown top-level key(s) ['comment']" in done.stderr
+    assert ".py:" not in done.stderr and "warnings.warn" not in done.stderr, done.stderr

@@ -9,6 +9,7 @@ import shlex
 import shutil
 import sys
 import traceback
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -174,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    if argv is None:  # the command itself (not a caller's test): warnings as one line each, no source line
+        warnings.showwarning = _one_line_warning
     if args.command is None:
         parser.print_help()
         return 2
@@ -193,6 +196,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchspec {args.command}: internal error: this is a bug in torchspec {__version__}; please report it "
               f"with the traceback above and the command line: torchspec {line}", file=sys.stderr)
         return BUG
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Show a warning to a command-line user as ``torchspec: warning: ...``: the message, without
+    the Python file and source line the default shows."""
+    print(f"torchspec: warning: {message}", file=sys.stderr if file is None else file)
 
 
 def _silence_stdout() -> None:
