@@ -1,6 +1,6 @@
 """An independent brute-force evaluation of the measurement model, for tests only.
 
-Shares no code with the package: the Ward BRDF is written from capture-format.md with explicit
+Shares no code with the package: the Ward BRDF is written from docs/capture-format.md with explicit
 ``tan(theta_h)`` and ``phi_h``, kernels from their definitions (normalisers by trapezoid on a
 fine grid), and the integral is a midpoint rule on a fine Cartesian grid of the l-plane, cells
 cut by the unit circle replaced by their 8 x 8 sub-cells inside it.

@@ -389,8 +389,10 @@ def test_outputs_that_are_not_this_job_are_refused(reference, tmp_path):
 
 
 def test_the_dome_must_be_where_it_was_sent(tmp_path):
-    with pytest.raises(AcquisitionStopped, match=r"frame 0 .*at status after the move.*deg away"):
+    with pytest.raises(AcquisitionStopped, match=r"frame 0 .*at status after the move.*deg away") as stop:
         _run(tmp_path / "a", FakeDome(offset=0.01))
+    message = str(stop.value)  # one unit in one message: degrees, as the protocol
+    assert " rad" not in message and "within 0.0573 deg" in message and "phi=90.0000 deg" in message, message
     with pytest.raises(AcquisitionStopped, match=r"the light off"):
         _run(tmp_path / "b", FakeDome(lamp=False))
     capture = _run(tmp_path / "c", FakeDome(offset=0.01), tolerance=None, layout="grid:3x3")

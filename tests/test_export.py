@@ -92,6 +92,22 @@ def test_mitsuba_without_light_has_no_emitter(tmp_path):
     assert read_exr(tmp_path / "textures/diffuse_x2.exr").shape == (5, 7, 3), "grey maps are written as RGB"
 
 
+def test_command_lights_a_mitsuba_scene_by_default(tmp_path, capsys):
+    """torchspec export --to mitsuba without --light writes a scene that renders (an emitter:
+    DEFAULT_LIGHT, 45 deg elevation from the upper left), and says so."""
+    from torchspec.export import DEFAULT_LIGHT
+    from torchspec.io import write_svbrdf
+
+    write_svbrdf(tmp_path / "maps", _maps())
+    assert main(["export", str(tmp_path / "maps"), "--to", "mitsuba", "-o", str(tmp_path / "scene")]) == 0
+    assert "lit by a directional light at 45 deg elevation" in capsys.readouterr().out
+    emitter = ET.parse(tmp_path / "scene" / "scene.xml").getroot().find("emitter")
+    assert emitter is not None and emitter.attrib["type"] == "directional"
+    towards = [-float(v) for v in emitter.find("vector").attrib["value"].split(",")]
+    assert towards == pytest.approx(list(DEFAULT_LIGHT), abs=1e-8)
+    assert math.degrees(math.asin(towards[2])) == pytest.approx(45.0)
+
+
 def test_mitsuba_rounds_rotations_to_quarter_turns(tmp_path):
     svbrdf = _maps(rotation=torch.full((5, 7), math.pi / 2, dtype=F64))
     export_mitsuba(svbrdf, tmp_path)  # a quarter turn swaps the axes, exactly: no warning
@@ -345,8 +361,8 @@ def test_export_rejects_what_it_cannot_write(tmp_path):
         export(_maps(), tmp_path, to="obj")
     with pytest.raises(ExportError, match="only be added to a mitsuba export"):
         export(_maps(), tmp_path, to="gltf", light=[0, 0, 1])
-    with pytest.raises(ExportError, match="an irradiance needs a light"):
-        export(_maps(), tmp_path, to="mitsuba", irradiance=2.0)
+    with pytest.raises(ExportError, match="irradiance can only be given to a mitsuba export"):
+        export(_maps(), tmp_path, to="gltf", irradiance=2.0)
     with pytest.raises(SVBRDFError, match="svbrdf.json must exist"):
         export(tmp_path / "nowhere", tmp_path / "out", to="png16")
     two = _maps(channels=2)
@@ -401,8 +417,16 @@ def test_a_second_lobe_is_left_out_with_a_warning(tmp_path, to):
     maps = _maps()
     ks2 = torch.zeros(5, 7, 1, dtype=F64)
     ks2[1:3, 2:5] = 0.2  # 6 pixels with a second lobe
-    two = SVBRDF(maps.normal, maps.diffuse, maps.specular, maps.roughness, maps.rotation, maps.channels,
-                 ks2, torch.full((5, 7, 2), 0.3, dtype=F64))
+    two = SVBRDF(
+        maps.normal,
+        maps.diffuse,
+        maps.specular,
+        maps.roughness,
+        maps.rotation,
+        maps.channels,
+        ks2,
+        torch.full((5, 7, 2), 0.3, dtype=F64),
+    )
     with pytest.warns(ExportWarning, match=r"6 pixel\(s\) have a second lobe .*first \(sharper\) lobe only"):
         export(two, tmp_path / "two", to=to)
     with warnings.catch_warnings():

@@ -99,8 +99,37 @@ def test_missing_file_is_named(tmp_path):
 
 def test_not_an_exr_is_named(tmp_path):
     (tmp_path / "junk.exr").write_bytes(b"not an image" * 20)
-    with pytest.raises(ExrError, match=r"junk\.exr must be a readable OpenEXR file"):
+    with pytest.raises(ExrError, match=r"junk\.exr is a text file, not an EXR"):
         read_exr(tmp_path / "junk.exr")
+    (tmp_path / "bytes.exr").write_bytes(bytes(range(200, 256)) * 4)  # neither text nor a known format
+    with pytest.raises(ExrError, match=r"bytes\.exr cannot be read as an OpenEXR image: it is truncated, damaged"):
+        read_exr(tmp_path / "bytes.exr")
+
+
+def test_a_jpeg_is_named_and_import_suggested(tmp_path):
+    from PIL import Image
+
+    Image.new("RGB", (8, 8)).save(tmp_path / "photo.exr", format="JPEG")
+    with pytest.raises(ExrError, match=r"photo\.exr is a JPEG, not an EXR.*torchspec import SOURCE -o CAPTURE"):
+        read_exr(tmp_path / "photo.exr")
+
+
+def test_library_lines_become_a_sentence_naming_the_file(tmp_path, capfd):
+    """A damaged chunk makes the OpenEXR library print EXR_ERR_... lines on file descriptor 2;
+    they are kept off the terminal and summarised in the error, which names the file."""
+    write_exr(tmp_path / "a.exr", _image(8, 8), ["R", "G", "B"])
+    data = bytearray((tmp_path / "a.exr").read_bytes())
+    # An 8-row image is one chunk: the offset table is one uint64 pointing just past itself, and
+    # the chunk starts with its first scanline's y (int32, 0 here): corrupt that leader.
+    table = next(p for p in range(len(data) - 8) if int.from_bytes(data[p : p + 8], "little") == p + 8)
+    data[table + 8 : table + 12] = b"\x5a\x5a\x5a\x5a"
+    (tmp_path / "bad.exr").write_bytes(bytes(data))
+    capfd.readouterr()
+    with pytest.raises(ExrError, match=r"bad\.exr is truncated or corrupt: the OpenEXR library could not") as error:
+        read_exr(tmp_path / "bad.exr")
+    assert "EXR_ERR" not in str(error.value) and "OpenEXR says: " in str(error.value), str(error.value)
+    printed = capfd.readouterr()
+    assert "EXR_ERR" not in printed.err and printed.out == "", printed
 
 
 @pytest.mark.parametrize("keep", [0.5, 0.9, 0.999])
@@ -109,7 +138,7 @@ def test_truncated_file_raises_and_keeps_stdout_clean(tmp_path, capsys, keep):
     data = (tmp_path / "a.exr").read_bytes()
     (tmp_path / "cut.exr").write_bytes(data[: int(len(data) * keep)])
     # OpenEXR itself does not raise here: it returns a file with zero parts.
-    with pytest.raises(ExrError, match=r"cut\.exr must hold an image; got none: the file is truncated or corrupt"):
+    with pytest.raises(ExrError, match=r"cut\.exr is truncated or corrupt"):
         read_exr(tmp_path / "cut.exr")
     assert capsys.readouterr().out == ""
 

@@ -50,7 +50,7 @@ def test_capture_lights(painting, unknown_light_capture):
     unknown = read_capture(unknown_light_capture)
     with pytest.raises(CaptureError, match="'unknown'.*--light"):
         unknown.lights()
-    with pytest.raises(CaptureError, match="cannot read the light description"):
+    with pytest.raises(CaptureError, match="nope.json must exist.*light description"):
         unknown.lights(light=unknown_light_capture / "nope.json")
     given = unknown.lights(light=unknown_light_capture / "truth" / "light.json")
     assert given.kernel.kind != "unknown"

@@ -1,4 +1,4 @@
-"""The reflectance model of ``capture-format.md``: Lambert plus the Ward lobe (isotropic or
+"""The reflectance model of ``docs/capture-format.md``: Lambert plus the Ward lobe (isotropic or
 anisotropic with a rotation angle), as broadcasting tensor functions, and the per-pixel
 :class:`SVBRDF` parameters they take.
 

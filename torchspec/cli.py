@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import io
+import os
 import shlex
 import shutil
 import sys
 import traceback
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,6 +22,9 @@ CHECKPOINT = ".torchspec-fit"
 """The folder, inside a fit's output, of its finished tiles until the maps are written."""
 
 BUG = 70
+PIPE_CLOSED = 141
+"""The exit status when the reader of stdout closed it (``torchspec info | head -2``): 128 + SIGPIPE,
+what a shell reports for a command a closed pipe stopped, as ``yes | head`` does."""
 """The exit status of an internal error (a bug in torchspec): ``EX_SOFTWARE`` of ``sysexits.h``."""
 
 
@@ -158,7 +164,8 @@ def _add_map_commands(commands) -> None:
     export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16}", help="the format (see docs/export.md)")
     export.add_argument("-o", "--output", type=Path, required=True, help="the folder to write")
     export.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
-                        help="mitsuba: add a directional emitter lighting from this direction (surface frame)")
+                        help="mitsuba: the directional emitter's direction towards the light (surface frame; "
+                             "default: 45 deg elevation from the upper left, -0.5 0.5 0.707)")
     export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
                         help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1)")
 
@@ -232,11 +239,18 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    if argv is None:  # the command itself (not a caller's test): warnings as one line each, no source line
+        warnings.showwarning = _one_line_warning
     if args.command is None:
         parser.print_help()
         return 2
     try:
-        return COMMANDS[args.command](parser, args)
+        status = COMMANDS[args.command](parser, args)
+        sys.stdout.flush()  # a reader that stopped (torchspec info | head -2) shows here, not at exit
+        return status
+    except BrokenPipeError:  # the reader of stdout stopped reading: nothing to say, and no one to say it to
+        _silence_stdout()
+        return PIPE_CLOSED
     except (TorchspecError, OSError) as exc:  # the user's input or filesystem: say what and where, no traceback
         print(f"torchspec {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -246,6 +260,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchspec {args.command}: internal error: this is a bug in torchspec {__version__}; please report it "
               f"with the traceback above and the command line: torchspec {line}", file=sys.stderr)
         return BUG
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Show a warning to a command-line user as ``torchspec: warning: ...``: the message, without
+    the Python file and source line the default shows."""
+    print(f"torchspec: warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so that Python's flush at exit does not fail on the closed pipe."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, io.UnsupportedOperation):  # no file descriptor (a captured stdout)
+        pass
 
 
 def _rerun() -> str:
@@ -338,6 +368,9 @@ def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
     print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
+    if args.to == "mitsuba" and args.light is None:
+        print("  lit by a directional light at 45 deg elevation from the upper left (the default); "
+              "choose another with --light X Y Z")
     return 0
 
 

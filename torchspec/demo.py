@@ -23,7 +23,7 @@ import torch
 from .atomic import save_figure, write_json
 from .io import read_capture
 from .pipeline import FitConfig, fit, select_frames, write_fit
-from .report import display, heldout_psnr, relit_strip, score, write_previews, write_report
+from .report import display, heldout_psnr, relit_strip, relit_title, score, write_previews, write_report
 from .simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from .synth import PaintingConfig, SensorConfig
 
@@ -95,9 +95,11 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
     notes = [
         f"simulated in {simulate_seconds:.1f} s; fitted in {fit_seconds:.1f} s on {torch.get_num_threads()} threads",
         f"pixels with a lobe: {result.stats['lobe_pixels']} of {result.stats['pixels']}",
-        f"solver: {result.stats['status']}",
-        f"untrusted pixels (flags.exr): {result.stats['untrusted']}; "
-        + ", ".join(f"{name} {count}" for name, count in result.stats["flags"].items() if count),
+        "solver: " + ", ".join(f"{name} {count}" for name, count in result.stats["status"].items() if count),
+        f"untrusted pixels (quality 0): {result.stats['untrusted']}",
+        "flags (flags.exr): " + (", ".join(f"{n} {c}" for n, c in result.stats["flags"].items() if c) or "none"),
+        "  misfit: the model's residual is above the noise",
+        "  (information: the values are that model's best fit)",
         f"held-out frames: {len(held)} (fitted on {len(fitted_frames)})",
     ]
     write_report(
@@ -155,6 +157,6 @@ def _write_strip(path: Path, strip, true_strip) -> None:
             ax.set_yticks([])
             if k == 0:
                 ax.set_ylabel(label, fontsize=9)
-    fig.suptitle("relit by a light circling the zenith at 30 deg", fontsize=10)
+    fig.suptitle(relit_title(30.0), fontsize=10)
     fig.tight_layout()
     save_figure(fig, path, dpi=100)

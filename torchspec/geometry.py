@@ -1,5 +1,5 @@
 """Directions on the hemisphere above a nearly flat object, in the surface frame of
-``capture-format.md``: ``x`` right, ``y`` up, ``z`` towards the camera; every direction is a unit
+``docs/capture-format.md``: ``x`` right, ``y`` up, ``z`` towards the camera; every direction is a unit
 vector pointing away from the surface.
 
 A direction ``w`` projects to ``l = (w_x, w_y)`` in the l-plane (``|l| <= 1``), the paper's light

@@ -11,6 +11,7 @@ never raises for a bad capture: the report's verdict is then ``"unusable"``, wit
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 from typing import Any
@@ -87,7 +88,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         view=list(capture.view),
         light={name: value for name, value in vars(capture.light).items() if value is not None},
         kernel=_describe(capture.light),
-        layout=_layout(capture.directions()) if count >= 3 else None,
+        layout=_layout(capture.directions(), capture.extra) if count >= 3 else None,
         exposure=[float(exposure.min()), float(exposure.max())],
         irradiance=[float(irradiance.min()), float(irradiance.max())],
     )
@@ -183,7 +184,7 @@ def _pixel_warnings(rows: list[dict[str, Any]], level: float, capture: Capture) 
         total = sum(row["nonfinite"] for row in nonfinite)
         notes.append(
             f"{total} pixel(s) with NaN or Inf in {len(nonfinite)} frame(s) (frames {_indices(nonfinite)}): the fit "
-            "masks them; Capture.read_frames() refuses them unless nonfinite='keep'."
+            "masks them."
         )
     negative = [row for row in rows if row["negative"]]
     if negative:
@@ -191,23 +192,79 @@ def _pixel_warnings(rows: list[dict[str, Any]], level: float, capture: Capture) 
         lowest = min(row["min"] for row in negative)
         notes.append(
             f"{total} pixel(s) with a negative value in {len(negative)} frame(s) (frames {_indices(negative)}, the "
-            f"most negative {lowest:.3g}): the fit reads them as they are; Capture.read_frames() refuses them "
-            "unless nonfinite='keep'."
+            f"most negative {lowest:.3g}): the fit reads them as they are (sensor noise "
+            "about a black level of 0); a black-level offset is not subtracted."
         )
     return notes
 
 
-def _layout(directions: torch.Tensor) -> dict[str, Any]:
-    """The light layout as the fit sees it: :func:`torchspec.layout.layout_of` of the frames' ``l``."""
+def _layout(directions: torch.Tensor, extra: dict | None = None) -> dict[str, Any]:
+    """The light layout as the fit sees it: :func:`torchspec.layout.layout_of` of the frames' ``l``;
+    for a grid, its ``positions`` (rows x columns, of which the frames fill those within the
+    disk) and, when the manifest's ``generator`` records the planned grid (``torchspec acquire``,
+    ``torchspec simulate``), that ``planned`` grid: its outer rows and columns may lie wholly
+    beyond the radius."""
     l = directions[:, :2].to(torch.float32)  # the fit's default dtype, so the same grid test
     layout = layout_of(l)
     out: dict[str, Any] = {"kind": "grid" if layout.grid is not None else "line" if layout.dims == 1 else "scattered"}
     if layout.grid is not None:
-        out.update(rows=layout.grid[2], columns=layout.grid[3])
+        out.update(rows=layout.grid[2], columns=layout.grid[3], positions=layout.grid[2] * layout.grid[3])
+        planned = _planned_grid((extra or {}).get("generator"))
+        if planned is not None:
+            out["planned"] = planned
     if layout.dims == 1:
         out["axis"] = [float(v) for v in layout.axis]
     out.update(spacing=float(layout.spacing), radius=float(l.norm(dim=-1).max()))
     return out
+
+
+def _planned_grid(generator: Any) -> dict[str, Any] | None:
+    """``{"columns", "rows", "radius"}`` of the grid a generator record planned, or ``None``:
+    ``torchspec acquire`` records ``layout: "grid:NXxNY"`` and ``radius``; ``torchspec simulate``
+    its config's ``layout`` (``kind: grid``, ``nx``, ``ny``, ``radius``)."""
+    if not isinstance(generator, dict):
+        return None
+    spec = generator.get("layout")
+    if isinstance(spec, str):
+        match = re.fullmatch(r"grid:(\d+)x(\d+)", spec)
+        radius = generator.get("radius")
+        if match and isinstance(radius, (int, float)):
+            return {"columns": int(match[1]), "rows": int(match[2]), "radius": float(radius)}
+        return None
+    config = generator.get("torchspec")
+    spec = config.get("layout") if isinstance(config, dict) else None
+    if isinstance(spec, dict) and spec.get("kind") == "grid":
+        values = [spec.get(key) for key in ("nx", "ny", "radius")]
+        if all(isinstance(v, (int, float)) for v in values):
+            return {"columns": int(values[0]), "rows": int(values[1]), "radius": float(values[2])}
+    return None
+
+
+def _grid_words(layout: dict[str, Any], frames: int) -> str:
+    """The grid in words: ``grid 10 x 10 (88 of its 100 positions, ...)`` and, when the planned grid
+    was larger, which of its rows and columns fell outside the radius."""
+    words = f"grid {layout['rows']} x {layout['columns']}"
+    if frames < layout.get("positions", frames):
+        words += f" ({frames} of its {layout['positions']} positions: those beyond the radius are left out)"
+    return words
+
+
+def _planned_words(layout: dict[str, Any] | None) -> str | None:
+    """The planned grid when it is not the grid the frames form: its outer rows or columns lie
+    wholly beyond the radius (``grid:12x12 --radius 0.8`` lights a 10 x 10 grid)."""
+    planned = (layout or {}).get("planned")
+    if not planned or (planned["rows"], planned["columns"]) == (layout["rows"], layout["columns"]):
+        return None
+    lost = []
+    if planned["rows"] > layout["rows"]:
+        lost.append(f"{planned['rows'] - layout['rows']} of its {planned['rows']} rows")
+    if planned["columns"] > layout["columns"]:
+        lost.append(f"{planned['columns'] - layout['columns']} of its {planned['columns']} columns")
+    return (
+        f"a {planned['columns']} x {planned['rows']} grid within |l| <= {planned['radius']:g}; "
+        f"{' and '.join(lost) or 'some positions'} (the outermost) lie wholly beyond that radius and hold no light, "
+        f"so the frames form a {layout['columns']} x {layout['rows']} grid"
+    )
 
 
 def _describe(light: LightSpec) -> str:
@@ -240,7 +297,7 @@ def format_report(report: dict[str, Any]) -> str:
         >>> print(format_report(inspect_capture("no-such-capture")))  # doctest: +ELLIPSIS
         capture   no-such-capture
         verdict   unusable
-        reason    no-such-capture/capture.json must exist; got no such file. ...
+        reason    the capture folder no-such-capture does not exist. ...
     """
     lines = [f"capture   {report['capture']}", f"verdict   {report['verdict']}"]
     if report["reason"]:
@@ -250,14 +307,14 @@ def format_report(report: dict[str, Any]) -> str:
         if layout is None:
             where = "too few for a layout"
         else:
-            where = "layout " + layout["kind"]
-            where += f" {layout['rows']} x {layout['columns']}" if layout["kind"] == "grid" else ""
+            where = "layout " + (_grid_words(layout, report["frames"]) if layout["kind"] == "grid" else layout["kind"])
             where += f", spacing {layout['spacing']:.3g}, |l| <= {layout['radius']:.3g}"
         values = report["values"]
         counts = report["counts"]
         lines += [
             f"size      {report['width']} x {report['height']} (W x H), channels {', '.join(report['channels'])}",
             f"frames    {report['frames']}, {where}",
+            *([f"planned   {_planned_words(layout)}"] if _planned_words(layout) else []),
             f"light     {report['kernel']}; view {_vector(report['view'])}",
             f"exposure  {_span(report['exposure'])}; irradiance {_span(report['irradiance'])}",
             f"values    {_span(values) if values else 'none finite'}"

@@ -1,4 +1,4 @@
-"""Extended light kernels of ``capture-format.md``: their densities, quadrature nodes and weights
+"""Extended light kernels of ``docs/capture-format.md``: their densities, quadrature nodes and weights
 around K centres at once, and the effective diffuse directions.
 
 Every kernel is handled as a density per unit area of the l-plane, so that a frame's value is

@@ -1,4 +1,4 @@
-"""The measurement model of ``capture-format.md``: what a pixel records under each frame's
+"""The measurement model of ``docs/capture-format.md``: what a pixel records under each frame's
 extended light, differentiable in every SVBRDF parameter.
 
     value[p, k, c] = exposure_k irradiance_k,c integral D_k(l) rho_c(w(l), view; p) <n_p, w(l)> dl

@@ -21,14 +21,28 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .atomic import atomic_path, save_figure
+from .atomic import save_figure
 from .brdf import SVBRDF
 from .geometry import angle, from_plane
 from .lights import Kernel, Lights
 from .models import MODELS
 from .rendering import render
 
-__all__ = ["REGIONS", "score", "heldout_psnr", "write_previews", "relit_strip", "write_report", "display"]
+__all__ = [
+    "MODEL_COLOURS",
+    "REGIONS",
+    "REGION_COLOURS",
+    "STAT_LABELS",
+    "display",
+    "heldout_psnr",
+    "relit_strip",
+    "relit_title",
+    "score",
+    "shared_limit",
+    "stat_label",
+    "write_previews",
+    "write_report",
+]
 
 REGIONS = ("matte", "varnished", "gilded", "dual")
 """Region codes of a simulated painting's ``regions`` map (``truth/regions.exr``)."""
@@ -94,11 +108,96 @@ def _rgb(image: np.ndarray) -> np.ndarray:
     return np.repeat(image[..., None], 3, -1) if image.ndim == 2 or image.shape[-1] == 1 else image[..., :3]
 
 
-def _save_png(path: Path, image: np.ndarray, cmap: str | None = None, vmin=None, vmax=None) -> None:
+MODEL_COLOURS = ("#bdbdbd", "#1f77b4", "#2ca02c", "#ff7f0e", "#d62728")
+"""The colour of each model code (``MODEL_CODES``: diffuse, ward-iso, ward-iso-colour, ward-aniso,
+ward-dual), the same in ``report.png`` and ``previews/model.png``."""
+REGION_COLOURS = ("#e0d7c6", "#8c564b", "#d4a017", "#9467bd")
+"""The colour of each region code (:data:`REGIONS`)."""
+
+STAT_LABELS = {
+    "normal_deg": "normal error, median (deg)",
+    "normal_deg_p90": "normal error, 90th percentile (deg)",
+    "kd": "k_d relative error, median",
+    "matte_share_ks0": "matte pixels fitted without a lobe (share)",
+    "heldout_psnr_db": "held-out frames, PSNR of the fit (dB)",
+    "truth_heldout_psnr_db": "held-out frames, PSNR of the truth (dB)",
+}
+_STAT_PARTS = {
+    "normal_deg": "normal error (deg)",
+    "kd": "k_d rel. error",
+    "ks": "k_s rel. error",
+    "alpha": "alpha rel. error",
+    "ks2": "2nd lobe k_s rel. error",
+    "alpha2": "2nd lobe alpha rel. error",
+}
+
+
+def stat_label(key: str) -> str:
+    """The words for a key of :func:`score` (``matte_share_ks0`` -> ``matte pixels fitted without a
+    lobe (share)``, ``varnished_ks`` -> ``varnished: k_s rel. error``); the key itself otherwise."""
+    if key in STAT_LABELS:
+        return STAT_LABELS[key]
+    for region in REGIONS:
+        rest = key.removeprefix(f"{region}_")
+        if rest != key and rest in _STAT_PARTS:
+            return f"{region}: {_STAT_PARTS[rest]}"
+    return key
+
+
+def shared_limit(*maps: np.ndarray | None, quantile: float = 0.99) -> float:
+    """A robust top of a colour scale shared by ``maps`` (e.g. a fit and its truth): the largest of
+    their ``quantile``-th quantiles, so that one outlier does not squash the scale; > 0."""
+    tops = [float(np.quantile(m[np.isfinite(m)], quantile)) for m in maps if m is not None and np.isfinite(m).any()]
+    return max(tops + [1e-6])
+
+
+def _categorical(colours: tuple[str, ...]):
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    return ListedColormap(colours), BoundaryNorm(np.arange(len(colours) + 1) - 0.5, len(colours))
+
+
+def _key(ax, names: tuple[str, ...], colours: tuple[str, ...], codes: np.ndarray) -> None:
+    """A colour key of the categories present in ``codes`` beside ``ax``."""
+    from matplotlib.patches import Patch
+
+    present = set(np.unique(np.round(codes[np.isfinite(codes)])).astype(int).tolist())
+    handles = [Patch(color=c, label=n) for i, (n, c) in enumerate(zip(names, colours, strict=True)) if i in present]
+    ax.legend(
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.02),
+        ncol=2,
+        fontsize=7,
+        frameon=False,
+        handlelength=1.0,
+        columnspacing=0.8,
+    )
+
+
+def _preview(path: Path, image: np.ndarray, title: str, *, cmap=None, vmin=None, vmax=None, key=None) -> None:
+    """A readable preview: the map enlarged (nearest), titled, with a colourbar for a scalar map
+    or a colour key for a categorical one (``key``: names and colours)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    with atomic_path(path) as tmp:
-        plt.imsave(tmp, image, cmap=cmap, vmin=vmin, vmax=vmax, format="png")
+    fig, ax = plt.subplots(figsize=(5.6 if key or cmap else 4.4, 4.4))
+    norm = None
+    if key is not None:
+        cmap, norm = _categorical(key[1])
+        vmin = vmax = None
+    im = ax.imshow(image, cmap=cmap, norm=norm, vmin=vmin, vmax=vmax, interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if key is not None:
+        _key(ax, key[0], key[1], image)
+    elif cmap is not None:
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=100)
 
 
 def relit_strip(
@@ -124,44 +223,52 @@ def write_previews(
     quality: Tensor | None = None,
     truth: SVBRDF | None = None,
 ) -> list[Path]:
-    """PNG previews of fitted maps (leading dims ``(H, W)``) in ``folder``: ``normal.png``
-    (``RGB = (n + 1) / 2``), ``diffuse.png`` (sRGB-encoded), ``specular.png`` and
-    ``roughness.png`` (false colour), ``specular2.png`` and ``roughness2.png`` for a second lobe
-    (where some pixel has one), and where given ``model.png`` (the model codes of
-    :data:`torchspec.pipeline.MODEL_CODES`, 0 diffuse to 4 ward-dual),
-    ``residual.png``, ``quality.png`` and, against ``truth``, ``normal_error.png`` (degrees) and
-    ``diffuse_error.png`` (relative). Returns the paths written."""
+    """PNG previews of fitted maps (leading dims ``(H, W)``) in ``folder``, each enlarged and
+    titled, scalar maps with a colourbar: ``normal.png`` (``RGB = (n + 1) / 2``), ``diffuse.png``
+    (sRGB-encoded), ``specular.png`` and ``roughness.png`` (false colour, the scale from 0 to the
+    99th percentile of the fit and ``truth``: one outlier does not squash it), ``specular2.png``
+    and ``roughness2.png`` for a second lobe (where some pixel has one), and where given
+    ``model.png`` (the model codes of :data:`torchspec.pipeline.MODEL_CODES` in
+    :data:`MODEL_COLOURS`, with a key), ``residual.png``, ``quality.png`` and, against ``truth``,
+    ``normal_error.png`` (degrees) and ``diffuse_error.png`` (relative). Returns the paths written."""
     folder = Path(folder)
     s = svbrdf.to(device="cpu", dtype=torch.float64)
+    t = truth.to(device="cpu", dtype=torch.float64) if truth is not None else None
     written = []
 
-    def save(name, image, cmap=None, vmin=None, vmax=None):
+    def save(name, image, title, **options):
         path = folder / name
-        _save_png(path, image, cmap, vmin, vmax)
+        _preview(path, image, title, **options)
         written.append(path)
 
-    save("normal.png", ((s.normal.numpy() + 1) / 2).clip(0, 1))
-    save("diffuse.png", _rgb(display(s.diffuse.numpy(), 1.0)))
-    ks = s.specular.mean(-1).numpy()
-    save("specular.png", ks, "magma", 0.0, max(float(ks.max()), 1e-6))
-    save("roughness.png", s.roughness.mean(-1).numpy(), "viridis", 0.0, max(float(s.roughness.max()), 1e-6))
+    save("normal.png", ((s.normal.numpy() + 1) / 2).clip(0, 1), "normal (RGB = (n + 1) / 2)")
+    save("diffuse.png", _rgb(display(s.diffuse.numpy(), 1.0)), "diffuse k_d (sRGB)")
+    ks, alpha = s.specular.mean(-1).numpy(), s.roughness.mean(-1).numpy()
+    true_ks = t.specular.mean(-1).numpy() if t is not None else None
+    true_alpha = t.roughness.mean(-1).numpy() if t is not None else None
+    save("specular.png", ks, "specular k_s (mean of channels)", cmap="magma", vmin=0.0, vmax=shared_limit(ks, true_ks))
+    top = shared_limit(alpha, true_alpha)
+    save("roughness.png", alpha, "roughness alpha (mean of axes)", cmap="viridis", vmin=0.0, vmax=top)
     if s.specular2 is not None and bool((s.specular2 > 0).any()):
-        ks2 = s.specular2.mean(-1).numpy()
-        save("specular2.png", ks2, "magma", 0.0, float(ks2.max()))
-        save("roughness2.png", s.roughness2.mean(-1).numpy(), "viridis", 0.0, float(s.roughness2.max()))
+        ks2, alpha2 = s.specular2.mean(-1).numpy(), s.roughness2.mean(-1).numpy()
+        save("specular2.png", ks2, "second lobe k_s", cmap="magma", vmin=0.0, vmax=shared_limit(ks2))
+        save("roughness2.png", alpha2, "second lobe alpha", cmap="viridis", vmin=0.0, vmax=shared_limit(alpha2))
     if model is not None:
-        save("model.png", model.cpu().numpy().astype(np.float64), "viridis", 0.0, float(len(MODELS) - 1))
+        codes = model.cpu().numpy().astype(np.float64)
+        save("model.png", codes, "model of each pixel", key=(tuple(MODELS), MODEL_COLOURS))
     if residual is not None:
-        r = residual.cpu().double().numpy()
-        save("residual.png", np.log10(np.clip(r, 1e-6, None)), "inferno", -6.0, 0.0)
+        r = np.log10(np.clip(residual.cpu().double().numpy(), 1e-6, None))
+        save("residual.png", r, "log10 relative residual", cmap="inferno", vmin=-6.0, vmax=0.0)
     if quality is not None:
-        save("quality.png", quality.cpu().double().numpy(), "viridis", 0.0, 1.0)
-    if truth is not None:
-        t = truth.to(device="cpu", dtype=torch.float64)
+        save(
+            "quality.png", quality.cpu().double().numpy(), "quality (0: untrusted)", cmap="viridis", vmin=0.0, vmax=1.0
+        )
+    if t is not None:
         error = torch.rad2deg(angle(s.normal, t.normal)).numpy()
-        save("normal_error.png", error, "inferno", 0.0, max(1.0, float(np.quantile(error, 0.99))))
-        kd = _relative(s.diffuse, t.diffuse).amax(-1).numpy()
-        save("diffuse_error.png", np.log10(np.clip(kd, 1e-5, None)), "inferno", -5.0, 0.0)
+        top = max(1.0, float(np.quantile(error, 0.99)))
+        save("normal_error.png", error, "normal error (deg)", cmap="inferno", vmin=0.0, vmax=top)
+        kd = np.log10(np.clip(_relative(s.diffuse, t.diffuse).amax(-1).numpy(), 1e-5, None))
+        save("diffuse_error.png", kd, "log10 relative k_d error", cmap="inferno", vmin=-5.0, vmax=0.0)
     return written
 
 
@@ -176,61 +283,66 @@ def write_report(
     strip: Tensor,
     true_strip: Tensor | None,
     notes: list[str],
+    theta_deg: float = 30.0,
 ) -> None:
-    """One PNG page: the fitted maps, the error maps against ``truth``, the relit strip (fitted
-    above, true below), the ``scores`` and the ``notes`` (timings, counts)."""
+    """One PNG page: the fitted maps, the error maps against ``truth`` (``k_s`` and ``alpha`` on
+    scales shared with the truth's, to the 99th percentile), the model and region maps with colour
+    keys (:data:`MODEL_COLOURS`, :data:`REGION_COLOURS`), the relit strip (fitted above, true
+    below; the light ``theta_deg`` from the zenith), the ``scores`` in words (:func:`stat_label`)
+    and the ``notes`` (timings, counts)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     s = fit.svbrdf.to(device="cpu", dtype=torch.float64)
+    t = truth.to(device="cpu", dtype=torch.float64) if truth is not None else None
     count = strip.shape[0]
     white = float(np.quantile((true_strip if true_strip is not None else strip).double().numpy(), 0.995))
+    ks, alpha = s.specular.mean(-1).numpy(), s.roughness.mean(-1).numpy()
+    true_ks = t.specular.mean(-1).numpy() if t is not None else None
+    true_alpha = t.roughness.mean(-1).numpy() if t is not None else None
+    ks_top, alpha_top = shared_limit(ks, true_ks), shared_limit(alpha, true_alpha)
+    residual = np.log10(np.clip(fit.residual.cpu().double().numpy(), 1e-6, None))
+    # (title, image, colour map, (vmin, vmax) or None, categorical key or None)
     panels = [
-        ("normal (RGB = (n + 1) / 2)", ((s.normal.numpy() + 1) / 2).clip(0, 1), None, None),
-        ("k_d", _rgb(display(s.diffuse.numpy(), 1.0)), None, None),
-        ("k_s (mean of channels)", s.specular.mean(-1).numpy(), "magma", None),
-        ("alpha (mean of axes)", s.roughness.mean(-1).numpy(), "viridis", None),
-        (
-            "model: 0 diffuse, 1 ward-iso, 2 ward-iso-colour, 3 ward-aniso",
-            fit.model.cpu().double().numpy(),
-            "viridis",
-            (0, 3),
-        ),
-        (
-            "log10 relative residual",
-            np.log10(np.clip(fit.residual.cpu().double().numpy(), 1e-6, None)),
-            "inferno",
-            None,
-        ),
+        ("normal, RGB = (n+1)/2", ((s.normal.numpy() + 1) / 2).clip(0, 1), None, None, None),
+        ("k_d (sRGB)", _rgb(display(s.diffuse.numpy(), 1.0)), None, None, None),
+        ("k_s (fit)", ks, "magma", (0.0, ks_top), None),
+        ("alpha (fit)", alpha, "viridis", (0.0, alpha_top), None),
+        ("model", fit.model.cpu().double().numpy(), None, None, (tuple(MODELS), MODEL_COLOURS)),
+        ("log10 rel. residual", residual, "inferno", None, None),
     ]
-    if truth is not None:
-        t = truth.to(device="cpu", dtype=torch.float64)
+    if t is not None:
         kd_error = np.log10(np.clip(_relative(s.diffuse, t.diffuse).amax(-1).numpy(), 1e-5, None))
         panels += [
-            ("normal error (deg)", torch.rad2deg(angle(s.normal, t.normal)).numpy(), "inferno", None),
-            ("log10 relative k_d error", kd_error, "inferno", None),
-            ("true k_s", t.specular.mean(-1).numpy(), "magma", None),
-            ("true alpha", t.roughness.mean(-1).numpy(), "viridis", None),
+            ("normal error (deg)", torch.rad2deg(angle(s.normal, t.normal)).numpy(), "inferno", None, None),
+            ("log10 rel. k_d error", kd_error, "inferno", None, None),
+            ("k_s (truth)", true_ks, "magma", (0.0, ks_top), None),
+            ("alpha (truth)", true_alpha, "viridis", (0.0, alpha_top), None),
         ]
     if regions is not None:
-        names = ", ".join(f"{i} {n}" for i, n in enumerate(REGIONS))
-        panels.append((f"regions ({names})", regions.cpu().numpy(), "tab10", (0, 9)))
+        panels.append(("regions (truth)", regions.cpu().double().numpy(), None, None, (REGIONS, REGION_COLOURS)))
     columns = 6
     rows_of_maps = math.ceil(len(panels) / columns)
     strips = [("fitted", strip)] + ([("true", true_strip)] if true_strip is not None else [])
-    fig = plt.figure(figsize=(15, 2.6 * rows_of_maps + 1.9 * len(strips) * 8 / count + 2.6))
-    top, middle, bottom = fig.subfigures(3, 1, height_ratios=[2.6 * rows_of_maps, 1.9 * len(strips), 2.4])
-    axes = top.subplots(rows_of_maps, columns, squeeze=False)
+    map_height, strip_height, text_height = 3.1 * rows_of_maps, 2.0 * len(strips), 2.2
+    fig = plt.figure(figsize=(17, map_height + strip_height + text_height + 0.5))
+    top, middle, bottom = fig.subfigures(3, 1, height_ratios=[map_height, strip_height, text_height])
+    axes = top.subplots(rows_of_maps, columns, squeeze=False, gridspec_kw={"wspace": 0.5, "hspace": 0.5})
     for ax in axes.flat:
         ax.axis("off")
-    for ax, (name, image, cmap, limits) in zip(axes.flat, panels, strict=False):
+    for ax, (name, image, cmap, limits, key) in zip(axes.flat, panels, strict=False):
+        norm = None
+        if key is not None:
+            cmap, norm = _categorical(key[1])
         vmin, vmax = limits if limits is not None else (None, None)
-        im = ax.imshow(image, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
-        if cmap is not None and limits is None:
-            top.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-        ax.set_title(name, fontsize=8)
+        im = ax.imshow(image, cmap=cmap, norm=norm, vmin=vmin, vmax=vmax, interpolation="nearest")
+        if key is not None:
+            _key(ax, key[0], key[1], image)
+        elif cmap is not None:
+            top.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+        ax.set_title(name, fontsize=9)
     axes = middle.subplots(len(strips), count, squeeze=False)
     for row, (label, images) in enumerate(strips):
         for k in range(count):
@@ -240,20 +352,23 @@ def write_report(
             ax.set_yticks([])
             if k == 0:
                 ax.set_ylabel(f"{label}, relit", fontsize=8)
-    middle.suptitle("relit by a light circling the zenith", fontsize=9)
+    middle.suptitle(relit_title(theta_deg), fontsize=9)
     lines = [
-        f"{name}: {value:.4g}" if isinstance(value, float) else f"{name}: {value}" for name, value in scores.items()
+        f"{stat_label(name)}: {value:.4g}" if isinstance(value, float) else f"{stat_label(name)}: {value}"
+        for name, value in scores.items()
     ]
     half = (len(lines) + 1) // 2
-    bottom.text(
-        0.01,
-        0.95,
-        "\n".join(["errors against the truth (medians; relative unless in deg or dB):", *lines[:half]]),
-        fontsize=8,
-        family="monospace",
-        va="top",
-    )
-    bottom.text(0.36, 0.95, "\n".join(["", *lines[half:]]), fontsize=8, family="monospace", va="top")
-    bottom.text(0.68, 0.95, "\n".join(notes), fontsize=8, family="monospace", va="top", wrap=True)
+    text = {"fontsize": 8, "family": "monospace", "va": "top"}
+    bottom.text(0.01, 0.97, "\n".join(["errors against the truth:", *lines[:half]]), **text)
+    bottom.text(0.35, 0.97, "\n".join(["", *lines[half:]]), **text)
+    bottom.text(0.68, 0.97, "\n".join(notes), wrap=True, **text)
     fig.suptitle(title, fontsize=12)
-    save_figure(fig, Path(path), dpi=90)
+    save_figure(fig, Path(path), dpi=72)
+
+
+def relit_title(theta_deg: float) -> str:
+    """The relit strip's title, its light's angle said both ways."""
+    return (
+        f"relit by a light circling the zenith, {theta_deg:g} deg from it (elevation {90 - theta_deg:g} deg above "
+        "the surface)"
+    )

@@ -8,7 +8,7 @@ and varnished areas side by side, and an anisotropic coloured gilding. The setti
 of the independently rendered ``painting-dev`` and ``mirror-dev-1d`` captures
 (``truth/scene.json``), so ``PaintingConfig()`` and ``MirrorConfig()`` are look-alikes of them.
 
-Maps follow ``capture-format.md``: leading dims ``(H, W)`` with row 0 the top of the image,
+Maps follow ``docs/capture-format.md``: leading dims ``(H, W)`` with row 0 the top of the image,
 surface ``x`` along the columns and ``y`` up (towards row 0). Normals come from the gradient of
 a height field, so they are integrable like a real surface's, and every random draw is made on
 the CPU in float64 from generators seeded by ``config.seed``: a seed gives the same maps on any

@@ -2,7 +2,7 @@
 frame, and add it to the capture, so that a stop at any moment leaves a valid capture of the
 frames done, and ``resume`` continues it to the capture an uninterrupted run would have made.
 
-A capture being acquired is a capture directory (``capture-format.md``) plus ``acquire.json``,
+A capture being acquired is a capture directory (``docs/capture-format.md``) plus ``acquire.json``,
 the plan: the layout, the light, the camera's channels and exposure, the dome's identity and
 every planned frame (file, direction, dome angles). Frame ``k`` goes to ``frames/kkkk.exr``
 (written atomically), then ``capture.json`` is rewritten (atomically) listing frames ``0..k``:
@@ -170,7 +170,7 @@ def _open_output(output: Path, job: dict, resume: bool) -> dict | None:
             raise AcquisitionError(
                 f"the output {output} must be empty or absent to start an acquisition; got {len(entries)} "
                 f"entr{'y' if len(entries) == 1 else 'ies'} ({', '.join(entries[:5])}{', ...' * (len(entries) > 5)})."
-                + (" Add --resume (resume=True) to continue the acquisition there," if PLAN in entries else "")
+                + (" Add --resume to continue the acquisition there," if PLAN in entries else "")
                 + " Choose another folder, or empty it."
             )
         return None
@@ -440,7 +440,7 @@ def _take_frames(client, camera: Camera, directions: Tensor, run: _Run, toleranc
     while run.k < run.total:
         k = run.k
         planned = job["frames"][k]
-        run.step = f"move to theta={planned['theta']:.6f}, phi={planned['phi']:.6f} rad"
+        run.step = f"move to theta={math.degrees(planned['theta']):.4f}, phi={math.degrees(planned['phi']):.4f} deg"
         client.move(planned["theta"], planned["phi"])
         if tolerance is not None:
             run.step = "status after the move"
@@ -487,13 +487,17 @@ def _check_position(client, k: int, planned: dict, tolerance: float) -> None:
     if status.moving:
         problems.append("still moving")
     if off > tolerance:
-        problems.append(f"at theta={status.theta:.6f}, phi={status.phi:.6f} ({math.degrees(off):.3g} deg away)")
+        problems.append(
+            f"at theta={math.degrees(status.theta):.4f}, phi={math.degrees(status.phi):.4f} deg "
+            f"({math.degrees(off):.3g} deg away)"
+        )
     if not status.light:
         problems.append("the light off")
     if problems:
         raise _PositionError(
-            f"the dome must be at rest at frame {k}'s position (theta={planned['theta']:.6f}, "
-            f"phi={planned['phi']:.6f}, within {tolerance:g} rad) with the light on; its status says: "
+            f"the dome must be at rest at frame {k}'s position (theta={math.degrees(planned['theta']):.4f}, "
+            f"phi={math.degrees(planned['phi']):.4f} deg, within {math.degrees(tolerance):.3g} deg) with the light "
+            "on; its status says: "
             f"{', '.join(problems)}"
         )
 

@@ -28,7 +28,9 @@ from ..simulate import LayoutConfig, layout
 
 __all__ = ["AcquisitionError", "LightSettings", "load_light", "parse_layout", "plan_directions", "dome_angles"]
 
-_LIGHT_KEYS = ("light", "intensity", "irradiance", "exposure")
+_LIGHT_KEYS = ("light", "intensity", "irradiance", "exposure", "calibration")
+"""The light config's keys; ``calibration`` (the statistics ``torchspec calibrate`` writes beside
+its ``light``) is a record, not read, so calibrate's kernel.json is a light config as it is."""
 KERNEL_FILE = "kernel.exr"
 """A tabulated light's table, copied into the capture folder under this name."""
 

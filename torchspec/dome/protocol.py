@@ -105,9 +105,9 @@ _HINTS = {
     "UNKNOWN": "The firmware does not implement this command; compare its ID with docs/dome-protocol.md.",
     "BADARG": "The host sent a malformed command; this is a bug in the host software.",
     "RANGE": "Keep theta in [0, pi/2], phi finite, arm extension and intensity in [0, 1].",
-    "NOTHOMED": "Call home() first.",
-    "FAULTED": "Check the dome for an obstruction, then call home() to clear the fault.",
-    "MOTOR": "Check the dome for an obstruction, then call home() to clear the fault.",
+    "NOTHOMED": "Home the dome first (torchspec acquire homes it before the first move).",
+    "FAULTED": "Check the dome for an obstruction, then home it to clear the fault (acquire --resume homes it).",
+    "MOTOR": "Check the dome for an obstruction, then home it to clear the fault (acquire --resume homes it).",
     "INTERNAL": "Power-cycle the dome and report the firmware bug.",
 }
 

@@ -35,6 +35,7 @@ from .png16 import export_png16
 __all__ = [
     "ExportError",
     "ExportWarning",
+    "DEFAULT_LIGHT",
     "FORMATS",
     "MIN_ALPHA",
     "export",
@@ -44,6 +45,10 @@ __all__ = [
 ]
 
 FORMATS = ("mitsuba", "gltf", "png16")
+DEFAULT_LIGHT = (-0.5, 0.5, 0.5**0.5)
+"""The Mitsuba export's light when none is given: a directional light at 45 degrees elevation from
+the upper left (azimuth 135 degrees from the surface's +x towards +y), a painting's usual light,
+so that the scene renders the maps instead of black."""
 
 
 def export(
@@ -61,14 +66,16 @@ def export(
             :class:`~torchspec.io.Maps` or an :class:`~torchspec.SVBRDF` with leading dims ``(H, W)``.
         output: the folder to write (created if needed).
         to: the format.
-        light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by default).
+        light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by
+            default); without a light the scene is lit by :data:`DEFAULT_LIGHT` (a scene without
+            an emitter, to light in Mitsuba, is :func:`export_mitsuba`'s ``light=None``).
 
     Returns:
         The export's manifest: ``scene.xml``, ``scene.gltf`` or ``png16.json``.
 
     Raises:
-        ExportError: an unknown format, a light for a format other than ``mitsuba``, an
-            irradiance without a light, or maps that the format cannot take (see each format).
+        ExportError: an unknown format, a light or an irradiance for a format other than
+            ``mitsuba``, or maps that the format cannot take (see each format).
         SVBRDFError: ``maps`` is a folder that is missing or not a valid map folder.
 
     Example:
@@ -77,10 +84,11 @@ def export(
     """
     if to not in FORMATS:
         raise ExportError(f"the export format must be one of {', '.join(FORMATS)}; got {to!r}.")
-    if light is None and irradiance is not None:
-        raise ExportError(f"an irradiance needs a light to apply to; got {irradiance!r} and no light. Add the light.")
     if to == "mitsuba":
+        light = DEFAULT_LIGHT if light is None else light
         return export_mitsuba(maps, output, light=light, irradiance=1.0 if irradiance is None else irradiance)
+    if irradiance is not None:
+        raise ExportError(f"an irradiance can only be given to a mitsuba export; got one for {to!r}. Drop it.")
     if light is not None:
         raise ExportError(f"a light can only be added to a mitsuba export; got one for {to!r}. Drop the light.")
     return export_gltf(maps, output) if to == "gltf" else export_png16(maps, output)

@@ -58,7 +58,11 @@ class Location:
         std: like ``position``: the standard deviation of the position predicted from the data
             (residual noise over the Fisher information of the estimated spectrum). The noise
             is measured on ``P - D`` degrees of freedom (``P`` coefficients, ``D`` dims), so
-            ``error / std`` follows a Student t with that many; NaN for K >= 2.
+            ``error / std`` follows a Student t with that many; NaN for K >= 2. For 1D uniform
+            samples it adds the error that aliasing explains: point samples of a kernel whose
+            spectrum has not died out by the Nyquist index hold aliases in their coefficients,
+            which bias the position (``experiments/fri_aliasing.py``); the alias beyond noise
+            also counts as noise in ``quality``.
     """
 
     position: Tensor
@@ -176,7 +180,8 @@ def locate(
 
     scale = torch.tensor(call.periods, dtype=y.real.dtype, device=y.device) / (2.0 * math.pi)
     if num_pulses == 1:
-        theta, variance, snr = locate_single(y, dc, call.bands, call.method)
+        size = call.samples.shape[-1] if call.positions is None and dims == 1 else None
+        theta, variance, snr = locate_single(y, dc, call.bands, call.method, size)
         std = variance.sqrt() * scale
         quality = 1.0 / (1.0 + (SNR_HALF_QUALITY / snr) ** 3)
     else:
@@ -238,7 +243,8 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses) -> 
             if n < 2 * m + 1:
                 raise TorchspecError(
                     f"samples has {n} samples along axis {axis - dims} (shape {tuple(samples.shape)}); "
-                    f"num_coefficients={m} needs at least 2M + 1 = {2 * m + 1}. Pass fewer coefficients."
+                    f"locating a peak with {m} Fourier coefficient(s) needs at least 2M + 1 = {2 * m + 1} samples "
+                    "along each axis. Give more samples (light positions), or fewer coefficients."
                 )
         batch = samples.shape[: samples.dim() - dims]
     else:

@@ -273,7 +273,39 @@ def _root(y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str) -> Tensor:
     return torch.stack(theta, -1)
 
 
-def _locate_chunk(y, dc, freq, bands, dictionary, method) -> tuple[Tensor, Tensor, Tensor]:
+def _aliasing(r: Tensor, i: Tensor, b: Tensor, w: Tensor, noise: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """1D uniform samples: the error of ``theta`` that aliasing explains, ``(variance (B, 1),
+    noise (B,))``: its square (the fitted alias times its effect on ``theta``), added to the
+    predicted variance, and the noise variance that would cause as large an error beyond what
+    noise alone fits, added to the noise of the SNR behind quality.
+
+    Point samples of a kernel whose spectrum has not died out by the Nyquist index hold, in
+    coefficient ``m``, the alias ``a_{N-m} e^{i (N - m) theta}``: rotated back, ``c_m = a_m +
+    a_{N-m} e^{i N theta}``, so the imaginary parts carry ``s p_m`` with ``s = sin(N theta)`` and
+    ``p_m = a_{N-m}``, which looks like noise but is not spread like it: it grows with ``m``,
+    where the matched filter weighs most. ``p`` is the estimated spectrum ``b`` continued
+    geometrically from its last two coefficients (an upper bound for log-concave spectra:
+    Gaussian, Lorentzian); ``s`` is fitted to the residual beside the shift it causes (``m b_m``).
+    Lowpass samples leave ``s = 0`` (up to noise), so they are not penalised.
+    """
+    m = torch.arange(1, b.shape[-1] + 1, dtype=b.dtype, device=b.device)
+    top = b.shape[-1]
+    mag = b.abs()
+    ratio = _safe_div(mag[:, -1:], mag[:, -2:-1]).clamp(0.0, 1.0)  # (B, 1)
+    p = mag[:, -1:] * ratio ** ((size - m) - top)  # (B, M): a_{N-m}, continued
+    shift = m * r  # the residual's response to a shift of theta
+    # Least squares of i on [p, shift]: the 2 x 2 normal equations per problem.
+    spp, sss, sps = (p * p).sum(-1), (shift * shift).sum(-1), (p * shift).sum(-1)
+    sip, sis = (i * p).sum(-1), (i * shift).sum(-1)
+    det = spp * sss - sps * sps
+    s = _safe_div(sip * sss - sis * sps, det)  # the alias's amplitude, sin(N theta) when it is one
+    gain = _safe_div((w * p * m).sum(-1), (w * r * m * m).sum(-1))  # theta's error per unit s
+    spread = _safe_div(sss, det) * noise[:, 0]  # var(s) from noise alone
+    beyond = (s * s - spread).clamp(min=0.0) * gain * gain
+    return (s * s * gain * gain)[:, None], beyond * (b * b * m * m).sum(-1)  # variance x information
+
+
+def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None) -> tuple[Tensor, Tensor, Tensor]:
     yr, yi = y.real, y.imag
     dims = len(bands)
     start = _start(yr, yi, bands) if method in ("coherent", "ml") else None
@@ -297,11 +329,17 @@ def _locate_chunk(y, dc, freq, bands, dictionary, method) -> tuple[Tensor, Tenso
         det = info[:, 0] * info[:, 3] - info[:, 1] ** 2
         variance = noise * torch.stack([_safe_div(info[:, 3], det), _safe_div(info[:, 0], det)], -1)
     variance = torch.where((det > 0)[:, None], variance, torch.full_like(variance, math.inf))
-    snr = (b * b).sum(-1) / noise[:, 0]  # inf without residual degrees of freedom
+    alias = torch.zeros_like(theta[:, 0])
+    if dims == 1 and size is not None and bands[0] >= 2:
+        excess, alias = _aliasing(r, i, b, b, noise, size)
+        variance = variance + excess
+    snr = (b * b).sum(-1) / (noise[:, 0] + alias)  # inf without residual degrees of freedom
     return theta, variance, snr
 
 
-def locate_single(y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str) -> tuple[Tensor, Tensor, Tensor]:
+def locate_single(
+    y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str, size: int | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """Locate one pulse.
 
     Args:
@@ -309,13 +347,18 @@ def locate_single(y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str) ->
         dc: ``(B,)`` the DC term (root methods only).
         bands: ``(M,)`` or ``(M1, M2)``.
         method: ``coherent``, ``ml``, ``ls``, ``esprit`` or ``cadzow``.
+        size: ``N``, the uniform samples per period of a 1D problem: the variance and the SNR
+            then include what aliasing explains (:func:`_aliasing`); ``None`` (2D, scattered)
+            checks no aliasing.
 
     Returns:
         ``theta (B, D)`` in radians (not wrapped); its variance ``(B, D)`` predicted from the
         data, the noise measured in the imaginary residual (``P - D`` degrees of freedom) over
         the Fisher information of the estimated spectrum, ``inf`` where that information is
         zero and 0 with no residual degrees of freedom (one coefficient in 1D); and ``snr (B,)``,
-        the energy of the estimated spectrum over that noise variance.
+        the energy of the estimated spectrum over that noise variance. With ``size``, the
+        variance adds the error the fitted alias explains and the SNR counts the alias beyond
+        noise as noise (:func:`_aliasing`).
     """
     freq = frequencies(bands, y.real)
     dictionary = _dictionary(freq, bands)
@@ -324,5 +367,5 @@ def locate_single(y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str) ->
         return empty, empty, empty[:, 0]
     # Chunks keep the per-problem intermediates (P x atoms) in cache and bound memory.
     chunks = zip(y.split(CHUNK), dc.split(CHUNK), strict=True)
-    parts = [_locate_chunk(yc, dcc, freq, bands, dictionary, method) for yc, dcc in chunks]
+    parts = [_locate_chunk(yc, dcc, freq, bands, dictionary, method, size) for yc, dcc in chunks]
     return tuple(torch.cat(column) for column in zip(*parts, strict=True))

@@ -1,4 +1,4 @@
-"""Files of ``capture-format.md``: OpenEXR images, capture directories and SVBRDF map folders,
+"""Files of ``docs/capture-format.md``: OpenEXR images, capture directories and SVBRDF map folders,
 validated with errors that name the file and key at fault, and written atomically."""
 
 from .capture import Capture, CaptureError, Frame, LightSpec, read_capture, write_capture

@@ -1,9 +1,10 @@
-"""The manifest ``capture.json`` of ``capture-format.md``: its records (:class:`Frame`,
+"""The manifest ``capture.json`` of ``docs/capture-format.md``: its records (:class:`Frame`,
 :class:`LightSpec`), validation with errors that name the file and the key at fault, and its
 JSON form. :mod:`torchspec.io.capture` reads and writes whole captures with it."""
 
 from __future__ import annotations
 
+import difflib
 import itertools
 import json
 import math
@@ -42,7 +43,7 @@ _SAME_DIRECTION = 1e-9
 
 
 class CaptureError(TorchspecError):
-    """A capture that does not follow ``capture-format.md``; the message names the file, and the
+    """A capture that does not follow ``docs/capture-format.md``; the message names the file, and the
     key or frame at fault."""
 
 
@@ -71,7 +72,7 @@ class Frame:
 
 @dataclass(frozen=True)
 class LightSpec:
-    """The extended light source shared by all frames (``capture-format.md``, table of kernels).
+    """The extended light source shared by all frames (``docs/capture-format.md``, table of kernels).
 
     Attributes:
         kernel: ``"point"``, ``"gaussian"``, ``"tabulated"`` or ``"unknown"``.
@@ -125,11 +126,7 @@ def parse_manifest(data: Any, source: Path, notes: list[str], *, extra_known: bo
             version,
             "Convert the capture to version 1, or use a torchspec that reads this version.",
         )
-    missing = [key for key in _REQUIRED if key not in data]
-    if missing:
-        raise where.error(
-            "the manifest", f"have the keys {list(_REQUIRED)}", _Text(f"{missing} missing"), "See capture-format.md."
-        )
+    require_keys(where, "the manifest", data, _REQUIRED, _KNOWN + _OPTIONAL, "See docs/capture-format.md.")
     unknown = [key for key in data if key not in _KNOWN]
     if [key for key in unknown if key not in _OPTIONAL] and not extra_known:
         strange = [key for key in unknown if key not in _OPTIONAL]
@@ -181,8 +178,12 @@ def parse_light(where: Where, light: Any, notes: list[str]) -> LightSpec:
     keys = _LIGHT_KEYS[kernel]
     for key in keys:
         if key not in light:
+            guesses = _guesses([name for name in light if name not in ("kernel",) + keys], [key])
             raise where.error(
-                f"light.{key}", f"be given for kernel {kernel!r}", _Text("no such key"), "See capture-format.md."
+                f"light.{key}",
+                f"be given for kernel {kernel!r}",
+                _Text("no such key"),
+                f"{guesses.strip()} See docs/capture-format.md.".strip(),
             )
     _unknown(where, "light", light, ("kernel",) + keys, notes)
     values = {key: light[key] for key in keys}
@@ -211,9 +212,7 @@ def _frames(where: Where, frames: Any, count: int, notes: list[str]) -> tuple[Fr
             raise where.error(
                 key, "be an object", raw, 'E.g. {"file": ..., "direction": ..., "irradiance": 1, "exposure": 1}.'
             )
-        missing = [name for name in _FRAME_KEYS if name not in raw]
-        if missing:
-            raise where.error(key, f"have the keys {list(_FRAME_KEYS)}", _Text(f"{missing} missing"))
+        require_keys(where, key, raw, _FRAME_KEYS, _FRAME_KEYS)
         _unknown(where, key, raw, _FRAME_KEYS, notes)
         file = _relative_file(where, f"{key}.file", raw["file"])
         normal = os.path.normpath(file)
@@ -285,7 +284,32 @@ def _direction(where: Where, key: str, value: Any, notes: list[str]) -> tuple[fl
 def _unknown(where: Where, key: str, obj: dict, known: Sequence[str], notes: list[str]) -> None:
     unknown = [name for name in obj if name not in known]
     if unknown:
-        notes.append(f"{where.source}: unknown key(s) {unknown} in {key} are ignored.")
+        notes.append(f"{where.source}: unknown key(s) {unknown} in {key} are ignored.{_guesses(unknown, known)}")
+
+
+def _guesses(unknown: Sequence[str], known: Sequence[str]) -> str:
+    """`` Did you mean 'direction' for 'directon'?`` for each unknown key close to a known one
+    (:func:`difflib.get_close_matches`), or ``""``."""
+    pairs = [
+        (name, close[0])
+        for name in unknown
+        if isinstance(name, str) and (close := difflib.get_close_matches(name, list(known), n=1, cutoff=0.6))
+    ]
+    return "".join(f" Did you mean {right!r} for {wrong!r}?" for wrong, right in pairs)
+
+
+def require_keys(
+    where: Where, key: str, obj: dict, required: Sequence[str], known: Sequence[str], fix: str = ""
+) -> None:
+    """Raise the error of a ``key`` object (a mapping) that lacks some of ``required``, naming the
+    missing keys and, for a misspelt one, the unknown key beside it and the key it resembles."""
+    missing = [name for name in required if name not in obj]
+    if not missing:
+        return
+    unknown = [name for name in obj if name not in known]
+    guesses = _guesses(unknown, missing)
+    got = f"{missing} missing" + (f", and the unknown key(s) {unknown}" if unknown else "")
+    raise where.error(key, f"have the keys {list(required)}", _Text(got), (guesses.strip() + " " + fix).strip())
 
 
 def _is_number(value: Any) -> bool:

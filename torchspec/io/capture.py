@@ -1,4 +1,4 @@
-"""Capture directories of ``capture-format.md``: the manifest ``capture.json``, its frames and an
+"""Capture directories of ``docs/capture-format.md``: the manifest ``capture.json``, its frames and an
 optional tabulated light kernel.
 
 :func:`read_capture` validates the whole manifest and checks that every frame file exists, but
@@ -10,10 +10,9 @@ missing frames.
 
 from __future__ import annotations
 
-import json
 import operator
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -31,9 +30,12 @@ from ._manifest import (
     CaptureError,
     Frame,
     LightSpec,
+    Where,
     _as_list,
     _floats,
     _numpy,
+    _show,
+    parse_light,
     parse_manifest,
     to_manifest,
 )
@@ -185,7 +187,7 @@ class Capture:
                 image, size = _read_rows(file, self.channels, rows)
         except ExrError as error:
             raise CaptureError(
-                f"{self.manifest}: frames[{k}] must be a readable EXR with channels {list(self.channels)}; got: {error}"
+                f"{self.manifest}: frames[{k}] (an EXR with channels {list(self.channels)}): {error}"
             ) from error
         if size != (self.height, self.width):
             raise CaptureError(
@@ -239,17 +241,7 @@ class Capture:
                 f"{self.manifest}: light.kernel must be 'tabulated' to read a kernel image; got "
                 f"{self.light.kernel!r}. Only a tabulated light has a kernel file."
             )
-        file = self.root / self.light.file
-        try:
-            image = read_exr(file, ["Y"])[:, :, 0]
-        except ExrError as error:
-            raise CaptureError(
-                f"{self.manifest}: light.file must be a readable EXR with channel 'Y'; got: {error}"
-            ) from error
-        problem = _kernel_problem(image)
-        if problem:
-            raise CaptureError(f"{self.manifest}: light.file {file} {problem}")
-        return torch.from_numpy(np.ascontiguousarray(image))
+        return read_kernel_table(self.root / self.light.file, f"{self.manifest}: light.file")
 
     def directions(self) -> torch.Tensor:
         """``(K, 3)`` float64 light centre directions."""
@@ -268,14 +260,17 @@ class Capture:
         """The :class:`~torchspec.lights.Lights` of the capture's frames (``K`` of them), in ``dtype``.
 
         Args:
-            light: a JSON file, or a mapping, with the keys of the format's ``light`` (or of a
-                development capture's ``truth/light.json``): replaces the manifest's kernel, which
-                an ``unknown`` kernel requires.
+            light: a JSON file, or a mapping, with the keys of the format's ``light`` block, or
+                with that block under ``light`` (the ``.json`` that ``torchspec calibrate`` writes
+                beside its kernel), or a development capture's ``truth/light.json``: replaces the
+                manifest's kernel, which an ``unknown`` kernel requires. A tabulated light's
+                ``file`` is relative to the JSON file (to the capture for a mapping).
             dtype: of the directions, irradiance and exposure.
 
         Raises:
             CaptureError: the manifest's kernel is ``unknown`` and no ``light`` is given, or
-                ``light`` is an unreadable file.
+                ``light`` is an unreadable file, breaks the format's light block or names an
+                unreadable kernel image.
         """
         if light is None:
             spec = self.light
@@ -287,13 +282,47 @@ class Capture:
             table = self.read_kernel() if spec.kernel == "tabulated" else None
             kernel = Kernel.from_spec(spec, table=table)
         else:
-            if not isinstance(light, dict):
-                try:
-                    light = json.loads(Path(light).read_text(encoding="utf-8"))
-                except (OSError, ValueError) as exc:
-                    raise CaptureError(f"cannot read the light description {light}: {exc}") from None
-            kernel = Kernel.from_spec(light)
+            kernel = self._given_kernel(light)
         return Lights(self.directions().to(dtype), kernel, self.irradiance().to(dtype), self.exposure().to(dtype))
+
+    def _given_kernel(self, light: str | Path | Mapping) -> Kernel:
+        """The kernel of a light description given instead of the manifest's (:meth:`lights`)."""
+        source = None
+        if not isinstance(light, Mapping):
+            source = Path(light)
+            hint = "The light description (--light) is a JSON file, e.g. the .json torchspec calibrate writes."
+            light = read_json(source, CaptureError, hint)
+            if not isinstance(light, Mapping):
+                raise CaptureError(f"the light description {source} must be a JSON object; got {_show(light)}.")
+        if isinstance(light.get("light"), Mapping):  # calibrate's kernel.json: {"light": ..., "calibration": ...}
+            light = light["light"]
+        if light.get("kind", light.get("kernel")) in ("supergaussian", "disk"):  # a simulation's truth/light.json
+            return Kernel.from_spec(light)
+        where = Where(source if source is not None else Path("the light description"))
+        notes: list[str] = []
+        spec = parse_light(where, dict(light), notes)
+        for note in notes:
+            warnings.warn(note, stacklevel=3)
+        if spec.kernel == "unknown":
+            raise where.error("light.kernel", "give the light's shape (not 'unknown') to predict frames", spec.kernel)
+        table = None
+        if spec.kernel == "tabulated":
+            folder = source.parent if source is not None else self.root
+            table = read_kernel_table(folder / spec.file, f"{where.source}: light.file")
+        return Kernel.from_spec(spec, table=table)
+
+
+def read_kernel_table(file: Path, key: str) -> torch.Tensor:
+    """The ``(Hk, Wk)`` float32 table of a tabulated kernel: channel ``Y`` of ``file``, checked
+    (finite, positive mass); ``key`` names the file in an error (e.g. ``capture.json: light.file``)."""
+    try:
+        image = read_exr(file, ["Y"])[:, :, 0]
+    except ExrError as error:
+        raise CaptureError(f"{key} must be a readable EXR with channel 'Y'; got: {error}") from error
+    problem = _kernel_problem(image)
+    if problem:
+        raise CaptureError(f"{key} {file} {problem}")
+    return torch.from_numpy(np.ascontiguousarray(image))
 
 
 def read_capture(path: str | Path) -> Capture:
@@ -311,7 +340,7 @@ def read_capture(path: str | Path) -> Capture:
         The capture, ``root`` its directory.
 
     Raises:
-        CaptureError: ``capture.json`` is missing, not JSON, or breaks ``capture-format.md``
+        CaptureError: ``capture.json`` is missing, not JSON, or breaks ``docs/capture-format.md``
             (the message names the key, e.g. ``frames[3].direction``), or a listed frame or
             kernel file does not exist.
 
@@ -326,6 +355,7 @@ def read_capture(path: str | Path) -> Capture:
         (88, ('R', 'G', 'B'), 'gaussian')
     """
     path = Path(path)
+    _not_a_capture(path)
     manifest = path if path.suffix.lower() == ".json" or path.is_file() else path / MANIFEST
     data = read_json(manifest, CaptureError, f"Pass a capture directory that holds {MANIFEST}.")
     notes: list[str] = []
@@ -346,6 +376,33 @@ def read_capture(path: str | Path) -> Capture:
             "is missing. Restore the kernel image."
         )
     return capture
+
+
+def _not_a_capture(path: Path) -> None:
+    """Refuse, in the user's terms, what is plainly not a capture: a folder that does not exist, a
+    YAML config, an image."""
+    try:
+        exists, is_file = path.exists(), path.is_file()
+    except OSError as error:
+        raise CaptureError(f"the capture {path} must be a path the system can look up; got {error}.") from error
+    if not exists:
+        where = "" if path.parent.is_dir() else f" (nor does its folder {path.parent})"
+        raise CaptureError(
+            f"the capture folder {path} does not exist{where}. Pass a folder that holds {MANIFEST} and the "
+            "frames (docs/capture-format.md); torchspec simulate or torchspec import makes one."
+        )
+    suffix = path.suffix.lower()
+    if is_file and suffix in (".yaml", ".yml"):
+        raise CaptureError(
+            f"{path} is a YAML config, not a capture: a capture is a folder with {MANIFEST} and its frames "
+            "(docs/capture-format.md). A simulation config makes one with: torchspec simulate CONFIG -o CAPTURE; "
+            "a fit config goes to torchspec fit CAPTURE --config CONFIG."
+        )
+    if is_file and suffix in (".exr", ".jpg", ".jpeg", ".png", ".tif", ".tiff"):
+        raise CaptureError(
+            f"{path} is an image, not a capture: pass the folder that holds {MANIFEST} "
+            "(photographs become a capture with: torchspec import SOURCE -o CAPTURE)."
+        )
 
 
 def _is_file(path: Path, key: str) -> bool:

@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
+import re
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -57,25 +60,104 @@ def _open(path: Path, header_only: bool = False) -> OpenEXR.File:
         raise ExrError(f"EXR file {path} must be a path the system can look up; got {error}.") from error
     if not exists:
         raise ExrError(f"EXR file {path} must exist; got no such file. Check the path.")
+    kind = _not_exr(path)
+    if kind:
+        raise ExrError(
+            f"{path} is {kind}, not an EXR: torchspec reads linear (HDR) OpenEXR frames. Convert photographs "
+            "into a capture with: torchspec import SOURCE -o CAPTURE (docs/capture-format.md, 'Your own photographs')."
+        )
     # The binding reports a failed pixel read (e.g. a truncated file) by printing on stdout and
-    # returning zero parts; keep that line for the error instead of polluting the caller's stdout.
+    # returning zero parts, and the library prints its own lines (EXR_ERR_...) on stderr: keep
+    # them for the error instead of showing the user a library's raw lines.
     printed = io.StringIO()
     try:
-        with contextlib.redirect_stdout(printed):
+        with contextlib.redirect_stdout(printed), _library_stderr() as library:
             file = OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except Exception as error:
-        raise ExrError(f"{path} must be a readable OpenEXR file; got {type(error).__name__}: {error}.") from error
+        raise ExrError(
+            f"{path} cannot be read as an OpenEXR image: it is truncated, damaged or not an EXR "
+            f"({_detail(path, library.text or str(error))}). Write or copy the file again."
+        ) from error
     notes = printed.getvalue().strip()
     if not file.parts:
-        detail = f" ({notes})" if notes else ""
         raise ExrError(
-            f"{path} must hold an image; got none: the file is truncated or corrupt{detail}. Write it again."
+            f"{path} is truncated or corrupt: the OpenEXR library could not read its pixels "
+            f"({_detail(path, library.text or notes)}). Write or copy the file again."
         )
     if notes:  # not ours to swallow when the read went well
         sys.stdout.write(printed.getvalue())
+    if library.text:
+        sys.stderr.write(library.text)
     if len(file.parts) > 1:
         raise ExrError(f"{path} must be a single-part EXR; got {len(file.parts)} parts. Save one part per file.")
     return file
+
+
+_MAGIC = (
+    (b"\xff\xd8\xff", "a JPEG"),
+    (b"\x89PNG", "a PNG"),
+    (b"II*\x00", "a TIFF (or a camera raw file)"),
+    (b"MM\x00*", "a TIFF (or a camera raw file)"),
+    (b"GIF8", "a GIF"),
+    (b"#?RADIANCE", "a Radiance HDR"),
+    (b"#?RGBE", "a Radiance HDR"),
+)
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+
+
+def _not_exr(path: Path) -> str | None:
+    """What ``path`` is when its first bytes say it is not an EXR (``"a JPEG"``, ...), else ``None``
+    (an EXR, or a file too short or unknown: the library's error then says what is wrong)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(16)
+    except OSError:
+        return None
+    if head.startswith(_EXR_MAGIC) or len(head) < 4:
+        return None
+    for magic, kind in _MAGIC:
+        if head.startswith(magic):
+            return kind
+    return "a text file" if head.isascii() else None
+
+
+class _Captured:
+    text = ""
+
+
+@contextlib.contextmanager
+def _library_stderr():
+    """Capture what C code writes on file descriptor 2 (OpenEXR's ``EXR_ERR_...`` lines) while the
+    block runs; ``.text`` holds it after. Where descriptor 2 cannot be redirected (no such
+    descriptor), nothing is captured."""
+    captured = _Captured()
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield captured
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            captured.text = sink.read().decode("utf-8", "replace")
+
+
+def _detail(path: Path, text: str) -> str:
+    """The library's first line about ``path``, without the path and the error code: a detail for
+    the user's sentence, not the sentence."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if not lines:
+        return "no detail given"
+    line = lines[0].replace(f"{path}: ", "").replace(str(path), "the file")
+    line = re.sub(r"^\(EXR_ERR_[A-Z_]+\)\s*", "", line)
+    line = re.sub(r"^Warning:\s*", "", line)
+    return f"OpenEXR says: {line}"
 
 
 def read_exr(

@@ -1,4 +1,4 @@
-"""Folders of SVBRDF maps (``capture-format.md``, "SVBRDF maps"): the output of a fit and the
+"""Folders of SVBRDF maps (``docs/capture-format.md``, "SVBRDF maps"): the output of a fit and the
 ``truth/`` of a synthetic capture.
 
     svbrdf.json     {"format": "torchspec.svbrdf", "version": 1, "model": "ward", ...}
@@ -43,7 +43,7 @@ _UNIT_TOLERANCE = 1e-3
 
 
 class SVBRDFError(TorchspecError):
-    """A folder of maps that does not follow ``capture-format.md``; the message names the file
+    """A folder of maps that does not follow ``docs/capture-format.md``; the message names the file
     and the key or map at fault."""
 
 

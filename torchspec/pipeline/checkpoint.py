@@ -108,8 +108,8 @@ def open_checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, TileResu
     finished = sorted(folder.glob("tile-*.pt"))
     if not resume:
         raise TorchspecError(
-            f"{folder} holds an unfinished fit ({len(finished)} tile(s) done): continue it with --resume "
-            f"(resume=True), or remove {folder} to start over."
+            f"{folder} holds an unfinished fit ({len(finished)} tile(s) done): continue it with --resume, "
+            f"or remove {folder} to start over."
         )
     differ = [key for key in job if saved.get(key) != job[key]]
     if differ:

@@ -370,7 +370,7 @@ def _map(client, task, job: _Job, items: list, retries: int, label) -> Iterator:
     for item in items:
         key = f"torchspec-{label(item).replace(' ', '-')}-{tag}"
         futures[client.submit(task, shared, item, key=key, retries=retries, pure=False)] = item
-    saved = f"The finished tiles are saved in {job.folder}: continue with --resume (resume=True)."
+    saved = f"The finished tiles are saved in {job.folder}: continue with --resume."
     try:
         for future in as_completed(futures, loop=client.loop):
             try:
