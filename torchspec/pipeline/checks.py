@@ -83,6 +83,6 @@ def check_choice(choice: Choice, data: TileSamples, few: Tensor, config: FitConf
         ("peak_misfit", peak_misfit > config.flag_peak_misfit),
         ("astray", astray > config.flag_astray),
         ("misfit", choice.misfit),
-        ("poor_fit", choice.misfit & (data.relative_rms(choice.cost) > config.trust_rms)),
+        ("poor_fit", ~lobed & choice.misfit & (data.relative_rms(choice.cost) > config.trust_rms)),
     )
     return flags, Checks(peak_misfit, astray)
