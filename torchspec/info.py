@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
 from .layout import layout_of
 from .photometric import peak_of, sample_masks, saturation_level
+from .progress import bar as progress_bar
 
 __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
 
@@ -128,7 +128,7 @@ def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[l
     """Read the frames one by one: a row of counts per frame, and the clipping level (``inf``
     when nothing clips)."""
     rows, peaks, tops = [], [], []
-    with tqdm(total=len(capture.frames), unit="frame", desc="info", disable=not progress) as bar:
+    with progress_bar(len(capture.frames), unit="frame", desc="info", enabled=progress) as bar:
         for k, frame in enumerate(capture.frames):
             row = {"index": k, "file": frame.file, "saturated": 0, "nonfinite": 0, "negative": 0}
             row.update(min=None, max=None, error=None)

@@ -53,6 +53,7 @@ def export(
     to: str,
     light: Sequence[float] | None = None,
     irradiance: float | Sequence[float] | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``).
 
@@ -62,6 +63,8 @@ def export(
         output: the folder to write (created if needed).
         to: the format.
         light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by default).
+        overwrite: write into a folder that already holds files; refused otherwise
+            (:func:`torchspec.outputs.check_output`).
 
     Returns:
         The export's manifest: ``scene.xml``, ``scene.gltf`` or ``png16.json``.
@@ -80,7 +83,8 @@ def export(
     if light is None and irradiance is not None:
         raise ExportError(f"an irradiance needs a light to apply to; got {irradiance!r} and no light. Add the light.")
     if to == "mitsuba":
-        return export_mitsuba(maps, output, light=light, irradiance=1.0 if irradiance is None else irradiance)
+        irradiance = 1.0 if irradiance is None else irradiance
+        return export_mitsuba(maps, output, light=light, irradiance=irradiance, overwrite=overwrite)
     if light is not None:
         raise ExportError(f"a light can only be added to a mitsuba export; got one for {to!r}. Drop the light.")
-    return export_gltf(maps, output) if to == "gltf" else export_png16(maps, output)
+    return (export_gltf if to == "gltf" else export_png16)(maps, output, overwrite=overwrite)
