@@ -7,6 +7,7 @@ import shlex
 import shutil
 import sys
 import traceback
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -189,7 +190,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return COMMANDS[args.command](parser, args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line(args.command)
+            return COMMANDS[args.command](parser, args)
     except (TorchspecError, OSError) as exc:  # the user's input or filesystem: say what and where, no traceback
         print(f"torchspec {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -199,6 +202,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchspec {args.command}: internal error: this is a bug in torchspec {__version__}; please report it "
               f"with the traceback above and the command line: torchspec {line}", file=sys.stderr)
         return BUG
+
+
+def _warning_line(command: str):
+    """A ``warnings.showwarning`` that prints a warning as one line naming the command (no source line)."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"torchspec {command}: warning: {message}", file=file or sys.stderr)
+
+    return show
 
 
 def _rerun() -> str:

@@ -19,7 +19,7 @@ import torch
 
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
-from .layout import layout_of
+from .layout import coverage_warning, fit_problem, layout_of
 from .photometric import peak_of, sample_masks, saturation_level
 from .progress import bar as progress_bar
 
@@ -30,8 +30,6 @@ WARNINGS = "usable with warnings"
 """Problems a fit masks or fixes: saturated or bad pixels, renormalised directions, unknown keys."""
 UNUSABLE = "unusable"
 
-MIN_FRAMES = 4
-"""A fit needs 3 frames for the normal and ``k_d`` and one more for a lobe (:func:`torchspec.pipeline.fit`)."""
 _LISTED = 10
 """Frames at fault that :func:`format_report` lists one by one."""
 
@@ -101,8 +99,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
             f"{capture.manifest}: light.kernel is 'unknown': only the specular location can be recovered; "
             "torchspec fit needs the light's shape (calibrate the light first)."
         )
-    if count < MIN_FRAMES:
-        reasons.append(f"{capture.manifest}: a fit needs at least {MIN_FRAMES} frames; got {count}.")
+    reasons += _layout_notes(capture, report["warnings"])
 
     rows, level = _scan(capture, saturation, progress)
     report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
@@ -122,6 +119,23 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     report["reason"] = "\n".join(reasons) if reasons else None
     report["verdict"] = UNUSABLE if reasons else WARNINGS if report["warnings"] else OK
     return report
+
+
+def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
+    """Why no fit can use the frames (the reasons the capture is unusable), and, in ``notes``, what
+    the default fit (with lobes) refuses or does poorly (:func:`torchspec.layout.fit_problem`,
+    :func:`torchspec.layout.coverage_warning`)."""
+    l = capture.directions()[:, :2]
+    problem = fit_problem(l, lobe=False)
+    if problem is not None:
+        return [f"{capture.manifest}: {problem}"]
+    problem = fit_problem(l)
+    if problem is not None:
+        notes.append(f"{capture.manifest}: torchspec fit (with lobes, its default) refuses these frames: {problem}")
+    cover = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype))
+    if cover is not None:
+        notes.append(f"{capture.manifest}: {cover}")
+    return []
 
 
 def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[list[dict[str, Any]], float]:
