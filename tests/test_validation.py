@@ -388,7 +388,7 @@ BROKEN = {
     ),
     "too-few-frames": (
         lambda root: edit_manifest(root, lambda m: m.update(frames=m["frames"][:3])),
-        "a fit needs at least 4 frames; got 3",
+        "3 frame(s): a fit needs at least 4",
     ),
 }
 
