@@ -82,7 +82,7 @@ def _capture(settings: Settings) -> Path:
         sensor=SensorConfig(photons_per_unit=settings.photons_per_unit, seed=settings.seed),
     )
     start = time.perf_counter()
-    write_simulation(folder, simulate(config, root=folder))
+    write_simulation(folder, simulate(config, root=folder), overwrite=True)  # a cache: an unfinished one is redone
     print(f"simulated {folder} in {time.perf_counter() - start:.0f} s")
     return folder
 

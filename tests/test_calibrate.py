@@ -271,10 +271,11 @@ def test_fit_with_a_calibrated_kernel(tmp_path):
     source = read_capture(DATA / "mirror-dev-1d")
     result = calibrate(source, size=16, mirror_alpha=0.005)
     light = write_kernel(tmp_path / "kernel.exr", result)
-    write_capture(
+    write_capture(  # beside the kernel written there first
         tmp_path,
         replace(source, root=tmp_path, light=LightSpec(**light), width=1, height=1),
         source.read_frames()[:, :, 5:6, 7:8],
+        overwrite=True,
     )
     fitted = fit(tmp_path, config=FitConfig(model="ward-iso"), frames="::2").svbrdf
     truth = read_svbrdf(DATA / "mirror-dev-1d" / "truth").svbrdf[5:6, 7:8]

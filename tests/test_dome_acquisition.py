@@ -32,7 +32,7 @@ from torchspec.dome.acquisition import (
 from torchspec.dome.camera import CameraError, FolderCamera, SimulatedCamera
 from torchspec.dome.protocol import DomeIdentity, DomeStatus
 from torchspec.geometry import angle
-from torchspec.info import OK, inspect_capture
+from torchspec.info import OK, UNUSABLE, inspect_capture
 from torchspec.io import CaptureError, read_capture, write_exr
 from torchspec.pipeline import fit
 from torchspec.simulate import LayoutConfig, SceneConfig, layout
@@ -296,7 +296,7 @@ def test_a_stop_leaves_the_frames_done_and_resume_completes_them(reference, tmp_
         assert f"{k} of {TOTAL} frames are saved in {path} (a valid capture)" in message, message
         saved = read_capture(path)
         assert len(saved.frames) == k
-        assert inspect_capture(path)["verdict"] == OK
+        assert inspect_capture(path)["verdict"] != UNUSABLE  # valid; info may warn that a lobe needs more frames
         for j in range(k):
             assert torch.equal(saved.read_frames([j]), read_capture(reference[0]).read_frames([j]))
     else:
@@ -459,7 +459,7 @@ def test_end_to_end_each_fault_recovers_or_stops_cleanly(reference, tmp_path, fa
         assert f"stopped at frame {k} (frames/{k:04d}.exr) of {TOTAL}, at move to theta=" in message, message
         assert emulator.port in message, message
         assert f"{k} of {TOTAL} frames are saved" in message, message
-        assert len(read_capture(path).frames) == k and inspect_capture(path)["verdict"] == OK
+        assert len(read_capture(path).frames) == k and inspect_capture(path)["verdict"] != UNUSABLE
         if fault == "motor":
             assert not emulator.status().light, "the light must be switched off after a motor fault"
         if fault == "disconnect":  # the device is gone: a new one (the same model) on another port
@@ -558,7 +558,7 @@ def test_cli_killed_mid_way_and_resumed_equals_an_uninterrupted_run(cli_files, t
     done = _listed(output)
     assert 4 <= done < 16, f"killed after {done} frames"
     report = inspect_capture(output)
-    assert report["verdict"] == OK and report["frames"] == done, report["reason"] or report["warnings"]
+    assert report["verdict"] != UNUSABLE and report["frames"] == done, report["reason"] or report["warnings"]
     with DomeEmulator(speed=FAST) as emulator:  # the dome power-cycled: homed again by the resume
         assert main(_argv(emulator.port, cli_files, output, "--resume")) == 0
     _assert_same(output, reference)

@@ -158,7 +158,9 @@ def test_mitsuba_render_is_diffuse_plus_beckmann(tmp_path, channels, turns):
         lights = Lights(direction, Kernel("point"), irradiance, torch.ones(1, dtype=F64))
         point = Quadrature(path="point")
         expected = render(svbrdf.flatten(), lights, view, quadrature=point, lobe="beckmann").reshape(5, 7, channels)
-        scene = export_mitsuba(svbrdf, tmp_path, light=direction[0].tolist(), irradiance=irradiance[0].tolist())
+        scene = export_mitsuba(
+            svbrdf, tmp_path, light=direction[0].tolist(), irradiance=irradiance[0].tolist(), overwrite=True
+        )
         got = _render_mitsuba(mi, scene)[:, :, :channels]
         error = ((got - expected).abs().max() / expected.abs().max()).item()
         assert error < 1e-5, f"max error {error:.3g} of the peak"

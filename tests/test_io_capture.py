@@ -331,7 +331,7 @@ def test_manifest_is_written_last(written, monkeypatch):
 
     monkeypatch.setattr(capture_module, "write_exr", failing_write)
     with pytest.raises(KeyboardInterrupt):
-        write_capture(capture.root, capture, frames + 1)
+        write_capture(capture.root, capture, frames + 1, overwrite=True)
     assert not capture.manifest.exists(), "a manifest over a half-written set of frames"
     assert not list(capture.root.rglob(".*.part*"))
 

@@ -273,7 +273,7 @@ def test_meta_is_written_last(folder, monkeypatch):
 
     monkeypatch.setattr(svbrdf_module, "write_exr", failing_write)
     with pytest.raises(KeyboardInterrupt):
-        write_svbrdf(folder, _svbrdf(seed=1))
+        write_svbrdf(folder, _svbrdf(seed=1), overwrite=True)
     assert calls and not (folder / "svbrdf.json").exists(), "a manifest over half-written maps"
 
 
@@ -298,14 +298,14 @@ def test_a_second_lobe_round_trips_and_is_named_in_the_meta(tmp_path):
     assert maps.meta["second_lobe"] == {"specular": "specular2.exr", "roughness": "roughness2.exr"}
     assert maps.extra == {}
     # Written again without it: no stale second lobe stays behind, in the files or the meta.
-    write_svbrdf(tmp_path, Maps(_svbrdf(), maps.meta))
+    write_svbrdf(tmp_path, Maps(_svbrdf(), maps.meta), overwrite=True)
     again = read_svbrdf(tmp_path)
     assert again.svbrdf.specular2 is None and "second_lobe" not in again.meta
     assert not (tmp_path / "specular2.exr").exists() and not (tmp_path / "roughness2.exr").exists()
 
 
 def test_a_second_lobe_needs_both_maps(tmp_path):
-    write_svbrdf(tmp_path, _two_lobes(_svbrdf()))
+    write_svbrdf(tmp_path, _two_lobes(_svbrdf()), overwrite=True)
     (tmp_path / "roughness2.exr").unlink()
     with pytest.raises(SVBRDFError, match=r"specular2.exr \(a second lobe\) needs .*roughness2.exr"):
         read_svbrdf(tmp_path)
@@ -315,8 +315,8 @@ def test_a_negative_second_lobe_is_refused(tmp_path):
     bad = _two_lobes(_svbrdf())
     bad.specular2[0, 5, 0] = -0.1
     with pytest.raises(SVBRDFError, match=r"specular2.exr: SVBRDF.specular2 must be >= 0; got 1 pixel"):
-        write_svbrdf(tmp_path, bad)
-    write_svbrdf(tmp_path, _two_lobes(_svbrdf()))
+        write_svbrdf(tmp_path, bad, overwrite=True)
+    write_svbrdf(tmp_path, _two_lobes(_svbrdf()), overwrite=True)
     image = read_exr(tmp_path / "roughness2.exr")
     image[1, 4, 0] = float("nan")
     write_exr(tmp_path / "roughness2.exr", image, ["X", "Y"])

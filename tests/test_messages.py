@@ -111,7 +111,7 @@ def test_the_planned_grid_of_an_acquisition():
 
 
 def test_warnings_are_one_line_for_the_command(capture, tmp_path):
-    """torchspec as a command shows a warning as 'torchspec: warning: ...', without the Python
+    """torchspec as a command shows a warning as 'torchspec COMMAND: warning: ...', without the Python
     file and source line of the default format."""
     root = _copy(capture, tmp_path)
     manifest = json.loads((root / "capture.json").read_text())
@@ -123,5 +123,5 @@ def test_warnings_are_one_line_for_the_command(capture, tmp_path):
         [*command, "-o", str(tmp_path / "out")], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": path}
     )
     assert done.returncode == 0, done.stderr
-    assert "torchspec: warning: " in done.stderr and "unknown top-level key(s) ['comment']" in done.stderr
+    assert "torchspec render: warning: " in done.stderr and "unknown top-level key(s) ['comment']" in done.stderr
     assert ".py:" not in done.stderr and "warnings.warn" not in done.stderr, done.stderr

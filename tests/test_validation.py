@@ -7,8 +7,10 @@ channels, NaN, manifest keys) are not repeated here; this file covers the rest, 
 from __future__ import annotations
 
 import copy
+import io
 import json
 import math
+import sys
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -282,8 +284,19 @@ def test_info_reads_one_frame_at_a_time_with_a_progress_bar_that_can_be_disabled
     inspect_capture(capture.root, progress=False)
     assert asked == [[k] for k in range(5)]
     assert capsys.readouterr().err == ""
+    inspect_capture(capture.root, progress=True)  # stderr is not a terminal here: quiet all the same
+    assert capsys.readouterr().err == ""
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
     inspect_capture(capture.root, progress=True)
-    assert "5/5" in capsys.readouterr().err
+    assert "5/5" in terminal.getvalue()
+
+
+class _Terminal(io.StringIO):
+    """A stderr that says it is a terminal (progress bars show there only)."""
+
+    def isatty(self) -> bool:
+        return True
 
 
 @needs_data
@@ -375,7 +388,7 @@ BROKEN = {
     ),
     "too-few-frames": (
         lambda root: edit_manifest(root, lambda m: m.update(frames=m["frames"][:3])),
-        "a fit needs at least 4 frames; got 3",
+        "3 frame(s): a fit needs at least 4",
     ),
 }
 

@@ -69,6 +69,7 @@ __all__ = [
     "Calibration",
     "calibrate",
     "recover_kernel",
+    "kernel_outputs",
     "write_kernel",
     "SYMMETRIES",
     "MIN_CORE",
@@ -553,9 +554,21 @@ def calibrate(
     return Calibration(result.table, result.extent, result.reflection, result.used, stats)
 
 
-def write_kernel(path: str | Path, calibration: Calibration) -> dict:
+def kernel_outputs(path: str | Path, *, overwrite: bool = False, flag: str = "overwrite=True") -> Path:
+    """Check, before a calibration, that its kernel ``path`` and the ``.json`` beside it can be written
+    and do not exist (unless ``overwrite``): :func:`torchspec.outputs.check_output` on each."""
+    from .outputs import check_output
+
+    path = Path(path)
+    for file in (path, path.with_suffix(".json")):
+        check_output(file, overwrite=overwrite, folder=False, flag=flag)
+    return path
+
+
+def write_kernel(path: str | Path, calibration: Calibration, *, overwrite: bool = False) -> dict:
     """Write the table as a single-channel (``Y``) EXR, atomically, and beside it (same stem,
-    ``.json``) the manifest's ``light`` entry with the calibration's statistics.
+    ``.json``) the manifest's ``light`` entry with the calibration's statistics. Either file
+    existing is refused unless ``overwrite`` (:func:`kernel_outputs`).
 
     Returns:
         The ``light`` entry for a capture whose manifest sits in the same folder as ``path``.
@@ -563,7 +576,7 @@ def write_kernel(path: str | Path, calibration: Calibration) -> dict:
     from .atomic import write_json
     from .io import write_exr
 
-    path = Path(path)
+    path = kernel_outputs(path, overwrite=overwrite)
     write_exr(path, calibration.table.to(torch.float32), ["Y"])
     light = calibration.light(path.name)
     write_json(path.with_suffix(".json"), {"light": light, "calibration": calibration.stats})

@@ -15,11 +15,13 @@ from pathlib import Path
 
 from ._version import __version__
 from .errors import TorchspecError
+from .outputs import check_output
+from .pipeline.checkpoint import CHECKPOINT
 
 __all__ = ["BUG", "COMMANDS", "build_parser", "main"]
 
-CHECKPOINT = ".torchspec-fit"
-"""The folder, inside a fit's output, of its finished tiles until the maps are written."""
+OVERWRITE = "--overwrite"
+"""The option that lets a command write into an output that holds other work."""
 
 BUG = 70
 PIPE_CLOSED = 141
@@ -108,6 +110,12 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------------------
 
 
+def _add_overwrite(command, more: str = "") -> None:
+    """The option :data:`OVERWRITE`: without it, an output that holds files is refused before any work."""
+    command.add_argument(OVERWRITE, action="store_true",
+                         help=f"write into an output that already holds files, replacing them{more}")
+
+
 def _add_simulation_commands(commands) -> None:
     """``demo`` and ``simulate``."""
     demo = commands.add_parser(
@@ -117,10 +125,13 @@ def _add_simulation_commands(commands) -> None:
                       help="the folder to write (default: ./torchspec-demo)")
     demo.add_argument("--size", type=int, default=64, help="the painting's width and height in pixels (default: 64)")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_overwrite(demo)
 
     simulate = commands.add_parser("simulate", help="render a synthetic capture (with truth/) from a config")
     simulate.add_argument("config", type=Path, help="a simulation config (YAML), e.g. configs/sim_painting.yaml")
     simulate.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
+    simulate.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_overwrite(simulate)
 
 
 def _add_fit_command(commands) -> None:
@@ -139,6 +150,7 @@ def _add_fit_command(commands) -> None:
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
                           f"{CHECKPOINT})")
+    _add_overwrite(fit, " (an unfinished fit there is dropped unless --resume)")
     cluster = fit.add_mutually_exclusive_group()
     cluster.add_argument("--scheduler", default=None, metavar="ADDRESS",
                          help="fit the tiles on the Dask cluster of this scheduler, e.g. tcp://10.0.0.5:8786 (CAPTURE "
@@ -158,6 +170,8 @@ def _add_map_commands(commands) -> None:
                         help="a JSON light description to use instead of the capture's (needed for 'unknown' kernels)")
     render.add_argument("--path", default="auto", choices=["auto", "point", "fast", "reference"],
                         help="quadrature path (default: auto)")
+    render.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_overwrite(render)
 
     export = commands.add_parser("export", help="export SVBRDF maps: a Mitsuba 3 scene, a glTF 2.0 quad or 16-bit PNG")
     export.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
@@ -168,6 +182,7 @@ def _add_map_commands(commands) -> None:
                              "default: 45 deg elevation from the upper left, -0.5 0.5 0.707)")
     export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
                         help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1)")
+    _add_overwrite(export)
 
 
 def _add_capture_commands(commands) -> None:
@@ -191,6 +206,7 @@ def _add_capture_commands(commands) -> None:
     calibrate.add_argument("--mirror-alpha", type=float, default=0.0,
                            help="the mirror's roughness (Ward alpha), deconvolved (default: 0, a perfect mirror)")
     calibrate.add_argument("--frames", default=None, help="frames to use, as for fit (default: all)")
+    _add_overwrite(calibrate, " (the kernel EXR and its .json)")
 
 
 def _add_dome_commands(commands) -> None:
@@ -226,6 +242,7 @@ def _add_dome_commands(commands) -> None:
     acquire.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
     acquire.add_argument("--resume", action="store_true", help="continue an interrupted acquisition in OUTPUT")
     acquire.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_overwrite(acquire, " (start afresh; --resume continues an acquisition instead)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -239,13 +256,13 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    if argv is None:  # the command itself (not a caller's test): warnings as one line each, no source line
-        warnings.showwarning = _one_line_warning
     if args.command is None:
         parser.print_help()
         return 2
     try:
-        status = COMMANDS[args.command](parser, args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line(args.command)
+            status = COMMANDS[args.command](parser, args)
         sys.stdout.flush()  # a reader that stopped (torchspec info | head -2) shows here, not at exit
         return status
     except BrokenPipeError:  # the reader of stdout stopped reading: nothing to say, and no one to say it to
@@ -262,12 +279,6 @@ def main(argv: list[str] | None = None) -> int:
         return BUG
 
 
-def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Show a warning to a command-line user as ``torchspec: warning: ...``: the message, without
-    the Python file and source line the default shows."""
-    print(f"torchspec: warning: {message}", file=sys.stderr if file is None else file)
-
-
 def _silence_stdout() -> None:
     """Point stdout at /dev/null, so that Python's flush at exit does not fail on the closed pipe."""
     try:
@@ -278,10 +289,24 @@ def _silence_stdout() -> None:
         pass
 
 
+def _warning_line(command: str):
+    """A ``warnings.showwarning`` that prints a warning as one line naming the command (no source line)."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"torchspec {command}: warning: {message}", file=file or sys.stderr)
+
+    return show
+
+
 def _rerun() -> str:
     """The command line that continues the interrupted command of ``sys.argv``: the same, with ``--resume``."""
     again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
     return f"torchspec {again} --resume"
+
+
+def _check_output(args: argparse.Namespace, path: Path | None = None, **rule) -> Path:
+    """``args.output`` (or ``path``) checked before any work (:func:`torchspec.outputs.check_output`)."""
+    return check_output(args.output if path is None else path, overwrite=args.overwrite, flag=OVERWRITE, **rule)
 
 
 def _demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -289,7 +314,8 @@ def _demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         parser.error(f"--size must be in 8..4096; got {args.size}")
     from . import demo
 
-    demo.run(args.output, size=args.size, progress=not args.quiet)
+    _check_output(args, args.output or demo.DEFAULT_OUTPUT)
+    demo.run(args.output, size=args.size, progress=not args.quiet, overwrite=args.overwrite)
     return 0
 
 
@@ -298,7 +324,9 @@ def _simulate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .simulate import SimulationConfig, simulate, write_simulation
 
     config = load_config(args.config, SimulationConfig)
-    result = write_simulation(args.output, simulate(config, root=args.output))
+    _check_output(args)
+    simulation = simulate(config, root=args.output, progress=not args.quiet)
+    result = write_simulation(args.output, simulation, overwrite=args.overwrite)
     print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
           f"{''.join(result.channels)}, with truth/")
     return 0
@@ -326,6 +354,9 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")
+    _check_output(args, job=CHECKPOINT)  # its own checkpoint: --resume decides
+    if args.overwrite and not args.resume:
+        shutil.rmtree(checkpoint, ignore_errors=True)  # an unfinished fit there: dropped, as asked
     try:
         if args.scheduler is None and args.workers is None:
             result = fit(
@@ -342,7 +373,7 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
               f"continue with: {_rerun()}", file=sys.stderr)
         return 130
-    write_fit(args.output, result)
+    write_fit(args.output, result, overwrite=True)  # checked above, before the fit
     shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
     stats = result.stats
     print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
@@ -355,7 +386,9 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .relight import render_capture
 
-    report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path)
+    _check_output(args)
+    report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path,
+                            overwrite=args.overwrite, progress=not args.quiet)
     print(f"wrote {report['frames']} frames to {args.output}")
     if report.get("psnr_db") is not None:
         print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
@@ -366,7 +399,9 @@ def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .export import export
 
-    written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance)
+    _check_output(args)
+    written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance,
+                     overwrite=args.overwrite)
     print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
     if args.to == "mitsuba" and args.light is None:
         print("  lit by a directional light at 45 deg elevation from the upper left (the default); "
@@ -387,11 +422,12 @@ def _info(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _calibrate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import json
 
-    from .calibrate import calibrate, write_kernel
+    from .calibrate import calibrate, kernel_outputs, write_kernel
 
+    kernel_outputs(args.output, overwrite=args.overwrite, flag=OVERWRITE)
     result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
                        symmetry=args.symmetry, mirror_alpha=args.mirror_alpha)
-    light = write_kernel(args.output, result)
+    light = write_kernel(args.output, result, overwrite=True)  # checked above, before the calibration
     print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
     print(result.summary())
     print(f"capture manifest light entry (kernel file beside capture.json): {json.dumps(light)}")
@@ -408,8 +444,10 @@ def _dome_emulator(parser: argparse.ArgumentParser, args: argparse.Namespace) ->
 
 
 def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    from .dome.acquisition import AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
+    from .dome.acquisition import PLAN, AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
     from .dome.client import DomeClient
+
+    check_output(args.output, overwrite=args.overwrite or args.resume, job=PLAN, flag=OVERWRITE)
 
     light = load_light(args.light)
     camera = open_camera(args.camera, light, channels=args.channels.split(","), pattern=args.pattern,
@@ -417,7 +455,7 @@ def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     try:
         with DomeClient(args.port, timeout=args.timeout, move_timeout=args.move_timeout) as client:
             capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
-                              resume=args.resume, progress=not args.quiet)
+                              resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     except (AcquisitionStopped, AcquisitionInterrupted) as stop:
         print(f"torchspec acquire: {stop} Continue with: {_rerun()}", file=sys.stderr)
         return 130 if isinstance(stop, AcquisitionInterrupted) else 1

@@ -22,6 +22,7 @@ import torch
 
 from .atomic import save_figure, write_json
 from .io import read_capture
+from .outputs import check_output
 from .pipeline import FitConfig, fit, select_frames, write_fit
 from .report import display, heldout_psnr, relit_strip, relit_title, score, write_previews, write_report
 from .simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
@@ -43,13 +44,19 @@ def scene(size: int = 64, seed: int = 777) -> SimulationConfig:
     )
 
 
-def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, progress: bool = True) -> dict:
-    """Run the demo into ``output`` (default ``./torchspec-demo``); returns ``report.json``'s content."""
-    output = Path(output) if output is not None else DEFAULT_OUTPUT
+def run(
+    output: str | Path | None = None, *, size: int = 64, seed: int = 777, progress: bool = True, overwrite: bool = False
+) -> dict:
+    """Run the demo into ``output`` (default ``./torchspec-demo``); returns ``report.json``'s content.
+
+    ``output`` is checked before any work: a folder that holds files (an earlier demo's too) is
+    refused unless ``overwrite`` (:func:`torchspec.outputs.check_output`).
+    """
+    output = check_output(output if output is not None else DEFAULT_OUTPUT, overwrite=overwrite)
     clock = time.perf_counter()
     config = scene(size, seed)
-    simulation = simulate(config, root=output / "capture")
-    write_simulation(output / "capture", simulation)
+    simulation = simulate(config, root=output / "capture", progress=progress)
+    write_simulation(output / "capture", simulation, overwrite=overwrite)
     simulate_seconds = time.perf_counter() - clock
     print(
         f"torchspec demo: simulated a {size}x{size} painting under {len(simulation.capture.frames)} frames "
@@ -63,7 +70,7 @@ def run(output: str | Path | None = None, *, size: int = 64, seed: int = 777, pr
     held = [k for k in range(len(capture.frames)) if k not in set(fitted_frames)]
     fit_config = FitConfig(model="auto")
     result = fit(capture, config=fit_config, frames=fitted_frames, progress=progress)
-    write_fit(output / "maps", result)
+    write_fit(output / "maps", result, overwrite=overwrite)
     fit_seconds = result.stats["seconds"]["total"]
     print(
         f"  fitted on {len(fitted_frames)} frames in {fit_seconds:.1f} s, models chosen per pixel "

@@ -17,12 +17,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
-from .layout import layout_of
+from .layout import coverage_warning, fit_problem, layout_of
 from .photometric import peak_of, sample_masks, saturation_level
+from .progress import bar as progress_bar
 
 __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
 
@@ -31,8 +31,6 @@ WARNINGS = "usable with warnings"
 """Problems a fit masks or fixes: saturated or bad pixels, renormalised directions, unknown keys."""
 UNUSABLE = "unusable"
 
-MIN_FRAMES = 4
-"""A fit needs 3 frames for the normal and ``k_d`` and one more for a lobe (:func:`torchspec.pipeline.fit`)."""
 _LISTED = 10
 """Frames at fault that :func:`format_report` lists one by one."""
 
@@ -103,8 +101,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
             f"{capture.manifest}: light.kernel is 'unknown': only the specular location can be recovered; "
             "torchspec fit needs the light's shape (calibrate the light first)."
         )
-    if count < MIN_FRAMES:
-        reasons.append(f"{capture.manifest}: a fit needs at least {MIN_FRAMES} frames; got {count}.")
+    reasons += _layout_notes(capture, report["warnings"])
 
     if saturation is None:  # the level an imported capture records, as the fit uses it
         saturation = capture.saturation
@@ -128,11 +125,28 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     return report
 
 
+def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
+    """Why no fit can use the frames (the reasons the capture is unusable), and, in ``notes``, what
+    the default fit (with lobes) refuses or does poorly (:func:`torchspec.layout.fit_problem`,
+    :func:`torchspec.layout.coverage_warning`)."""
+    l = capture.directions()[:, :2]
+    problem = fit_problem(l, lobe=False)
+    if problem is not None:
+        return [f"{capture.manifest}: {problem}"]
+    problem = fit_problem(l)
+    if problem is not None:
+        notes.append(f"{capture.manifest}: torchspec fit (with lobes, its default) refuses these frames: {problem}")
+    cover = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype))
+    if cover is not None:
+        notes.append(f"{capture.manifest}: {cover}")
+    return []
+
+
 def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[list[dict[str, Any]], float]:
     """Read the frames one by one: a row of counts per frame, and the clipping level (``inf``
     when nothing clips)."""
     rows, peaks, tops = [], [], []
-    with tqdm(total=len(capture.frames), unit="frame", desc="info", disable=not progress) as bar:
+    with progress_bar(len(capture.frames), unit="frame", desc="info", enabled=progress) as bar:
         for k, frame in enumerate(capture.frames):
             row = {"index": k, "file": frame.file, "saturated": 0, "nonfinite": 0, "negative": 0}
             row.update(min=None, max=None, error=None)

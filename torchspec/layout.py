@@ -16,7 +16,24 @@ from .errors import TorchspecError
 from .lights import Lights
 from .photometric import grid_layout
 
-__all__ = ["Layout", "layout_of", "light_spacing", "kernel_variance", "mirror_point"]
+__all__ = [
+    "MIN_FRAMES",
+    "MIN_PEAK_SAMPLES",
+    "Layout",
+    "coverage_warning",
+    "fit_problem",
+    "layout_of",
+    "light_spacing",
+    "kernel_variance",
+    "mirror_point",
+]
+
+MIN_FRAMES = 4
+"""A fit needs 3 frames for the normal and ``k_d`` and one more for a lobe."""
+MIN_PEAK_SAMPLES = 3
+"""Lights along each axis of a layout that a lobe's peak needs: the peak and a sample on either side
+(the FRI start's ``2M + 1`` samples per axis with one Fourier coefficient, ``M = 1``); a scattered
+planar layout needs ``MIN_PEAK_SAMPLES ** 2`` frames (the ``1 + 2 x 4`` real unknowns of ``M = 1`` in 2D)."""
 
 
 @dataclass(frozen=True)
@@ -161,3 +178,89 @@ def mirror_point(normal: Tensor, view: Tensor) -> Tensor:
     """
     v = view.to(normal.dtype)
     return (2.0 * (normal @ v)[..., None] * normal - v)[..., :2]
+
+
+def _describe(layout: Layout) -> str:
+    if layout.dims == 1:
+        return "on a line"
+    if layout.grid is not None:
+        return f"on a {layout.grid[2]} x {layout.grid[3]} grid (rows x columns)"
+    return "scattered over the plane"
+
+
+def fit_problem(l: Tensor, *, lobe: bool = True) -> str | None:
+    """Why frames at the l-plane positions ``l (K, 2)`` cannot be fitted, in the user's terms (how
+    many frames and what layout they have, what the fit needs, what to do), or ``None``.
+
+    A fit needs :data:`MIN_FRAMES`; a lobe (every model but ``diffuse``) also needs its peak sampled
+    by :data:`MIN_PEAK_SAMPLES` lights along each axis of the layout: a line of at least 3, a grid
+    of at least 3 x 3, or 9 scattered frames.
+
+    Example:
+        >>> ticks = torch.tensor([-0.27, 0.27], dtype=torch.float64)
+        >>> square = torch.stack(torch.meshgrid(ticks, ticks, indexing="xy"), -1).reshape(-1, 2)
+        >>> print(fit_problem(square))  # doctest: +NORMALIZE_WHITESPACE
+        4 frames on a 2 x 2 grid (rows x columns): a lobe's peak needs at least 3 lights along each axis (a
+        3 x 3 grid, or 9 scattered frames). Use a denser layout (e.g. acquire --layout grid:12x12), more of
+        the frames, or fit without a lobe (model: diffuse).
+        >>> fit_problem(square, lobe=False) is None
+        True
+    """
+    count = l.shape[0]
+    if count < MIN_FRAMES:
+        return (
+            f"{count} frame(s): a fit needs at least {MIN_FRAMES} (3 for the normal and k_d, one more for a lobe). "
+            "Use more of the frames, or acquire more."
+        )
+    if not lobe:
+        return None
+    layout = layout_of(l)
+    if layout.dims == 1:
+        short = count < MIN_PEAK_SAMPLES
+    elif layout.grid is not None:
+        short = min(layout.grid[2], layout.grid[3]) < MIN_PEAK_SAMPLES
+    else:
+        short = count < MIN_PEAK_SAMPLES**2
+    if not short:
+        return None
+    n = MIN_PEAK_SAMPLES
+    return (
+        f"{count} frames {_describe(layout)}: a lobe's peak needs at least {n} lights along each axis (a {n} x {n} "
+        f"grid, or {n * n} scattered frames). Use a denser layout (e.g. acquire --layout grid:12x12), more of the "
+        "frames, or fit without a lobe (model: diffuse)."
+    )
+
+
+def coverage_warning(l: Tensor, view: Tensor) -> str | None:
+    """A warning when the lights at ``l (K, 2)`` stay away from where a flat object's specular peaks
+    lie (the mirror direction of ``view (3,)`` about the normal ``(0, 0, 1)``): farther than two
+    spacings from the nearest light, or from a line of lights; ``None`` otherwise.
+
+    Example:
+        >>> row = torch.tensor([[x, 0.65] for x in (-0.36, -0.22, -0.07, 0.07)], dtype=torch.float64)
+        >>> view = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        >>> print(coverage_warning(row, view))  # doctest: +NORMALIZE_WHITESPACE
+        the 4 frames lie on a line 0.65 from the mirror direction of a flat object (l = (0.00, 0.00)), more
+        than two light spacings (0.14): the lobes' peaks of most pixels lie outside the lights and cannot be
+        located. Use frames around the mirror direction.
+    """
+    if l.shape[0] < 3:
+        return None
+    layout = layout_of(l)
+    flat = torch.tensor([0.0, 0.0, 1.0], dtype=l.dtype, device=l.device)
+    mirror = mirror_point(flat, view.to(l.dtype))
+    if layout.dims == 1:
+        along = (mirror - layout.origin) @ layout.axis
+        distance = float((mirror - layout.origin - along * layout.axis).norm())
+        where = "on a line"
+    else:
+        distance = float((l - mirror).norm(dim=-1).min())
+        where = "with the nearest"
+    if distance <= 2.0 * layout.spacing:
+        return None
+    x, y = (float(v) for v in mirror)
+    return (
+        f"the {l.shape[0]} frames lie {where} {distance:.2f} from the mirror direction of a flat object "
+        f"(l = ({x:.2f}, {y:.2f})), more than two light spacings ({layout.spacing:.2f}): the lobes' peaks of "
+        "most pixels lie outside the lights and cannot be located. Use frames around the mirror direction."
+    )

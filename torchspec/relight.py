@@ -1,7 +1,7 @@
 """Relighting: predict every frame of a capture from SVBRDF maps (``torchspec render``).
 
 Reads the maps (a fit, or a capture's ``truth/``) and the capture's light list, renders each frame
-with :func:`torchspec.rendering.render` tile by tile (memory is bounded by a tile of rows), and
+with :func:`torchspec.rendering.render_image` (memory is bounded by a chunk of rows), and
 writes the predicted frames under the manifest's file names with a copy of the manifest, so the
 output is itself a capture. Against the capture's own frames it reports the PSNR (peak: the
 capture's maximum) and the relative RMS error.
@@ -15,12 +15,11 @@ from pathlib import Path
 import torch
 
 from .io import CaptureError, read_capture, read_svbrdf, write_capture
+from .outputs import check_output
 from .quadrature import Quadrature
-from .rendering import render
+from .rendering import render_image
 
 __all__ = ["render_capture", "psnr"]
-
-TILE_PIXELS = 4096
 
 
 def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:
@@ -39,14 +38,22 @@ def render_capture(
     path: str = "auto",
     dtype: torch.dtype = torch.float32,
     lobe: str = "ward",
+    overwrite: bool = False,
+    progress: bool = False,
 ) -> dict:
     """Predict a capture's frames from the maps in ``svbrdf_dir``; write them to ``output_dir``
     (unless ``None``) and compare with the capture's frames.
+
+    ``output_dir`` is checked before any work: a folder that holds files is refused unless
+    ``overwrite`` (:func:`torchspec.outputs.check_output`). ``progress`` shows a bar over the
+    pixels (on stderr).
 
     Returns:
         ``{"frames", "psnr_db", "relative_rms", "per_frame_psnr_db", "predicted"}``; the
         predicted frames are ``(K, C, H, W)``.
     """
+    if output_dir is not None:
+        check_output(output_dir, overwrite=overwrite)
     maps = read_svbrdf(svbrdf_dir)
     capture = read_capture(capture_dir)
     svbrdf = maps.svbrdf
@@ -60,16 +67,12 @@ def render_capture(
             f"{Path(svbrdf_dir)}: the maps have channels {svbrdf.channels}, {capture.manifest} has {capture.channels}."
         )
     lights = capture.lights(light=light, dtype=dtype)
-    flat = svbrdf.flatten().to(dtype)
     view = torch.tensor(capture.view, dtype=dtype)
-    parts = [
-        render(flat[i : i + TILE_PIXELS], lights, view, quadrature=Quadrature(path=path), lobe=lobe)
-        for i in range(0, flat.shape[0], TILE_PIXELS)
-    ]
-    values = torch.cat(parts).reshape(capture.height, capture.width, len(capture.frames), len(capture.channels))
+    quadrature = Quadrature(path=path)
+    values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
     predicted = values.permute(2, 3, 0, 1).contiguous()  # (K, C, H, W)
     if output_dir is not None:
-        write_capture(Path(output_dir), capture, predicted.float())
+        write_capture(Path(output_dir), capture, predicted.float(), overwrite=overwrite)
     # As recorded: sensor noise may dip below 0; NaN or Inf pixels (warned about) are left out of the scores.
     observed = capture.read_frames(dtype=torch.float64, nonfinite="keep")
     finite = observed.isfinite()

@@ -42,11 +42,16 @@ from .geometry import from_plane
 from .lights import Lights, diffuse_directions
 from .lobe import lobe_at, lobe_frame, pick
 from .nodes import node_rules
+from .progress import bar
 from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
 
-__all__ = ["render", "LOBES"]
+__all__ = ["render", "render_image", "LOBES", "ROW_CHUNKS", "TILE_PIXELS"]
 
 LOBES = ("ward", "beckmann")
+ROW_CHUNKS = 32
+""":func:`render_image` renders an image in about this many chunks of rows (a progress bar that moves)."""
+TILE_PIXELS = 4096
+"""... and at most this many pixels a chunk (memory bounded by a chunk of rows)."""
 
 
 def render(
@@ -110,6 +115,42 @@ def render(
             value = _add_second_lobe(value, second, lights, view, chosen, orders, quadrature.compile, lobe)
         out.append(value * lights.scale[None])
     return torch.cat(out).reshape(*lead, lights.directions.shape[0], count)
+
+
+def render_image(
+    svbrdf: SVBRDF,
+    lights: Lights,
+    view: Tensor,
+    *,
+    quadrature: Quadrature = Quadrature(),
+    lobe: str = "ward",
+    progress: bool = False,
+    desc: str = "render",
+) -> Tensor:
+    """:func:`render` of an image, ``(H, W, K, C)`` for maps of leading dims ``(H, W)``, in chunks of
+    rows (about :data:`ROW_CHUNKS` of them, at most :data:`TILE_PIXELS` pixels each), with a progress
+    bar over the rows (on stderr, when ``progress`` and stderr is a terminal; :func:`torchspec.progress.bar`).
+
+    Example:
+        >>> import torch
+        >>> from torchspec.lights import Kernel, Lights
+        >>> one = torch.ones(1, 1, dtype=torch.float64)
+        >>> lights = Lights(torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), Kernel("point"), one, one[0])
+        >>> n = torch.tensor([0.0, 0, 1], dtype=torch.float64).expand(5, 4, 3)
+        >>> maps = SVBRDF(n, torch.ones(5, 4, 1, dtype=torch.float64), torch.zeros(5, 4, 1), torch.zeros(5, 4, 2))
+        >>> render_image(maps, lights, torch.tensor([0.0, 0, 1], dtype=torch.float64)).shape
+        torch.Size([5, 4, 1, 1])
+    """
+    if len(svbrdf.shape) != 2:
+        raise TorchspecError(f"render_image needs maps of leading dims (H, W); got {tuple(svbrdf.shape)}.")
+    height, width = svbrdf.shape
+    rows = max(1, min(-(-height // ROW_CHUNKS), TILE_PIXELS // max(width, 1)))
+    parts = []
+    with bar(height, desc=desc, unit="row", enabled=progress) as shown:
+        for top in range(0, height, rows):
+            parts.append(render(svbrdf[top : top + rows], lights, view, quadrature=quadrature, lobe=lobe))
+            shown.update(parts[-1].shape[0])
+    return torch.cat(parts)
 
 
 def _check(svbrdf: SVBRDF, lights: Lights, view: Tensor, quadrature: Quadrature, lobe: str) -> str:

@@ -22,7 +22,7 @@ from .config import ConfigError
 from .geometry import from_plane
 from .io import Capture, Frame, LightSpec, Maps, write_capture
 from .lights import Kernel, Lights
-from .rendering import render
+from .rendering import render_image
 from .synth import MirrorConfig, PaintingConfig, SensorConfig, mirror, painting, sense
 
 __all__ = [
@@ -147,8 +147,9 @@ def _kernel(config: LightConfig) -> Kernel:
     return Kernel(config.kernel, config.domain, config.sigma, config.power)
 
 
-def simulate(config: SimulationConfig, *, root: Path | str = ".") -> Simulation:
-    """Render ``config``'s scene under its lights and record it (float64 inside, float32 out)."""
+def simulate(config: SimulationConfig, *, root: Path | str = ".", progress: bool = False) -> Simulation:
+    """Render ``config``'s scene under its lights and record it (float64 inside, float32 out);
+    ``progress`` shows a bar over the rows rendered (on stderr, when it is a terminal)."""
     dtype = torch.float64
     if config.scene.kind == "painting":
         truth, regions = painting(config.scene.painting, dtype=dtype)
@@ -166,7 +167,7 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".") -> Simulation:
     irradiance = torch.full((k, 1), config.irradiance, dtype=dtype)
     lights = Lights(centres, kernel, irradiance, torch.ones(k, dtype=dtype))
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
-    values = render(truth, lights, view)  # (H, W, K, C)
+    values = render_image(truth, lights, view, progress=progress, desc="simulate")  # (H, W, K, C)
     recorded, saturated = sense(values.permute(2, 3, 0, 1), config.sensor)  # (K, C, H, W)
     light = {"kernel": config.light.kernel, "domain": config.light.domain, "sigma": config.light.sigma}
     if config.light.kernel == "supergaussian":
@@ -197,13 +198,14 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".") -> Simulation:
     return Simulation(capture, recorded.to(torch.float32), saturated, truth.to(torch.float32), regions, light)
 
 
-def write_simulation(path: Path | str, simulation: Simulation) -> Capture:
-    """Write the capture, its ``truth/`` maps (with ``regions`` and the true ``light.json``)."""
+def write_simulation(path: Path | str, simulation: Simulation, *, overwrite: bool = False) -> Capture:
+    """Write the capture, its ``truth/`` maps (with ``regions`` and the true ``light.json``); a
+    folder that holds files is refused unless ``overwrite`` (:func:`torchspec.outputs.check_output`)."""
     from .atomic import write_json
 
     path = Path(path)
     maps = Maps(simulation.truth, {"model": "ward", "source": "torchspec simulate"}, {"regions": simulation.regions})
     capture = Capture(**{**simulation.capture.__dict__, "root": path})
-    written = write_capture(path, capture, simulation.frames, truth=maps)
+    written = write_capture(path, capture, simulation.frames, truth=maps, overwrite=overwrite)
     write_json(path / "truth" / "light.json", simulation.light)
     return written

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -27,13 +26,14 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
 from .._version import __version__
 from ..atomic import read_json, write_json
 from ..errors import TorchspecError
 from ..io import Capture, ExrError, Frame, LightSpec, read_capture, read_exr, write_exr
 from ..io._manifest import MANIFEST, parse_manifest, to_manifest
+from ..outputs import TEMPORARY, OutputError, check_output, content
+from ..progress import bar as progress_bar
 from .camera import Camera, FolderCamera, SimulatedCamera, SimulatedCameraConfig, command_trigger
 from .client import DomeDisconnected, DomeTimeout
 from .plan import (
@@ -65,8 +65,6 @@ __all__ = [
 PLAN = "acquire.json"
 """The plan of an acquisition, beside its ``capture.json``."""
 _PLAN_FORMAT = "torchspec.acquire"
-_TEMPORARY = re.compile(r"\..+\.part(\.[^.]+)?$")
-"""The names :func:`torchspec.atomic.atomic_path` writes to before its rename."""
 
 
 class AcquisitionStopped(OSError):
@@ -158,20 +156,22 @@ def _show(value) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _open_output(output: Path, job: dict, resume: bool) -> dict | None:
+def _open_output(output: Path, job: dict, resume: bool, overwrite: bool) -> dict | None:
     """Check the output folder; the saved plan when resuming one (``None`` to start afresh)."""
-    if output.exists() and not output.is_dir():
-        raise AcquisitionError(f"the output {output} must be a folder; got a file. Choose another path.")
+    try:  # a file in the way, a folder that does not accept files; the content is checked below
+        check_output(output, overwrite=True)
+    except OutputError as error:
+        raise AcquisitionError(str(error)) from None
     # Temporary files of atomic writes that a kill left (``.NAME.*.part*``) are not content.
-    entries = sorted(p.name for p in output.iterdir() if not _TEMPORARY.match(p.name)) if output.is_dir() else []
+    entries = content(output)
     plan = output / PLAN
     if not resume:
-        if entries:
+        if entries and not overwrite:
             raise AcquisitionError(
                 f"the output {output} must be empty or absent to start an acquisition; got {len(entries)} "
                 f"entr{'y' if len(entries) == 1 else 'ies'} ({', '.join(entries[:5])}{', ...' * (len(entries) > 5)})."
                 + (" Add --resume to continue the acquisition there," if PLAN in entries else "")
-                + " Choose another folder, or empty it."
+                + " Add --overwrite to start afresh there, or choose another folder."
             )
         return None
     if not plan.is_file():
@@ -200,7 +200,7 @@ def _remove_temporaries(output: Path) -> None:
     for folder in (output, output / "frames"):
         if folder.is_dir():
             for path in folder.iterdir():
-                if _TEMPORARY.match(path.name) and path.is_file():
+                if TEMPORARY.match(path.name) and path.is_file():
                     path.unlink(missing_ok=True)
 
 
@@ -292,6 +292,7 @@ def acquire(
     resume: bool = False,
     progress: bool = True,
     tolerance: float | None = 1e-3,
+    overwrite: bool = False,
 ) -> Capture:
     """Acquire a capture: home the dome, switch the light on, and for each planned direction move
     the light there, take the frame and save it.
@@ -310,6 +311,8 @@ def acquire(
         tolerance: after each move, ``client.status()`` must place the light within this angle
             (radians) of the planned direction, at rest, with the light on and no fault;
             ``None`` skips the check (one exchange less per frame).
+        overwrite: start afresh in an ``output`` that holds files (an earlier capture's manifest
+            and plan are removed first; frame files are replaced as they are taken).
 
     Returns:
         The capture, as :func:`~torchspec.io.read_capture` reads it.
@@ -328,7 +331,7 @@ def acquire(
     output = Path(output)
     directions = plan_directions(layout, radius)
     job = _job(layout, radius, directions, light, camera)
-    saved = _open_output(output, job, resume)
+    saved = _open_output(output, job, resume, overwrite)
     done, size = _resume_state(output, job, saved, camera)
     total = len(job["frames"])
     generator = {
@@ -339,7 +342,7 @@ def acquire(
         "intensity": job["intensity"],
         "planned": total,
     }
-    bar = tqdm(total=total, initial=done, desc="acquire", unit="frame", disable=not progress, leave=False)
+    bar = progress_bar(total, initial=done, desc="acquire", unit="frame", enabled=progress, leave=False)
     run = _Run(output, job, [_frame(job, k) for k in range(done)], done, size, generator, bar)
     try:
         _identify(client, run, saved, light)
@@ -416,6 +419,7 @@ def _identify(client, run: _Run, saved: dict | None, light: LightSettings) -> No
     run.generator["dome"] = dome
     if saved is None:
         run.output.mkdir(parents=True, exist_ok=True)
+        (run.output / MANIFEST).unlink(missing_ok=True)  # an overwritten capture's: it lists other frames
         write_json(run.output / PLAN, {**run.job, "dome": dome})
     if light.table is not None and not (run.output / KERNEL_FILE).is_file():
         write_exr(run.output / KERNEL_FILE, light.table, ["Y"])

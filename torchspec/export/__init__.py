@@ -58,6 +58,7 @@ def export(
     to: str,
     light: Sequence[float] | None = None,
     irradiance: float | Sequence[float] | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``).
 
@@ -69,6 +70,8 @@ def export(
         light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by
             default); without a light the scene is lit by :data:`DEFAULT_LIGHT` (a scene without
             an emitter, to light in Mitsuba, is :func:`export_mitsuba`'s ``light=None``).
+        overwrite: write into a folder that already holds files; refused otherwise
+            (:func:`torchspec.outputs.check_output`).
 
     Returns:
         The export's manifest: ``scene.xml``, ``scene.gltf`` or ``png16.json``.
@@ -86,9 +89,10 @@ def export(
         raise ExportError(f"the export format must be one of {', '.join(FORMATS)}; got {to!r}.")
     if to == "mitsuba":
         light = DEFAULT_LIGHT if light is None else light
-        return export_mitsuba(maps, output, light=light, irradiance=1.0 if irradiance is None else irradiance)
+        irradiance = 1.0 if irradiance is None else irradiance
+        return export_mitsuba(maps, output, light=light, irradiance=irradiance, overwrite=overwrite)
     if irradiance is not None:
         raise ExportError(f"an irradiance can only be given to a mitsuba export; got one for {to!r}. Drop it.")
     if light is not None:
         raise ExportError(f"a light can only be added to a mitsuba export; got one for {to!r}. Drop the light.")
-    return export_gltf(maps, output) if to == "gltf" else export_png16(maps, output)
+    return (export_gltf if to == "gltf" else export_png16)(maps, output, overwrite=overwrite)

@@ -14,12 +14,13 @@ from .._version import __version__
 from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
 from ..io import Maps
+from ..outputs import check_output
 from .arrays import ISOTROPIC, ExportWarning, MapArrays, code8, map_arrays, rgb, srgb, write_png
 
 __all__ = ["export_gltf"]
 
 
-def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path) -> Path:
+def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwrite: bool = False) -> Path:
     """Write a glTF 2.0 textured quad of the maps: ``scene.gltf``, ``scene.bin`` and 8-bit PNG
     textures in ``textures/``.
 
@@ -44,6 +45,7 @@ def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path) -> Path:
         The path of ``scene.gltf``.
 
     Raises:
+        OutputError: ``output`` holds files and ``overwrite`` is not set (it replaces them), or cannot be written.
         ExportError: the maps are not ``(H, W)`` with channels ``R, G, B`` or ``Y``.
 
     Warns:
@@ -54,6 +56,7 @@ def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path) -> Path:
         >>> export_gltf("fit", "fit-gltf")  # doctest: +SKIP
         PosixPath('fit-gltf/scene.gltf')
     """
+    check_output(output, overwrite=overwrite)
     arrays = map_arrays(maps)
     height, width = arrays.size
     material = _material(arrays)

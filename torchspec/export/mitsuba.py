@@ -14,6 +14,7 @@ from .._version import __version__
 from ..atomic import atomic_path
 from ..brdf import SVBRDF
 from ..io import Maps, write_exr
+from ..outputs import check_output
 from .arrays import ISOTROPIC, ExportError, ExportWarning, MapArrays, map_arrays, rgb
 
 __all__ = ["export_mitsuba", "MIN_ALPHA"]
@@ -31,6 +32,7 @@ def export_mitsuba(
     irradiance: float | Sequence[float] = 1.0,
     spp: int = 16,
     shadowing: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Write a Mitsuba 3 scene of the maps (for the RGB variants, e.g. ``scalar_rgb``).
 
@@ -60,6 +62,7 @@ def export_mitsuba(
         The path of ``scene.xml``.
 
     Raises:
+        OutputError: ``output`` holds files and ``overwrite`` is not set (it replaces them), or cannot be written.
         ExportError: the maps are not ``(H, W)`` with channels ``R, G, B`` or ``Y``, or the light
             or irradiance is invalid.
 
@@ -71,6 +74,7 @@ def export_mitsuba(
         >>> export_mitsuba("truth", "scene", light=[0.3, -0.5, 0.8])  # doctest: +SKIP
         PosixPath('scene/scene.xml')
     """
+    check_output(output, overwrite=overwrite)
     arrays = map_arrays(maps)
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
         raise ExportError(f"spp must be an integer >= 1; got {spp!r}.")

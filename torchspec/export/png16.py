@@ -11,6 +11,7 @@ from .._version import __version__
 from ..atomic import write_json
 from ..brdf import SVBRDF
 from ..io import Maps
+from ..outputs import check_output
 from .arrays import map_arrays, write_png
 
 __all__ = ["export_png16"]
@@ -18,7 +19,7 @@ __all__ = ["export_png16"]
 _CODE16 = 65535
 
 
-def export_png16(maps: Maps | SVBRDF | str | Path, output: str | Path) -> Path:
+def export_png16(maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwrite: bool = False) -> Path:
     """Write the maps as 16-bit PNG with their decoding in ``png16.json``.
 
     ``normal.png`` (RGB ``= (n + 1) / 2``), ``diffuse.png`` and ``specular.png`` (RGB, or grey for
@@ -36,12 +37,14 @@ def export_png16(maps: Maps | SVBRDF | str | Path, output: str | Path) -> Path:
         The path of ``png16.json``.
 
     Raises:
+        OutputError: ``output`` holds files and ``overwrite`` is not set (it replaces them), or cannot be written.
         ExportError: the maps are not ``(H, W)`` with channels ``R, G, B`` or ``Y``.
 
     Example:
         >>> export_png16("fit", "fit-png")  # doctest: +SKIP
         PosixPath('fit-png/png16.json')
     """
+    check_output(output, overwrite=overwrite)
     arrays = map_arrays(maps)
     height, width = arrays.size
     rotation = np.zeros(arrays.size) if arrays.rotation is None else np.mod(arrays.rotation, math.pi)

@@ -23,6 +23,7 @@ from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..lights import Kernel, Lights
+from ..outputs import check_output
 from ._manifest import (
     FORMAT,
     MANIFEST,
@@ -423,6 +424,7 @@ def write_capture(
     *,
     kernel: torch.Tensor | np.ndarray | None = None,
     truth: SVBRDF | Maps | None = None,
+    overwrite: bool = False,
 ) -> Capture:
     """Write a capture directory: frames, kernel, truth maps, then ``capture.json`` last.
 
@@ -439,11 +441,14 @@ def write_capture(
         kernel: ``(Hk, Wk)`` image of a tabulated light, written to ``light.file``.
         truth: ground-truth maps (leading dims ``(H, W)``), written to ``path/truth`` with
             :func:`~torchspec.io.write_svbrdf`.
+        overwrite: write into a folder that already holds files (those of the same names are
+            replaced); without it such a folder is refused (:func:`torchspec.outputs.check_output`).
 
     Returns:
         The capture as :func:`read_capture` will read it back, ``root = path``.
 
     Raises:
+        OutputError: ``path`` holds files and ``overwrite`` is not set, or cannot be written.
         CaptureError: the manifest is invalid, or the frames, kernel or truth do not match it.
 
     Example:
@@ -460,6 +465,7 @@ def write_capture(
     root = Path(path)
     if root.name == MANIFEST:
         root = root.parent
+    check_output(root, overwrite=overwrite)
     manifest_path = root / MANIFEST
     notes: list[str] = []
     data = to_manifest(capture, manifest_path)
@@ -492,7 +498,7 @@ def write_capture(
     if kernel_image is not None:
         write_exr(root / result.light.file, kernel_image, ["Y"])
     if truth is not None:
-        write_svbrdf(root / "truth", truth)
+        write_svbrdf(root / "truth", truth, overwrite=overwrite)
     write_json(manifest_path, manifest)
     return result
 

@@ -28,6 +28,7 @@ import torch
 from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
+from ..outputs import check_output
 from .exr import ExrError, _read, write_exr
 
 __all__ = ["Maps", "SVBRDFError", "read_svbrdf", "write_svbrdf"]
@@ -169,6 +170,7 @@ def write_svbrdf(
     *,
     meta: dict | None = None,
     extra: dict | None = None,
+    overwrite: bool = False,
 ) -> None:
     """Write a folder of SVBRDF maps; ``svbrdf.json`` last.
 
@@ -187,8 +189,11 @@ def write_svbrdf(
             ``version`` are set; ``model`` defaults to ``"ward"``.
         extra: more maps by name, over those of a :class:`Maps`: ``(H, W)`` (written as
             channel ``Y``) or ``(H, W, C)``; e.g. ``{"model": index_map}``.
+        overwrite: write into a folder that already holds files (those of the same names are
+            replaced); without it such a folder is refused (:func:`torchspec.outputs.check_output`).
 
     Raises:
+        OutputError: ``path`` holds files and ``overwrite`` is not set, or cannot be written.
         SVBRDFError: the SVBRDF is not ``(H, W)``, a value is NaN, Inf or out of range (normals
             not unit within ``1e-3``, negative roughness or ``k_s``), an extra map has another
             size or a reserved name, or ``meta`` is not JSON or contradicts the format.
@@ -196,7 +201,7 @@ def write_svbrdf(
     Example:
         :func:`read_svbrdf`'s example writes a folder of maps and reads it back.
     """
-    folder = Path(path)
+    folder = check_output(path, overwrite=overwrite)
     if isinstance(maps_or_svbrdf, Maps):
         svbrdf = maps_or_svbrdf.svbrdf
         meta = {**maps_or_svbrdf.meta, **(meta or {})}

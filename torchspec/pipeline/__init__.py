@@ -27,6 +27,7 @@ from .checkpoint import FitInterrupted
 from .checks import Checks
 from .cluster import ClusterError, connect, fit_on_cluster
 from .in_process import fit
+from .plan import FitWarning
 from .result import Fit, write_fit
 from .selection import ModelFit
 from .settings import AUTO, COMPILE_PIXELS, INITS, LADDER, MODEL_CODES, FitConfig, select_frames
@@ -45,6 +46,7 @@ __all__ = [
     "Fit",
     "FitConfig",
     "FitInterrupted",
+    "FitWarning",
     "ModelFit",
     "StartingPoint",
     "TileResult",

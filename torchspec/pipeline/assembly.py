@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, fields, replace
 
 import torch
@@ -15,12 +16,13 @@ from ..flags import describe, untrusted
 from ..io import Capture
 from ..lm import STATUS
 from .checks import Checks
+from .plan import FitWarning, frame_warnings
 from .result import Fit
 from .settings import MODEL_CODES, FitConfig
 from .smoothing import PlainFit, smooth
 from .tile import TileResult
 
-__all__ = ["assemble", "run_stats"]
+__all__ = ["STALLED_SHARE", "assemble", "run_stats", "stalled_warning"]
 
 
 def run_stats(
@@ -42,6 +44,7 @@ def run_stats(
     stats = {
         "capture": str(capture.root),
         "frames": picked,
+        "warnings": frame_warnings(capture, picked),
         "settings": asdict(config),
         "device": str(device),
         "pixels": pixels,
@@ -104,7 +107,31 @@ def assemble(
         # A ladder with ward-dual that no pixel took: no second lobe's maps or deviations.
         std = {name: value for name, value in joined.std.items() if name not in ("specular2", "roughness2")}
         joined = replace(joined, svbrdf=replace(svbrdf, specular2=None, roughness2=None), std=std)
-    return replace(joined, stats=_tile_stats(joined, parts, stats, smoothed, time.perf_counter() - started))
+    stats = _tile_stats(joined, parts, stats, smoothed, time.perf_counter() - started)
+    stalled = stalled_warning(stats)
+    if stalled is not None:
+        stats["warnings"] = [*stats.get("warnings", []), stalled]
+        warnings.warn(stalled, FitWarning, stacklevel=3)
+    return replace(joined, stats=stats)
+
+
+STALLED_SHARE = 0.1
+"""The share of pixels stopped at the solver's iteration limit above which a fit warns."""
+
+
+def stalled_warning(stats: dict) -> str | None:
+    """The warning of a fit (its ``stats``) whose pixels stopped at the solver's iteration limit
+    (``max iterations``) in a share above :data:`STALLED_SHARE`; ``None`` otherwise."""
+    stalled, pixels = stats["status"].get("max iterations", 0), stats["pixels"]
+    if pixels == 0 or stalled <= STALLED_SHARE * pixels:
+        return None
+    limit = stats["settings"]["lm"]["max_iterations"]
+    return (
+        f"{stalled} of {pixels} pixels ({100 * stalled / pixels:.0f} %) stopped at the solver's iteration limit "
+        f"({limit}) without converging: their maps are unreliable (flags.exr marks them not_converged). The "
+        f"{len(stats['frames'])} frames may not resolve their lobes: fit more frames, or raise lm.max_iterations in "
+        "a --config file."
+    )
 
 
 def _tile_stats(fit: Fit, parts: list[TileResult], stats: dict, smoothed: int | None, total: float) -> dict:

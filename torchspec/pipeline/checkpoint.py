@@ -23,8 +23,19 @@ from .settings import FitConfig
 if TYPE_CHECKING:
     from .tile import TileResult
 
-__all__ = ["STATE", "FitInterrupted", "job_record", "open_checkpoint", "read_tile", "save_tile", "tile_name"]
+__all__ = [
+    "CHECKPOINT",
+    "STATE",
+    "FitInterrupted",
+    "job_record",
+    "open_checkpoint",
+    "read_tile",
+    "save_tile",
+    "tile_name",
+]
 
+CHECKPOINT = ".torchspec-fit"
+"""The folder, inside a fit's output, of its finished tiles until the maps are written (``torchspec fit``)."""
 STATE = "state.json"
 """The checkpoint's record of the job it belongs to (:func:`job_record`)."""
 

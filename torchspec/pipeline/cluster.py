@@ -38,13 +38,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
-from tqdm.auto import tqdm
 
 from ..atomic import read_json, write_json
 from ..errors import TorchspecError
 from ..io import Capture
 from ..lights import Lights
 from ..photometric import peak_of, sample_masks, saturation_level
+from ..progress import bar as progress_bar
 from .assembly import assemble, run_stats
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, tile_name
 from .plan import RUNTIME_BYTES, plan, setup
@@ -246,7 +246,7 @@ def fit_on_cluster(
             seconds["saturation_level"] = time.perf_counter() - clock
             report["tiles_per_task"] = tiles_per_task or _tiles_per_task(client, job, len(todo))
             resumed = pixels - sum(job.stop(first) - first for first in todo)
-            with tqdm(total=pixels, initial=resumed, unit="px", desc="fit", disable=not progress) as bar:
+            with progress_bar(pixels, initial=resumed, unit="px", desc="fit", enabled=progress) as bar:
                 for first, tile_out in _fit_on(client, job, todo, report, retries):
                     parts[first] = tile_out
                     bar.update(job.stop(first) - first)
@@ -408,7 +408,7 @@ def _with_level(client, job: _Job, report: dict, progress: bool, retries: int) -
         rows = BLOCK_ROWS * max(1, BAND_BYTES // (BLOCK_ROWS * row * job.view.element_size()))
         bands = [(r, min(r + rows, h)) for r in range(0, h, rows)]
         peaks = []
-        with tqdm(total=len(bands), unit="band", desc="saturation level", disable=not progress) as bar:
+        with progress_bar(len(bands), unit="band", desc="saturation level", enabled=progress) as bar:
             for top, count, read in _map(client, _peak_of_rows, job, bands, retries, lambda rows: f"rows {rows[0]}"):
                 peaks.append((torch.tensor(top, dtype=job.view.dtype), torch.tensor(count)))
                 report["bytes_read"] += read

@@ -7,10 +7,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from tqdm.auto import tqdm
-
 from ..io import Capture
 from ..photometric import sample_masks
+from ..progress import bar as progress_bar
 from .assembly import assemble, run_stats
 from .checkpoint import FitInterrupted, job_record, open_checkpoint
 from .plan import plan, setup
@@ -86,7 +85,7 @@ def fit(
         done = open_checkpoint(folder, job_record(capture, job.picked, config, tile, pixels), resume)
     firsts = range(0, pixels, tile)
     parts = []
-    with tqdm(total=pixels, unit="px", disable=not progress, desc="fit") as bar:
+    with progress_bar(pixels, desc="fit", unit="px", enabled=progress) as bar:
         try:
             for first in firsts:
                 stop = min(first + tile, pixels)

@@ -6,6 +6,7 @@ other's checkpoint).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -14,14 +15,47 @@ from torch import Tensor
 
 from ..errors import TorchspecError
 from ..io import Capture, read_capture
+from ..layout import coverage_warning, fit_problem
 from ..lights import Lights
 from ..models import get_model
 from .settings import AUTO, COMPILE_PIXELS, FitConfig, select_frames
 
-__all__ = ["RUNTIME_BYTES", "Setup", "device_of", "plan", "setup", "tile_size"]
+__all__ = [
+    "MIN_TILE",
+    "RUNTIME_BYTES",
+    "TILES",
+    "FitWarning",
+    "Setup",
+    "device_of",
+    "frame_warnings",
+    "plan",
+    "setup",
+    "tile_size",
+]
 
 RUNTIME_BYTES = 768 * 2**20
 """What a fit holds besides its stack and tiles: the torch runtime and fixed work arrays."""
+TILES = 16
+"""A fit sized by memory is cut into at least this many tiles when its image is large enough (the
+progress bar moves per tile, and Ctrl-C keeps every finished tile)..."""
+MIN_TILE = 1024
+"""... of at least this many pixels each (the solver's batches stay efficient; each tile fits its
+own sensor noise)."""
+
+
+class FitWarning(UserWarning):
+    """Something a fit ran through but its user should know: lights that miss where the peaks lie,
+    many pixels stopped at the solver's iteration limit (also listed in ``stats["warnings"]``)."""
+
+
+def frame_warnings(capture: Capture, picked: list[int]) -> list[str]:
+    """What the frames ``picked`` of ``capture`` let a fit do only poorly (known before it starts):
+    :func:`torchspec.layout.coverage_warning`."""
+    if len(picked) < 3:
+        return []
+    l = capture.directions()[torch.tensor(picked)][:, :2]
+    found = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype))
+    return [f"{capture.root}: {found}"] if found else []
 
 
 def device_of(name: str) -> torch.device:
@@ -47,11 +81,15 @@ def tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, rese
 
 def plan(config: FitConfig, k: int, c: int, h: int, w: int, itemsize: int) -> tuple[FitConfig, int]:
     """The settings with ``compile`` decided and the pixels per tile of a fit of a ``(K, C, H, W)``
-    stack of ``itemsize``-byte values."""
+    stack of ``itemsize``-byte values: ``FitConfig.tile``, or what the memory allows (:func:`tile_size`)
+    but no more than a :data:`TILES`-th of the image unless that is below :data:`MIN_TILE`."""
     if config.compile is None:
         config = replace(config, compile=h * w >= COMPILE_PIXELS)
     reserved = (k * c * itemsize + 3 * k) * h * w  # the stack, three bool masks
-    return config, tile_size(config, k, c, itemsize, reserved)
+    tile = tile_size(config, k, c, itemsize, reserved)
+    if not config.tile:  # sized by memory: also cut into TILES tiles of at least MIN_TILE pixels
+        tile = min(tile, max(MIN_TILE, -(-h * w // TILES)))
+    return config, tile
 
 
 @dataclass(frozen=True)
@@ -75,18 +113,24 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     """The :class:`Setup` of a fit of ``capture`` (or its folder) with ``config`` (the defaults
     if ``None``) on ``frames`` (a SPEC of :func:`~torchspec.pipeline.settings.select_frames`, or indices).
 
+    Warns:
+        FitWarning: :func:`frame_warnings`.
+
     Raises:
-        TorchspecError: fewer than 4 frames; CaptureError: an unreadable capture or light.
+        TorchspecError: frames a fit cannot use (:func:`torchspec.layout.fit_problem`: fewer than 4,
+            or too few along an axis for a lobe); CaptureError: an unreadable capture or light.
     """
     config = config or FitConfig()
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
     if config.saturation is None and capture.saturation is not None:  # the level an imported capture records
         config = replace(config, saturation=capture.saturation)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
-    if len(picked) < 4:
-        raise TorchspecError(
-            f"frames: a fit needs at least 4 frames (3 for the normal and k_d, one more for a lobe); got {len(picked)}."
-        )
+    l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]
+    problem = fit_problem(l, lobe=config.model != "diffuse")
+    if problem is not None:
+        raise TorchspecError(f"{capture.root}: the frames cannot be fitted: {problem}")
+    for message in frame_warnings(capture, picked):
+        warnings.warn(message, FitWarning, stacklevel=3)
     dtype = getattr(torch, config.dtype)
     device = device_of(config.device)
     everything = capture.lights(dtype=dtype)

@@ -12,6 +12,8 @@ from ..brdf import SVBRDF
 from ..flags import FLAGS, UNTRUSTED, bit
 from ..io import write_svbrdf
 from ..lm import STATUS
+from ..outputs import check_output
+from .checkpoint import CHECKPOINT
 from .settings import MODEL_CODES
 
 __all__ = ["Fit", "write_fit"]
@@ -67,14 +69,19 @@ class Fit:
     checks: dict[str, Tensor]
 
 
-def write_fit(path: str | Path, result: Fit) -> None:
+def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None:
     """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
     ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
     ``criterion.exr``, ``flags.exr`` (bits of ``flag_bits``), ``check_peak_misfit.exr``,
     ``check_astray.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
     ``std_specular.exr``, ``std_roughness.exr`` (and ``std_specular2.exr``, ``std_roughness2.exr``
     with a second lobe, whose maps are ``specular2.exr`` and ``roughness2.exr``) and ``svbrdf.json``
-    (model, settings, timings, statistics)."""
+    (model, settings, timings, statistics).
+
+    A folder that holds other files is refused (:class:`~torchspec.outputs.OutputError`) unless
+    ``overwrite``; one that holds the fit's own checkpoint (:data:`~torchspec.pipeline.checkpoint.CHECKPOINT`)
+    is this fit's."""
+    check_output(path, overwrite=overwrite, job=CHECKPOINT)
     meta = {
         "model": "ward",
         "fit": result.stats,
@@ -100,4 +107,4 @@ def write_fit(path: str | Path, result: Fit) -> None:
     }
     if "specular2" in result.std:  # ward-dual's second lobe
         extra.update(std_specular2=result.std["specular2"].float(), std_roughness2=result.std["roughness2"].float())
-    write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra)
+    write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra, overwrite=True)

@@ -117,7 +117,8 @@ class FitConfig:
         compile: fuse the model's integrations with ``torch.compile`` (faster solver steps after
             a one-off compilation). A failed compilation warns and fits without. ``None``: when
             the fit has at least ``COMPILE_PIXELS`` pixels.
-        tile: pixels per tile; 0 sizes tiles to ``memory_gib``.
+        tile: pixels per tile; 0 sizes tiles to ``memory_gib``, and cuts an image into at least 16 tiles
+            of at least 1024 pixels (:func:`torchspec.pipeline.plan.plan`).
         memory_gib: the memory budget of the whole fit: the frame stack, its masks, the torch
             runtime and a tile (tiles are sized to what is left, at least 256 pixels).
         dtype: ``float32`` or ``float64``.

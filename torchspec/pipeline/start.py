@@ -78,7 +78,7 @@ def starting_point(
     y: Tensor, valid: Tensor, lights: Lights, view: Tensor, *, config: FitConfig, context: LightContext | None = None
 ) -> StartingPoint:
     """The fit's stages before the solver, for ``n`` pixels: photometric stereo, the lobe test and
-    the specular start of ``config.init``.
+    the specular start of ``config.init`` (``naive`` for ``model: diffuse``, whose pixels get no lobe).
 
     Args:
         y: ``(n, K, C)`` recorded values.
@@ -103,11 +103,13 @@ def starting_point(
     noise = torch.maximum(ps.noise, config.noise_floor * level)
     lobe = residual.amax(-1) > config.detect * noise
     prior = dict(prior_normal=ps.normal, kernel_variance=ctx.kernel_variance)
-    if config.init == "fri":
+    # A fit without lobes uses no specular start: the cheapest, which needs no layout for a peak.
+    init = "naive" if config.model == "diffuse" else config.init
+    if init == "fri":
         found = locate_peak(
             residual, ctx.layout, view, method=config.fri_method, num_coefficients=config.fri_coefficients, **prior
         )
-    elif config.init == "grid":
+    elif init == "grid":
         found = grid_search(residual, ctx.layout, view, **prior)
     else:
         found = naive_start(residual, ctx.layout, view, prior_normal=ps.normal, alpha=config.naive_alpha)
