@@ -99,16 +99,7 @@ def run(
     strip, _ = relit_strip(result.svbrdf.to(torch.float64), lights.kernel, view)
     true_strip, _ = relit_strip(truth.to(torch.float64), lights.kernel, view)
     _write_strip(output / "relit.png", strip, true_strip)
-    notes = [
-        f"simulated in {simulate_seconds:.1f} s; fitted in {fit_seconds:.1f} s on {torch.get_num_threads()} threads",
-        f"pixels with a lobe: {result.stats['lobe_pixels']} of {result.stats['pixels']}",
-        "solver: " + ", ".join(f"{name} {count}" for name, count in result.stats["status"].items() if count),
-        f"untrusted pixels (quality 0): {result.stats['untrusted']}",
-        "flags (flags.exr): " + (", ".join(f"{n} {c}" for n, c in result.stats["flags"].items() if c) or "none"),
-        "  misfit: the model's residual is above the noise",
-        "  (information: the values are that model's best fit)",
-        f"held-out frames: {len(held)} (fitted on {len(fitted_frames)})",
-    ]
+    notes = _notes(result, simulate_seconds, fit_seconds, len(held), len(fitted_frames))
     write_report(
         output / "report.png",
         title=f"torchspec demo: a simulated {size}x{size} painting, models chosen per pixel",
@@ -167,3 +158,18 @@ def _write_strip(path: Path, strip, true_strip) -> None:
     fig.suptitle(relit_title(30.0), fontsize=10)
     fig.tight_layout()
     save_figure(fig, path, dpi=100)
+
+
+def _notes(result, simulate_seconds: float, fit_seconds: float, held: int, fitted: int) -> list[str]:
+    """The report's notes on a fit: times, lobes, the solver's status, flags and held-out frames."""
+    stats = result.stats
+    return [
+        f"simulated in {simulate_seconds:.1f} s; fitted in {fit_seconds:.1f} s on {torch.get_num_threads()} threads",
+        f"pixels with a lobe: {stats['lobe_pixels']} of {stats['pixels']}",
+        "solver: " + ", ".join(f"{name} {count}" for name, count in stats["status"].items() if count),
+        f"untrusted pixels (quality 0): {stats['untrusted']}",
+        "flags (flags.exr): " + (", ".join(f"{n} {c}" for n, c in stats["flags"].items() if c) or "none"),
+        "  misfit: the model's residual is above the noise",
+        "  (information: the values are that model's best fit)",
+        f"held-out frames: {held} (fitted on {fitted})",
+    ]
