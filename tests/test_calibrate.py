@@ -245,7 +245,8 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
     target = tmp_path / "capture"
     target.mkdir()
     (target / "kernel.exr").write_bytes(kernel_file.read_bytes())
-    write_capture(target, replace(source, root=target, light=LightSpec(**light), width=1, height=1), frames)
+    capture = replace(source, root=target, light=LightSpec(**light), width=1, height=1)
+    write_capture(target, capture, frames, overwrite=True)  # the folder holds the kernel it names
     capture = read_capture(target)
     assert capture.light.kernel == "tabulated" and capture.read_kernel().shape == (16, 16)
     lights = capture.lights()
