@@ -2,6 +2,7 @@
 residuals against a brute-force refit on the other folds, and the rule that keeps a larger model."""
 
 import dataclasses
+from dataclasses import replace
 
 import pytest
 import torch
@@ -15,7 +16,7 @@ from torchspec.lights import Kernel, Lights
 from torchspec.lm import LMConfig
 from torchspec.models import get_model
 from torchspec.pipeline import FitConfig
-from torchspec.pipeline.prediction import held_out, light_folds, prediction_error, predicts_better
+from torchspec.pipeline.prediction import held_out, held_out_refit, light_folds, prediction_error, predicts_better
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.solver import solve_pixels
 from torchspec.rendering import render
@@ -99,6 +100,9 @@ def test_left_out_residuals_match_a_refit_without_the_fold(name):
         expected[:, left] = ((predicted - data.observed) * inverse)[:, left]
     scale = expected.square().mean().sqrt()
     assert float((found - expected).square().mean().sqrt()) < 0.05 * float(scale)
+    # The solver's refits of every fold in one batch (FitConfig.refit) are those refits.
+    batched = held_out_refit(get_model(name), solved.svbrdf, index, data, inverse, folds, replace(config, refit=200))
+    assert float((batched[:, 0] - expected).square().mean().sqrt()) < 1e-3 * float(scale)
 
 
 def test_a_model_that_predicts_no_better_than_the_noise_is_not_kept():

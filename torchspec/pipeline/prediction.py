@@ -26,10 +26,19 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..lm import bounded
 from ..models import Model
+from ..rendering import render
 from .samples import TileSamples
 from .settings import FitConfig
 
-__all__ = ["CHUNK_SAMPLES", "DAMPING", "light_folds", "held_out", "predicts_better", "prediction_error"]
+__all__ = [
+    "CHUNK_SAMPLES",
+    "DAMPING",
+    "light_folds",
+    "held_out",
+    "held_out_refit",
+    "predicts_better",
+    "prediction_error",
+]
 
 CHUNK_SAMPLES = 1 << 24
 """Pixels are taken in chunks of at most this many Jacobian entries (pixels x samples x parameters)."""
@@ -146,6 +155,49 @@ def held_out(
         scale = data.level[at, None, None, None] * inverse_noise[rows, None]
         out[rows] = predicted * scale
     return out
+
+
+def held_out_refit(
+    model: Model,
+    svbrdf: SVBRDF,
+    index: Tensor,
+    data: TileSamples,
+    inverse_noise: Tensor,
+    folds: Tensor,
+    config: FitConfig,
+) -> Tensor:
+    """:func:`held_out`'s residuals ``(m, S, K, C)`` from refits by the solver: each fold's frames
+    left out, ``config.refit`` Levenberg-Marquardt steps from the solution on all frames, all folds
+    of all pixels in one batch (``S x folds`` times the pixels), then the left-out frames rendered."""
+    from .solver import solve_pixels  # the solver stage imports this one's settings
+
+    m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
+    schemes, count = folds.shape[0], int(folds.max()) + 1
+    out = data.observed.new_zeros((m, schemes, k, c))
+    if m == 0:
+        return out
+    copies = schemes * count
+    keep = (folds[:, None, :] != torch.arange(count, device=folds.device)[None, :, None]).reshape(copies, 1, k)
+    at = index.repeat(copies)
+    weight = (data.weight[index][None] * keep.to(data.weight.dtype)).reshape(copies * m, k)
+    rows = torch.arange(copies * m, device=index.device)
+    folded = replace(
+        data,
+        observed=data.observed[at],
+        valid=data.valid[at],
+        weight=weight,
+        level=data.level[at],
+        count=data.count[at],
+        samples=data.samples[at],
+    )
+    start = svbrdf[torch.arange(m, device=index.device).repeat(copies)]
+    settings = replace(config, lm=replace(config.lm, max_iterations=config.refit))
+    solved = solve_pixels(model.name, rows, start, folded, settings)
+    predicted = render(solved.svbrdf, data.lights, data.view, quadrature=replace(config.rule, compile=False))
+    residual = ((predicted - folded.observed) * inverse_noise.repeat(copies, 1, 1)).reshape(schemes, count, m, k, c)
+    # Each frame takes its own fold's refit.
+    pick = folds[:, None, None, :, None].expand(schemes, 1, m, k, c)
+    return residual.gather(1, pick)[:, 0].permute(1, 0, 2, 3)
 
 
 def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:

@@ -20,7 +20,7 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..lm import DIVERGED, LMResult
 from ..models import get_model
-from .prediction import held_out, light_folds, prediction_error, predicts_better
+from .prediction import held_out, held_out_refit, light_folds, prediction_error, predicts_better
 from .samples import TileSamples
 from .settings import AUTO, MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
@@ -261,7 +261,8 @@ def _climb(
 
     def predicted(model, svbrdf: SVBRDF, index: Tensor) -> Tensor:
         inverse = data.inverse_noise(sensor, index, config.noise_floor)
-        return held_out(model, svbrdf, index, data, inverse, folds, config)
+        predict = held_out_refit if config.refit else held_out
+        return predict(model, svbrdf, index, data, inverse, folds, config)
 
     def compare(fit: ModelFit) -> Tensor:
         index = fit.index

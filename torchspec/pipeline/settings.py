@@ -91,6 +91,9 @@ class FitConfig:
             relative RMS above ``trust_rms`` of its level is flagged ``poor_fit``, untrusted
             (quality 0): no model of the ladder explains it (a shadow, an interreflection, a
             material of another kind), and its maps are not to be used.
+        refit: ``0``: each fold's refit is one Gauss-Newton step from the solution (one Jacobian
+            per model and pixel); ``N``: ``N`` steps of the solver per fold (all folds of all pixels
+            in one batch: about ``folds`` times the cost of the fits).
         broad_alpha: the roughness of the broad-lobe start of ``auto``'s pixels that show no peak
             but whose fit without a lobe leaves a misfit (a broad lobe is absorbed by a tilted
             normal and leaves no peak to detect).
@@ -133,6 +136,7 @@ class FitConfig:
     predict_z: float = 3.0
     folds: int = 5
     fold_regions: bool = False
+    refit: int = 0
     broad_alpha: float = 0.25
     resolve: float = 0.5
     dual_rms: float = 0.03
@@ -182,6 +186,8 @@ class FitConfig:
             raise ConfigError(f"FitConfig.dual_rms must be >= 0; got {self.dual_rms!r}.")
         if not self.resolve > 0:
             raise ConfigError(f"FitConfig.resolve must be > 0; got {self.resolve!r}.")
+        if self.refit < 0:
+            raise ConfigError(f"FitConfig.refit must be >= 0; got {self.refit!r}.")
         if self.folds < 2:
             raise ConfigError(f"FitConfig.folds must be >= 2; got {self.folds!r}.")
         if not 0 < self.broad_alpha <= 1:
