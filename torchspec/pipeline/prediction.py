@@ -29,6 +29,7 @@ from ..models import Model
 from ..rendering import render
 from .samples import TileSamples
 from .settings import FitConfig
+from .solver import compiled_or_eager
 
 __all__ = [
     "CHUNK_SAMPLES",
@@ -122,7 +123,7 @@ def held_out(
     if m == 0:
         return out
     bounds = model.bounds(c)
-    rule = replace(config.rule, compile=False)  # the Jacobian itself: the fused code sums it away
+    rule = config.rule
     p = model.size(c)
     chunk = max(1, CHUNK_SAMPLES // (k * c * p))
     # member[s, f, k]: frame k is in fold f of scheme s.
@@ -132,12 +133,15 @@ def held_out(
         rows = slice(start, start + chunk)
         at = index[rows]
         weight = data.weight[at]
-        fn = bounded(
-            model.residuals(data.observed[at], weight, data.lights, data.view, data.channels, quadrature=rule),
-            bounds,
-        )
         free = bounds.to_free(model.pack(svbrdf[rows]))
-        r, jac = fn(free, torch.arange(free.shape[0], device=free.device))
+
+        def run(fused: bool, at=at, weight=weight, free=free):
+            quadrature = replace(rule, compile=fused)
+            channels = data.channels
+            fn = model.residuals(data.observed[at], weight, data.lights, data.view, channels, quadrature=quadrature)
+            return bounded(fn, bounds)(free, torch.arange(free.shape[0], device=free.device))
+
+        r, jac = compiled_or_eager(run, config.compile)
         n = r.shape[0]
         r, jac = r.view(n, k, c), jac.view(n, k, c, p)
         # Per fold: the fold's J^T J and J^T r, and the normal equations without it.
