@@ -16,7 +16,7 @@ from torchspec.lights import Kernel, Lights
 from torchspec.lm import LMConfig
 from torchspec.models import get_model
 from torchspec.pipeline import FitConfig
-from torchspec.pipeline.prediction import held_out, held_out_refit, light_folds, prediction_error, predicts_better
+from torchspec.pipeline.prediction import held_out, held_out_refit, light_folds, predicts_better
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.solver import solve_pixels
 from torchspec.rendering import render
@@ -116,9 +116,3 @@ def test_a_model_that_predicts_no_better_than_the_noise_is_not_kept():
     missed[..., :4, :] = 5.0
     assert bool(predicts_better(noise, noise + missed, 3.0).all())
     assert not bool(predicts_better(noise + missed, noise, 3.0).any())
-
-
-def test_prediction_error_is_the_mean_over_schemes_of_the_sum_of_squares():
-    residual = torch.arange(24, dtype=F64).reshape(1, 2, 4, 3)
-    expected = 0.5 * (residual[0, 0].square().sum() + residual[0, 1].square().sum())
-    torch.testing.assert_close(prediction_error(residual), expected[None])

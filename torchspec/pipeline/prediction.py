@@ -38,7 +38,6 @@ __all__ = [
     "held_out",
     "held_out_refit",
     "predicts_better",
-    "prediction_error",
 ]
 
 CHUNK_SAMPLES = 1 << 24
@@ -212,12 +211,6 @@ def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:
     solution, info = torch.linalg.solve_ex(damped, rhs)
     ok = (info == 0)[..., None] & solution.isfinite().all(-1, keepdim=True)
     return torch.where(ok, solution, torch.zeros_like(solution))
-
-
-def prediction_error(residual: Tensor) -> Tensor:
-    """A fit's left-out prediction error per pixel ``(m,)``: the mean over its schemes of the
-    squared left-out residuals (noise units) summed over samples (:func:`held_out`'s)."""
-    return residual.square().sum((2, 3)).mean(1)
 
 
 def predicts_better(candidate: Tensor, current: Tensor, z: float) -> Tensor:

@@ -20,7 +20,7 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..lm import DIVERGED, LMResult
 from ..models import get_model
-from .prediction import held_out, held_out_refit, light_folds, prediction_error, predicts_better
+from .prediction import held_out, held_out_refit, light_folds, predicts_better
 from .samples import TileSamples
 from .settings import AUTO, MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
@@ -97,8 +97,6 @@ class Choice:
         peak: the chosen fits' :class:`PeakSamples` (zeros where not computed).
         deviation: standard deviations as :class:`~torchspec.pipeline.uncertainty.Uncertainty`'s
             (NaN where not computed).
-        prediction: ``(n,)`` the chosen fit's error predicting left-out frames
-            (:func:`~torchspec.pipeline.prediction.prediction_error`; NaN where not computed).
         tried: pixels fitted per model.
     """
 
@@ -111,7 +109,6 @@ class Choice:
     misfit: Tensor
     peak: PeakSamples
     deviation: dict[str, Tensor]
-    prediction: Tensor
     tried: dict[str, int] = field(default_factory=dict)
 
     @staticmethod
@@ -146,13 +143,11 @@ class Choice:
             misfit=torch.zeros(n, dtype=torch.bool, device=device),
             peak=PeakSamples(zeros((n, frames)), zeros((n, frames)), zeros(n)),
             deviation=deviation,
-            prediction=ps.diffuse.new_full((n,), nan),
         )
 
-    def take(self, fit: ModelFit, better: Tensor | None = None, held_out: Tensor | None = None) -> None:
+    def take(self, fit: ModelFit, better: Tensor | None = None) -> None:
         """Keep ``fit`` where ``better (m,)`` holds (by default: where its criterion is the lowest
-        so far, or everywhere without a noise estimate), with its left-out residuals ``held_out``
-        (``(m, S, K, C)``, :mod:`~torchspec.pipeline.prediction`) when given, in place."""
+        so far, or everywhere without a noise estimate), in place."""
         model, index, result = get_model(fit.name), fit.index, fit.result
         nothing = fit.chi2 == -math.inf
         if better is None:
@@ -181,8 +176,6 @@ class Choice:
         if fit.peak is not None:
             self.peak.z2[pick], self.peak.excess[pick] = fit.peak.z2[better], fit.peak.excess[better]
             self.peak.lobe_snr[pick] = fit.peak.lobe_snr[better]
-        if held_out is not None:
-            self.prediction[pick] = prediction_error(held_out[better])
 
 
 def select_models(
@@ -269,7 +262,7 @@ def _climb(
         mine = predicted(get_model(fit.name), fit.svbrdf, index)
         better = predicts_better(mine, heldout[index], config.predict_z) & (fit.criterion < math.inf)
         better &= resolved(fit, config.resolve)
-        choice.take(fit, better, mine)
+        choice.take(fit, better)
         heldout[index[better]] = mine[better]
         return better
 
@@ -323,18 +316,21 @@ def _broad_fit(start: StartingPoint, index: Tensor, data: TileSamples, config: F
     broad_start = SVBRDF(ps.normal[index], 0.5 * ps.diffuse[index], level, alpha, None, channels)
     broad = solve_pixels(name, index, broad_start, data, config)
     lower = broad.result.cost < peak.result.cost
-    return _joined([peak, broad], lower)
+    return _where(lower, broad, peak)
 
 
-def _joined(parts: list[Solved], second: Tensor | None = None) -> Solved:
-    """One :class:`Solved` of one model: the concatenation of ``parts`` (sorted by pixel), or with
-    ``second (m,)``, the second's solution where it holds and the first's elsewhere (same pixels)."""
-    if second is not None:
+def _where(mask: Tensor, chosen: Solved, other: Solved) -> Solved:
+    """``chosen``'s solution where ``mask (m,)`` holds, ``other``'s elsewhere (one model, the same pixels)."""
 
-        def pick(items):
-            return torch.where(second.view(-1, *[1] * (items[0].dim() - 1)), items[1], items[0])
+    def pick(items):
+        return torch.where(mask.view(-1, *[1] * (items[0].dim() - 1)), items[0], items[1])
 
-        return Solved(parts[0].name, parts[0].index, _fields(parts, pick, "svbrdf"), _fields(parts, pick, "result"))
+    parts = [chosen, other]
+    return Solved(chosen.name, chosen.index, _fields(parts, pick, "svbrdf"), _fields(parts, pick, "result"))
+
+
+def _joined(parts: list[Solved]) -> Solved:
+    """One :class:`Solved` of one model: the concatenation of ``parts``, sorted by pixel."""
     if len(parts) == 1:
         return parts[0]
     index = torch.cat([part.index for part in parts])
