@@ -56,6 +56,7 @@ class Settings:
     threads: int = 2  # torch threads
     compile: bool = False  # FitConfig.compile
     left_out: int = 2  # frames i % 5 == left_out are predicted
+    residual_term: int = 3  # FitConfig.residual_term: rows with and without the term, of one fit
 
 
 # --- data ---------------------------------------------------------------------------------------
@@ -143,8 +144,9 @@ def polynomial(basis, train_d, train_codes, test_d):
 
 def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, settings: Settings):
     """Fit ``capture`` on the ``fitted`` frames with ``model``; render under ``lights``: ``(linear
-    (K, C, H, W), seconds, fit)``."""
-    config = torchspec.FitConfig(model=model, compile=settings.compile)
+    (K, C, H, W) of the physical maps, the same with the fit's residual term (``None`` without
+    one), seconds, fit)``."""
+    config = torchspec.FitConfig(model=model, compile=settings.compile, residual_term=settings.residual_term)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fit = torchspec.fit(capture, config=config, frames=fitted)
@@ -153,7 +155,13 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, se
     view = torch.tensor(capture.view, dtype=torch.float64)
     parts = [torchspec.render(flat[i : i + TILE], lights, view) for i in range(0, flat.shape[0], TILE)]
     values = torch.cat(parts).reshape(capture.height, capture.width, len(lights.directions), -1)
-    return values.permute(2, 3, 0, 1), seconds, fit
+    termed = None
+    if fit.term is not None:  # the maps relit as torchspec render does (ResidualTerm.relit, then apply)
+        relit = fit.term.relit(fit.svbrdf).flatten().to(torch.float64)
+        parts = [torchspec.render(relit[i : i + TILE], lights, view) for i in range(0, relit.shape[0], TILE)]
+        base = torch.cat(parts).reshape(values.shape)
+        termed = fit.term.apply(base, lights).permute(2, 3, 0, 1)
+    return values.permute(2, 3, 0, 1), termed, seconds, fit
 
 
 # --- scores -----------------------------------------------------------------------------------------
@@ -215,12 +223,18 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
         rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth)})
         rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]  # the frame's index in the target
     for model in settings.models:
-        values, seconds, fit = torchspec_predict(capture, fitted, _lights(target_capture, predicted), model, settings)
-        row = {"method": f"torchspec {model}", "fit_seconds": seconds, **scores(SRGB.encode(values.clamp(0, 1)), truth)}
-        row["worst_frame"] = predicted[row["worst_frame"]]
-        row["lobe_share"] = float(fit.lobe.double().mean())
-        row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
-        rows.append(row)
+        values, termed, seconds, fit = torchspec_predict(
+            capture, fitted, _lights(target_capture, predicted), model, settings
+        )
+        for name, prediction in ((f"torchspec {model}", values), (f"torchspec {model} + term", termed)):
+            if prediction is None:
+                continue
+            row = {"method": name, "fit_seconds": seconds, **scores(SRGB.encode(prediction.clamp(0, 1)), truth)}
+            row["worst_frame"] = predicted[row["worst_frame"]]
+            row["lobe_share"] = float(fit.lobe.double().mean())
+            row["term_share"] = None if fit.term is None else float(fit.term.chosen.double().mean())
+            row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
+            rows.append(row)
     return rows, fit
 
 

@@ -146,7 +146,12 @@ def _add_fit_command(commands) -> None:
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
     fit.add_argument("--model", default=None,
                      choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
-                     help="auto (default): each pixel's model by the BIC; or one forced on every pixel")
+                     help="auto (default): each pixel's model by what it predicts of frames left out of its fit; "
+                          "or one forced on every pixel")
+    fit.add_argument("--residual-term", type=int, default=None, choices=[0, 2, 3], metavar="{0,2,3}",
+                     help="fit a smooth per-pixel residual term (hemispherical harmonics of order 2 or 3) where it "
+                          "predicts left-out frames better, for relighting what the physical model cannot (cast "
+                          "shadows); written to residual_term.exr, the physical maps unchanged (default 0: off)")
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
                           f"{CHECKPOINT})")
@@ -170,6 +175,8 @@ def _add_map_commands(commands) -> None:
                         help="a JSON light description to use instead of the capture's (needed for 'unknown' kernels)")
     render.add_argument("--path", default="auto", choices=["auto", "point", "fast", "reference"],
                         help="quadrature path (default: auto)")
+    render.add_argument("--no-term", action="store_true",
+                        help="leave out the maps' residual term (residual_term.exr): the physical model alone")
     render.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_overwrite(render)
 
@@ -351,6 +358,8 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
     if args.model is not None:
         config = replace(config, model=args.model)
+    if args.residual_term is not None:
+        config = replace(config, residual_term=args.residual_term)
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")
@@ -388,7 +397,7 @@ def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     _check_output(args)
     report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path,
-                            overwrite=args.overwrite, progress=not args.quiet)
+                            overwrite=args.overwrite, progress=not args.quiet, term=not args.no_term)
     print(f"wrote {report['frames']} frames to {args.output}")
     if report.get("psnr_db") is not None:
         print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "

@@ -264,3 +264,25 @@ def coverage_warning(l: Tensor, view: Tensor) -> str | None:
         f"(l = ({x:.2f}, {y:.2f})), more than two light spacings ({layout.spacing:.2f}): the lobes' peaks of "
         "most pixels lie outside the lights and cannot be located. Use frames around the mirror direction."
     )
+
+
+def resolvable_roughness(lights: Lights, resolution: float, least: float) -> float:
+    """The smallest Ward roughness the frames' lights can resolve: ``resolution`` times the
+    spacing of the half vectors (half the median nearest-neighbour distance of the light
+    directions in the l-plane, :func:`light_spacing`) for point lights, and ``least`` (no bound
+    from the sampling) for an extended kernel, whose blur reveals a narrower lobe's location.
+
+    With point lights, a lobe narrower than the half vectors' spacing falls between the frames:
+    it is fitted to one frame's sample and predicts nothing between them (relighting explodes).
+
+    Example:
+        >>> from torchspec.lights import Kernel
+        >>> d = torch.tensor([[0.0, 0, 1], [0.2, 0, 1], [0, 0.2, 1]], dtype=torch.float64)
+        >>> one = torch.ones(3, 1, dtype=torch.float64)
+        >>> resolvable_roughness(Lights(d, Kernel("point"), one, one[:, 0]), 0.5, 1e-3)
+        0.05
+    """
+    if lights.kernel.kind != "point" or resolution <= 0:
+        return least
+    spacing = float(light_spacing(lights.directions[:, :2].double()))
+    return max(least, round(resolution * spacing / 2, 6)) if math.isfinite(spacing) else least

@@ -71,12 +71,13 @@ class Model:
             return 2 + channels
         return 2 + channels + (1 if self.grey else channels) + (3 if self.anisotropic else 1) + (2 if self.dual else 0)
 
-    def bounds(self, channels: int) -> Bounds:
-        """The solver's reparametrisation of each parameter."""
+    def bounds(self, channels: int, least: float = ALPHA_BOUNDS[0]) -> Bounds:
+        """The solver's reparametrisation of each parameter; ``least``: the smallest roughness
+        (at least :data:`ALPHA_BOUNDS`' low end; :func:`torchspec.layout.resolvable_roughness`)."""
         kinds = ["free", "free"] + ["nonnegative"] * channels
         if self.lobe:
             kinds += ["nonnegative"] * (1 if self.grey else channels)
-            alpha = ("interval", *ALPHA_BOUNDS)
+            alpha = ("interval", max(least, ALPHA_BOUNDS[0]), ALPHA_BOUNDS[1])
             kinds += [alpha, alpha, "free"] if self.anisotropic else [alpha]
             if self.dual:
                 kinds += ["nonnegative", alpha]

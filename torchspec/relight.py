@@ -18,6 +18,7 @@ from .io import CaptureError, read_capture, read_svbrdf, write_capture
 from .outputs import check_output
 from .quadrature import Quadrature
 from .rendering import render_image
+from .residual_term import BASE_MAP, MAP_NAME, ResidualTerm
 
 __all__ = ["render_capture", "psnr"]
 
@@ -40,13 +41,15 @@ def render_capture(
     lobe: str = "ward",
     overwrite: bool = False,
     progress: bool = False,
+    term: bool = True,
 ) -> dict:
     """Predict a capture's frames from the maps in ``svbrdf_dir``; write them to ``output_dir``
     (unless ``None``) and compare with the capture's frames.
 
     ``output_dir`` is checked before any work: a folder that holds files is refused unless
     ``overwrite`` (:func:`torchspec.outputs.check_output`). ``progress`` shows a bar over the
-    pixels (on stderr).
+    pixels (on stderr). A residual term in the maps (``residual_term.exr``,
+    :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false.
 
     Returns:
         ``{"frames", "psnr_db", "relative_rms", "per_frame_psnr_db", "predicted"}``; the
@@ -69,7 +72,14 @@ def render_capture(
     lights = capture.lights(light=light, dtype=dtype)
     view = torch.tensor(capture.view, dtype=dtype)
     quadrature = Quadrature(path=path)
+    found = None
+    if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
+        source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
+        found = ResidualTerm.from_map(maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(BASE_MAP))
+        svbrdf = found.relit(svbrdf)
     values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
+    if found is not None:
+        values = found.apply(values, lights)
     predicted = values.permute(2, 3, 0, 1).contiguous()  # (K, C, H, W)
     if output_dir is not None:
         write_capture(Path(output_dir), capture, predicted.float(), overwrite=overwrite)

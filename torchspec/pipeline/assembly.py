@@ -15,6 +15,7 @@ from ..brdf import SVBRDF
 from ..flags import describe, untrusted
 from ..io import Capture
 from ..lm import STATUS
+from ..residual_term import ResidualTerm
 from .checks import Checks
 from .plan import FitWarning, frame_warnings
 from .result import Fit
@@ -98,10 +99,23 @@ def assemble(
         stats={},
         checks={f.name: _join([getattr(p.checks, f.name) for p in parts], h, w) for f in fields(Checks)},
     )
+    if parts[0].term is not None:
+        term = ResidualTerm(
+            coefficients=_join([p.term.coefficients for p in parts], h, w),
+            chosen=_join([p.term.chosen for p in parts], h, w),
+            base=_join([p.term.base for p in parts], h, w),
+        )
+        joined = replace(joined, term=term)
     smoothed = None
     if parts[0].plain is not None:  # FitConfig.smooth: the choice of a lobe over the whole image
         plain = PlainFit(**{f.name: _join([getattr(p.plain, f.name) for p in parts], h, w) for f in fields(PlainFit)})
+        before = joined.model
         joined, smoothed = smooth(joined, plain, stats["settings"]["smooth"])
+        if joined.term is not None:  # a term fitted on top of a lobe that smoothing took away: none
+            kept = joined.term.chosen & (joined.model == before)
+            coefficients = torch.where(kept[..., None, None], joined.term.coefficients, 0.0)
+            base = torch.where(joined.model == before, joined.term.base, torch.zeros_like(joined.term.base))
+            joined = replace(joined, term=ResidualTerm(coefficients=coefficients, chosen=kept, base=base))
     svbrdf = joined.svbrdf
     if svbrdf.specular2 is not None and not bool((svbrdf.specular2 > 0).any()):
         # A ladder with ward-dual that no pixel took: no second lobe's maps or deviations.
@@ -168,4 +182,6 @@ def _tile_stats(fit: Fit, parts: list[TileResult], stats: dict, smoothed: int | 
         "untrusted": int(untrusted(fit.flags).sum()),
         # FitConfig.smooth: the pixels whose lobe the neighbours' term took away (None: not smoothed).
         "smoothed": smoothed,
+        # FitConfig.residual_term: the pixels that carry one (None: not fitted).
+        "residual_term_pixels": None if fit.term is None else int(fit.term.chosen.sum()),
     }

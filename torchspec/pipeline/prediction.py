@@ -121,7 +121,7 @@ def held_out(
     out = data.observed.new_zeros((m, schemes, k, c))
     if m == 0:
         return out
-    bounds = model.bounds(c)
+    bounds = model.bounds(c, config.least_roughness(data.lights))
     rule = config.rule
     p = model.size(c)
     chunk = max(1, CHUNK_SAMPLES // (k * c * p))

@@ -13,6 +13,7 @@ from ..flags import FLAGS, UNTRUSTED, bit
 from ..io import write_svbrdf
 from ..lm import STATUS
 from ..outputs import check_output
+from ..residual_term import BASE_MAP, MAP_NAME, ResidualTerm
 from .checkpoint import CHECKPOINT
 from .settings import MODEL_CODES
 
@@ -53,6 +54,8 @@ class Fit:
         checks: ``peak_misfit`` and ``astray`` ``(H, W)``: the values behind those flags
             (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or
             no noise estimate with a forced model and ``uncertainty`` off).
+        term: the residual term, ``coefficients (H, W, J, C)`` and ``chosen (H, W)``
+            (:class:`torchspec.residual_term.ResidualTerm`; ``FitConfig.residual_term``, else ``None``).
     """
 
     svbrdf: SVBRDF
@@ -67,13 +70,16 @@ class Fit:
     stats: dict
     flags: Tensor
     checks: dict[str, Tensor]
+    term: ResidualTerm | None = None
 
 
 def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None:
     """Write a :class:`Fit` as an SVBRDF folder: the maps, ``residual.exr``, ``quality.exr``,
     ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
     ``criterion.exr``, ``flags.exr`` (bits of ``flag_bits``), ``check_peak_misfit.exr``,
-    ``check_astray.exr``, the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
+    ``check_astray.exr``, ``residual_term.exr`` and ``residual_term_base.exr`` (with
+    ``FitConfig.residual_term``: its coefficients and bases, described under ``residual_term`` in
+    ``svbrdf.json``), the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
     ``std_specular.exr``, ``std_roughness.exr`` (and ``std_specular2.exr``, ``std_roughness2.exr``
     with a second lobe, whose maps are ``specular2.exr`` and ``roughness2.exr``) and ``svbrdf.json``
     (model, settings, timings, statistics).
@@ -107,4 +113,8 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
     }
     if "specular2" in result.std:  # ward-dual's second lobe
         extra.update(std_specular2=result.std["specular2"].float(), std_roughness2=result.std["roughness2"].float())
+    if result.term is not None:  # FitConfig.residual_term: its own maps, the physical ones unchanged
+        extra[MAP_NAME] = result.term.to_map().float()
+        extra[BASE_MAP] = result.term.base.float()
+        meta[MAP_NAME] = result.term.description()
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra, overwrite=True)

@@ -10,9 +10,12 @@ import math
 from dataclasses import dataclass, field, replace
 
 from ..config import ConfigError
+from ..layout import resolvable_roughness
+from ..lights import Lights
 from ..lm import LMConfig
-from ..models import MODELS, get_model
+from ..models import ALPHA_BOUNDS, MODELS, get_model
 from ..quadrature import QUADRATURES, Quadrature
+from ..residual_term import TERMS
 
 __all__ = [
     "AUTO",
@@ -94,6 +97,21 @@ class FitConfig:
         refit: ``0``: each fold's refit is one Gauss-Newton step from the solution (one Jacobian
             per model and pixel); ``N``: ``N`` steps of the solver per fold (all folds of all pixels
             in one batch: about ``folds`` times the cost of the fits).
+        lobe_resolution: with point lights, no lobe narrower than ``lobe_resolution`` times the
+            half vectors' spacing (:func:`torchspec.layout.resolvable_roughness`): a narrower one
+            falls between the frames, fits one frame's sample and predicts nothing between them
+            (relighting between lights explodes). ``0``: only :data:`torchspec.models.ALPHA_BOUNDS`.
+            An extended kernel's blur resolves narrower lobes: no bound from the sampling.
+        residual_term: ``0`` (off), ``2`` or ``3``: the order of a smooth per-pixel residual term
+            (:mod:`torchspec.residual_term`: hemispherical harmonics of the light direction, 4 or 9
+            coefficients per channel, in the sRGB-encoded domain) fitted on top of the chosen model
+            and kept only where it predicts left-out frames better (``predict_z``, ``folds``). It
+            carries what the physical model cannot (cast shadows, interreflections) for relighting,
+            in maps of its own (``residual_term.exr``): the physical maps are unchanged by it.
+        term_z: the residual term is kept where its left-out prediction beats the physical
+            model's by more than ``term_z`` standard deviations of the noise's share (the margin of
+            ``predict_z``; lower, because the noise estimate of photographs includes what no model
+            of the ladder explains).
         broad_alpha: the roughness of the broad-lobe start of ``auto``'s pixels that show no peak
             but whose fit without a lobe leaves a misfit (a broad lobe is absorbed by a tilted
             normal and leaves no peak to detect).
@@ -137,6 +155,9 @@ class FitConfig:
     folds: int = 5
     fold_regions: bool = False
     refit: int = 0
+    lobe_resolution: float = 0.5
+    residual_term: int = 0
+    term_z: float = 1.0
     broad_alpha: float = 0.25
     resolve: float = 0.5
     dual_rms: float = 0.03
@@ -180,6 +201,14 @@ class FitConfig:
             )
         if not (self.predict_z >= 0 and math.isfinite(self.predict_z)):
             raise ConfigError(f"FitConfig.predict_z must be >= 0 and finite; got {self.predict_z!r}.")
+        if self.residual_term not in (0, *TERMS):
+            raise ConfigError(
+                f"FitConfig.residual_term must be 0 (off) or an order in {sorted(TERMS)}; got {self.residual_term!r}."
+            )
+        if not (self.lobe_resolution >= 0 and math.isfinite(self.lobe_resolution)):
+            raise ConfigError(f"FitConfig.lobe_resolution must be >= 0 and finite; got {self.lobe_resolution!r}.")
+        if not (self.term_z >= 0 and math.isfinite(self.term_z)):
+            raise ConfigError(f"FitConfig.term_z must be >= 0 and finite; got {self.term_z!r}.")
         if not self.trust_rms > 0:
             raise ConfigError(f"FitConfig.trust_rms must be > 0; got {self.trust_rms!r}.")
         if not self.dual_rms >= 0:
@@ -225,6 +254,10 @@ class FitConfig:
     def noise_known(self) -> bool:
         """Whether the fit estimates the sensor's noise: the criterion, deviations and peak checks need it."""
         return self.uncertainty or self.model == AUTO
+
+    def least_roughness(self, lights: Lights) -> float:
+        """The smallest roughness of a fit under ``lights`` (``lobe_resolution``)."""
+        return resolvable_roughness(lights, self.lobe_resolution, ALPHA_BOUNDS[0])
 
     @property
     def rule(self) -> Quadrature:

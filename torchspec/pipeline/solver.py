@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 from torch import Tensor
 
 from ..brdf import SVBRDF
-from ..lm import LMResult, bounded, solve
+from ..lm import Bounds, LMResult, bounded, solve
 from ..models import get_model
 from .samples import TileSamples
 from .settings import FitConfig
@@ -55,9 +55,10 @@ def solve_pixels(name: str, index: Tensor, start: SVBRDF, data: TileSamples, con
     residual weighted by ``data.weight`` (``config.lm`` and ``config.rule``)."""
     model = get_model(name)
     channels = data.channels
-    bounds = model.bounds(len(channels))
+    least = config.least_roughness(data.lights)
+    bounds = model.bounds(len(channels), least)
     rule = config.rule
-    params = bounds.to_free(model.pack(start))
+    params = bounds.to_free(inside(model.pack(start), bounds))
     observed, weight = data.observed[index], data.weight[index]
 
     def run(compile: bool):
@@ -68,3 +69,13 @@ def solve_pixels(name: str, index: Tensor, start: SVBRDF, data: TileSamples, con
 
     result = compiled_or_eager(run, config.compile)
     return Solved(name, index, model.unpack(bounds.from_free(result.params)[0], channels, order=True), result)
+
+
+def inside(params: Tensor, bounds: Bounds) -> Tensor:
+    """``params (m, P)`` with each interval parameter (a roughness) moved to at least 1.5 times its
+    low end: a start on the bound would move away only slowly (:class:`torchspec.lm.Bounds`)."""
+    out = params.clone()
+    for j, kind in enumerate(bounds.kinds):
+        if isinstance(kind, tuple) and kind[1] > 0:
+            out[:, j] = out[:, j].clamp(min=min(1.5 * kind[1], 0.5 * (kind[1] + kind[2])))
+    return out

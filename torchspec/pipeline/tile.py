@@ -14,8 +14,11 @@ from torch import Tensor
 
 from ..brdf import SVBRDF
 from ..lights import Lights
+from ..rendering import render
+from ..residual_term import ResidualTerm, fit_term, without
 from .checkpoint import save_tile
 from .checks import Checks, check_choice, quality_of
+from .prediction import light_folds
 from .samples import TileSamples
 from .selection import select_models
 from .settings import FitConfig
@@ -42,6 +45,7 @@ class TileResult:
         times: seconds per stage.
         plain: every pixel's fit without a lobe (``FitConfig.smooth`` only; else ``None``).
         masked: the count of masked samples per kind of :data:`MASK_KINDS` (:func:`fit_tile`).
+        term: the residual term (``FitConfig.residual_term``; else ``None``).
     """
 
     svbrdf: SVBRDF
@@ -60,6 +64,7 @@ class TileResult:
     times: dict[str, float]
     plain: PlainFit | None = None
     masked: dict[str, int] | None = None
+    term: ResidualTerm | None = None
 
     def to(self, device: torch.device | str) -> TileResult:
         """Every tensor moved to ``device``."""
@@ -71,7 +76,7 @@ def _moved(value, device):
         return value.to(device=device)
     if isinstance(value, dict):
         return {name: _moved(item, device) for name, item in value.items()}
-    if isinstance(value, (TileResult, Checks, PlainFit)):
+    if isinstance(value, (TileResult, Checks, PlainFit, ResidualTerm)):
         return replace(value, **{f.name: _moved(getattr(value, f.name), device) for f in fields(value)})
     return value
 
@@ -84,8 +89,11 @@ def fit_pixels(
     channels: tuple[str, ...],
     config: FitConfig,
     ctx: LightContext,
+    kept: Tensor | None = None,
 ) -> TileResult:
     """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
+    The residual term (``FitConfig.residual_term``) is fitted on the samples ``kept (n, K)``
+    (default ``valid``): the fit's masks leave out shadowed samples, which the term is to carry.
 
     The stages: :func:`~torchspec.pipeline.start.starting_point`, then
     :func:`~torchspec.pipeline.selection.select_models`, then
@@ -104,6 +112,11 @@ def fit_pixels(
     flags, checks = check_choice(choice, data, few, config)
     times["checks"] = time.perf_counter() - t0
 
+    term = None
+    if config.residual_term:
+        t0 = time.perf_counter()
+        term = residual_term(choice.svbrdf, y, valid if kept is None else kept, data, config)
+        times["residual_term"] = time.perf_counter() - t0
     rms = data.relative_rms(choice.cost)
     quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
     plain = None
@@ -137,7 +150,42 @@ def fit_pixels(
         noise=sensor,
         times=times,
         plain=plain,
+        term=term,
     )
+
+
+def residual_term(svbrdf: SVBRDF, y: Tensor, kept: Tensor, data: TileSamples, config: FitConfig) -> ResidualTerm:
+    """The residual term (:func:`torchspec.residual_term.fit_term`) of a tile's chosen maps
+    ``svbrdf`` on the samples ``kept (n, K)`` of ``y (n, K, C)``, judged on the folds of ``auto``'s
+    choice.
+
+    The term is fitted on three bases (:data:`torchspec.residual_term.BASES`): the whole model, its
+    diffuse part alone, and nothing; each pixel keeps the one that predicts left-out frames best
+    (``ResidualTerm.base``): a lobe, or a whole physical model, whose left-out prediction a smooth
+    term beats is not used to relight that pixel (its maps are unchanged)."""
+    kept = kept & y.isfinite().all(-1)
+    values = torch.where(kept[..., None], y, torch.zeros_like(y))
+    every = torch.arange(y.shape[0], device=y.device)
+    folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
+
+    kept_term = term_at(every, svbrdf, values, kept, folds, data, config)
+    base = torch.zeros(y.shape[0], dtype=torch.int8, device=y.device)
+    for code in (1, 2):  # the diffuse part alone; nothing (the term alone)
+        other = term_at(every, without(svbrdf, torch.full_like(base, code)), values, kept, folds, data, config)
+        better = other.left_out < kept_term.left_out
+        base = torch.where(better, torch.full_like(base, code), base)
+        kept_term = ResidualTerm(
+            coefficients=torch.where(better[:, None, None], other.coefficients, kept_term.coefficients),
+            chosen=torch.where(better, other.chosen, kept_term.chosen),
+            left_out=torch.where(better, other.left_out, kept_term.left_out),
+        )
+    return replace(kept_term, base=base, left_out=None)
+
+
+def term_at(index, maps, values, kept, folds, data: TileSamples, config: FitConfig) -> ResidualTerm:
+    """:func:`~torchspec.residual_term.fit_term` of pixels ``index`` under ``maps`` (of those pixels)."""
+    model = render(maps, data.lights, data.view, quadrature=config.rule)
+    return fit_term(values[index], kept[index], model, data.lights, folds, order=config.residual_term, z=config.term_z)
 
 
 def fit_tile(
@@ -157,7 +205,7 @@ def fit_tile(
     samples of each kind."""
     y = values.permute(2, 0, 1)  # (n, K, C)
     valid = ~(masks[0] | masks[1] | masks[2]).T
-    out = fit_pixels(y, valid, lights, view, channels, config, ctx)
+    out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~(masks[0] | masks[1]).T)
     out = replace(out, masked={name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)})
     if folder is not None:
         save_tile(folder, first, out)

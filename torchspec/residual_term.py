@@ -1,0 +1,290 @@
+"""The residual term: a smooth per-pixel function of the light direction that carries what the
+physical model cannot predict (cast shadows, interreflections, a near light's falloff), kept apart
+from the physical maps so that normal, diffuse, specular and roughness stay physical.
+
+Per pixel and channel, hemispherical harmonics of the light direction (the RTI fitters' HSH basis,
+:func:`hsh_basis`: order 2, 4 terms, or order 3, 9 terms) added to the physical prediction in the
+sRGB-encoded domain of its value at unit light, where the photographs were recorded and are
+judged:
+
+    value_k = scale_k decode(encode(model_k / scale_k) + sum_j c_j H_j(l_k))
+
+with ``scale_k`` the frame's exposure times irradiance, ``l_k`` its light's (effective) direction,
+``encode`` the sRGB transfer extended to every real value (:func:`encode`, :func:`decode`).
+
+:func:`fit_term` fits the coefficients by least squares on a fit's valid samples and keeps them
+only at the pixels where they predict frames left out of their fit better than the physical model
+alone (:func:`torchspec.pipeline.prediction.predicts_better`, the same rule that chooses models):
+a term that only fits the frames it saw is not kept.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from .brdf import SVBRDF
+from .errors import TorchspecError
+from .lights import Lights, diffuse_directions
+
+__all__ = [
+    "MAP_NAME",
+    "BASE_MAP",
+    "BASES",
+    "TERMS",
+    "ResidualTerm",
+    "hsh_basis",
+    "encode",
+    "decode",
+    "term_directions",
+    "fit_term",
+]
+
+TERMS = {2: 4, 3: 9}
+"""Coefficients per channel of each order of the basis."""
+
+MAP_NAME = "residual_term"
+"""The term's map in an SVBRDF folder (``residual_term.exr``) and its key in ``svbrdf.json``."""
+BASE_MAP = "residual_term_base"
+"""The map of :attr:`ResidualTerm.base` (``residual_term_base.exr``: the codes of :data:`BASES`)."""
+BASES = ("model", "diffuse", "none")
+"""What the term is added to, per pixel: the whole physical model, its diffuse part alone (the lobe
+left out of relighting), or nothing (the term alone: the RTI fitters' HSH of the photographs)."""
+
+_A = 0.055
+_KNEE = 0.0031308
+
+
+def encode(linear: Tensor) -> Tensor:
+    """The sRGB transfer (IEC 61966-2-1), extended to every real value: odd (``-encode(-v)`` below
+    0) and continued as ``1.055 v^(1/2.4) - 0.055`` above 1; a monotonic bijection of the reals."""
+    size = linear.abs()
+    curve = (1 + _A) * size.clamp(min=_KNEE).pow(1 / 2.4) - _A
+    return torch.sign(linear) * torch.where(size <= _KNEE, 12.92 * size, curve)
+
+
+def decode(encoded: Tensor) -> Tensor:
+    """The inverse of :func:`encode`."""
+    size = encoded.abs()
+    curve = ((size.clamp(min=12.92 * _KNEE) + _A) / (1 + _A)).pow(2.4)
+    return torch.sign(encoded) * torch.where(size <= 12.92 * _KNEE, size / 12.92, curve)
+
+
+def hsh_basis(directions: Tensor, order: int = 3) -> Tensor:
+    """``(*, J)`` hemispherical harmonics (Gautron et al. 2004, as RTI fitters use them) of unit
+    directions ``(*, 3)``: ``J = 4`` for order 2, ``9`` for order 3."""
+    if order not in TERMS:
+        raise TorchspecError(f"the residual term's order must be one of {sorted(TERMS)}; got {order}.")
+    t = directions[..., 2].clamp(0, 1)
+    phi = torch.atan2(directions[..., 1], directions[..., 0])
+    s = (t - t * t).clamp(min=0).sqrt()
+    terms = [
+        torch.full_like(t, 1 / math.sqrt(2 * math.pi)),
+        math.sqrt(6 / math.pi) * torch.cos(phi) * s,
+        math.sqrt(3 / (2 * math.pi)) * (2 * t - 1),
+        math.sqrt(6 / math.pi) * torch.sin(phi) * s,
+    ]
+    if order == 3:
+        terms += [
+            math.sqrt(30 / math.pi) * torch.cos(2 * phi) * (t * t - t),
+            math.sqrt(30 / math.pi) * torch.cos(phi) * (2 * t - 1) * s,
+            math.sqrt(5 / (2 * math.pi)) * (6 * t * t - 6 * t + 1),
+            math.sqrt(30 / math.pi) * torch.sin(phi) * (2 * t - 1) * s,
+            math.sqrt(30 / math.pi) * torch.sin(2 * phi) * (t * t - t),
+        ]
+    return torch.stack(terms, -1)
+
+
+def term_directions(lights: Lights) -> Tensor:
+    """``(K, 3)`` the direction the term is a function of: the light's for point lights, the
+    kernel's effective (diffuse) direction for extended ones."""
+    return lights.directions if lights.kernel.kind == "point" else diffuse_directions(lights)
+
+
+@dataclass(frozen=True)
+class ResidualTerm:
+    """Each pixel's residual term.
+
+    Attributes:
+        coefficients: ``(*, J, C)`` per pixel, basis function and channel (0 where not chosen).
+        chosen: ``(*,)`` bool, the pixels that carry a term.
+        base: ``(*,)`` int8 codes of :data:`BASES` or ``None`` (all ``model``): what the term is
+            added to in relighting (:meth:`relit`), the one whose left-out prediction (with the term
+            where it is chosen) is best. The physical maps are unchanged: a pixel relit from its
+            diffuse part or from nothing keeps its lobe and normal in the maps.
+        left_out: ``(*,)`` the left-out prediction's squared error (encoded units) of what is kept
+            (not saved with the maps; ``None`` when unknown).
+    """
+
+    coefficients: Tensor
+    chosen: Tensor
+    base: Tensor | None = None
+    left_out: Tensor | None = None
+
+    def relit(self, svbrdf: SVBRDF) -> SVBRDF:
+        """The maps to render before :meth:`apply`: ``svbrdf`` without its lobes where the
+        :attr:`base` is ``diffuse``, and black where it is ``none``."""
+        if self.base is None or not bool(self.base.any()):
+            return svbrdf
+        return without(svbrdf, self.base.to(svbrdf.diffuse.device))
+
+    @property
+    def order(self) -> int:
+        """The basis' order (from ``J``)."""
+        count = self.coefficients.shape[-2]
+        for order, terms in TERMS.items():
+            if terms == count:
+                return order
+        raise TorchspecError(
+            f"a residual term has {count} coefficients per channel; expected one of {list(TERMS.values())}."
+        )
+
+    def to_map(self) -> Tensor:
+        """``(*, C J)`` the coefficients channel-major (channel ``c``'s term ``j`` at ``c J + j``),
+        as ``residual_term.exr`` holds them (0 at pixels without a term)."""
+        moved = self.coefficients.transpose(-1, -2)
+        return moved.reshape(*moved.shape[:-2], -1)
+
+    def description(self) -> dict:
+        """What ``svbrdf.json`` records of the term under :data:`MAP_NAME`."""
+        return {
+            "basis": f"hemispherical harmonics of order {self.order} of the light direction (Gautron et al. 2004)",
+            "terms": self.coefficients.shape[-2],
+            "layout": "channel-major: channel c's coefficient j in EXR channel C{c*terms+j}",
+            "domain": "value = scale * decode(encode(model / scale) + sum_j c_j H_j(l)), encode the sRGB transfer "
+            "extended to all reals, scale = exposure * irradiance",
+            "pixels": int(self.chosen.sum()),
+            "base": f"{BASE_MAP}.exr: what the term is added to, codes of base_codes",
+            "base_codes": list(BASES),
+            "base_pixels": {
+                name: int((self.base == code).sum()) if self.base is not None else (0 if code else self.chosen.numel())
+                for code, name in enumerate(BASES)
+            },
+        }
+
+    @staticmethod
+    def from_map(
+        image: Tensor, channels: int, source: str = "residual_term.exr", base: Tensor | None = None
+    ) -> ResidualTerm:
+        """The term of a ``(*, C J)`` map (:meth:`to_map`) of ``channels`` channels, and the
+        :attr:`base` map (codes of :data:`BASES`) when given.
+
+        Raises:
+            TorchspecError: the map's channel count is not ``channels`` times a basis' size, naming ``source``.
+        """
+        count = image.shape[-1] if image.dim() >= 3 else 1
+        if count % channels or count // channels not in TERMS.values():
+            raise TorchspecError(
+                f"{source}: {count} channels is not {channels} channels times one of {sorted(TERMS.values())} "
+                "coefficients of a residual term."
+            )
+        coefficients = image.reshape(*image.shape[:-1], channels, count // channels).transpose(-1, -2)
+        codes = None
+        if base is not None:
+            codes = base.to(image.device).round().to(torch.int8)
+            if bool(((codes < 0) | (codes >= len(BASES))).any()):
+                raise TorchspecError(
+                    f"{source}: its base map holds codes outside 0..{len(BASES) - 1} ({', '.join(BASES)})."
+                )
+        return ResidualTerm(coefficients=coefficients, chosen=coefficients.ne(0).any(-1).any(-1), base=codes)
+
+    def apply(self, values: Tensor, lights: Lights) -> Tensor:
+        """The physical prediction ``values (*, K, C)`` with the term added at chosen pixels."""
+        lights = lights.to(dtype=values.dtype, device=values.device)
+        basis = hsh_basis(term_directions(lights), self.order)  # (K, J)
+        coefficients = self.coefficients.to(values)
+        if values.shape[:-2] != coefficients.shape[:-2] or values.shape[-1] != coefficients.shape[-1]:
+            raise TorchspecError(
+                f"a residual term of shape {tuple(coefficients.shape)} (pixels, terms, channels) does not match "
+                f"values of shape {tuple(values.shape)} (pixels, frames, channels)."
+            )
+        scale = lights.scale
+        term = torch.einsum("kj,...jc->...kc", basis, coefficients)
+        added = decode(encode(values / scale) + term) * scale
+        return torch.where(self.chosen.to(values.device)[..., None, None], added, values)
+
+
+def without(svbrdf: SVBRDF, base: Tensor) -> SVBRDF:
+    """``svbrdf (*,)`` without its lobes where ``base (*,)`` is ``diffuse`` (1) and black where it
+    is ``none`` (2) (:data:`BASES`)."""
+    lobe = (base == 0)[..., None]
+    light = (base < 2)[..., None]
+    second = {}
+    if svbrdf.specular2 is not None:
+        second["specular2"] = svbrdf.specular2 * lobe
+    return replace(svbrdf, diffuse=svbrdf.diffuse * light, specular=svbrdf.specular * lobe, **second)
+
+
+def fit_term(
+    observed: Tensor,
+    valid: Tensor,
+    model: Tensor,
+    lights: Lights,
+    folds: Tensor,
+    *,
+    order: int = 3,
+    z: float = 3.0,
+    ridge: float = 1e-6,
+) -> ResidualTerm:
+    """Fit the term on top of a physical prediction and keep it where it predicts left-out frames.
+
+    Args:
+        observed: ``(n, K, C)`` recorded values.
+        valid: ``(n, K)`` bool, the samples to fit (saturated and masked samples excluded).
+        model: ``(n, K, C)`` the physical model's prediction of them.
+        lights: the ``K`` frames' lights (the directions and scales).
+        folds: ``(S, K)`` each frame's fold per scheme
+            (:func:`torchspec.pipeline.prediction.light_folds`).
+        order: the basis' order (:data:`TERMS`).
+        z: the margin of :func:`~torchspec.pipeline.prediction.predicts_better`.
+        ridge: Tikhonov damping relative to each pixel's mean diagonal (a pixel whose valid frames
+            leave a coefficient undetermined gets it near 0 rather than a wild value).
+
+    Returns:
+        a :class:`ResidualTerm` of ``n`` pixels, fitted on all valid samples where chosen.
+    """
+    from .pipeline.prediction import predicts_better  # the selection rule of the fit's models
+
+    dtype = observed.dtype
+    lights = lights.to(dtype=dtype, device=observed.device)
+    scale = lights.scale[None]  # (1, K, C or 1)
+    unit_model = model / scale
+    target = encode(observed / scale) - encode(unit_model)  # (n, K, C)
+    weight = valid.to(dtype)
+    target = target * weight[..., None]
+    basis = hsh_basis(term_directions(lights), order)  # (K, J)
+    outer = basis[:, :, None] * basis[:, None, :]  # (K, J, J)
+    normal = torch.einsum("nk,kij->nij", weight, outer)
+    right = torch.einsum("kj,nkc->njc", basis, target)
+    coefficients = _solve(normal, right, ridge)
+    count = int(folds.max()) + 1 if folds.numel() else 0
+    schemes = []
+    for scheme in folds:  # a handful of folds: each a batched solve over every pixel
+        errors = torch.zeros_like(target)
+        for fold in range(count):
+            out = scheme == fold
+            held = torch.einsum("nk,kij->nij", weight[:, out], outer[out])
+            partial = _solve(normal - held, right - torch.einsum("kj,nkc->njc", basis[out], target[:, out]), ridge)
+            predicted = torch.einsum("kj,njc->nkc", basis[out], partial) * weight[:, out, None]
+            errors[:, out] = target[:, out] - predicted
+        schemes.append(errors)
+    # In the encoded domain, where the term is fitted and the photographs are judged, the samples'
+    # noise is taken as one level: the robust spread of what the term leaves on the fitted frames.
+    left = (target - torch.einsum("kj,njc->nkc", basis, coefficients) * weight[..., None])[valid]
+    sigma = (1.4826 * left.abs().median()).clamp(min=1e-4) if left.numel() else target.new_tensor(1.0)
+    candidate = torch.stack(schemes, 1) / sigma  # (n, S, K, C) in noise units
+    current = (target / sigma)[:, None].expand_as(candidate)
+    chosen = predicts_better(candidate, current, z)
+    coefficients = torch.where(chosen[:, None, None], coefficients, torch.zeros_like(coefficients))
+    kept = torch.where(chosen[:, None, None, None], candidate, current) * sigma  # encoded units
+    return ResidualTerm(coefficients=coefficients, chosen=chosen, left_out=kept.square().sum((2, 3)).mean(1))
+
+
+def _solve(normal: Tensor, right: Tensor, ridge: float) -> Tensor:
+    size = normal.shape[-1]
+    damping = ridge * normal.diagonal(dim1=-2, dim2=-1).mean(-1).clamp(min=1e-12)
+    eye = torch.eye(size, dtype=normal.dtype, device=normal.device)
+    return torch.linalg.solve(normal + damping[..., None, None] * eye, right)
