@@ -9,7 +9,9 @@ file of directions only is matched by order (names in natural order: ``2`` befor
 whose name holds ``mask`` or ``normal`` are not photographs). Otherwise each missing image is named.
 
 Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with one recorded
-transfer, and written as a float32 EXR: point lights (the light file's directions), irradiance 1,
+transfer (or, without ``--transfer``, with its embedded ICC profile when that is not sRGB: to
+linear sRGB primaries, colours outside sRGB's gamut clipped at 0 with a note; the manifest's
+``source.icc_profiles`` names each frame's profile), and written as a float32 EXR: point lights (the light file's directions), irradiance 1,
 exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to the median frame's where it differs
 between frames. A clipped sample (an integer image's largest code) reads as exactly 1, the clipping
 level the fit detects (``FitConfig.saturation``); the manifest's ``source`` records the light file,
@@ -207,8 +209,10 @@ def _frame_name(k: int, image: Path) -> str:
 
 def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
     """Decode every photograph into a ``(K, C, H, W)`` float32 array: ``(stack, transfer,
-    encoding, exifs, notes, saturated)``."""
+    encoding, exifs, notes, saturated, profiles)``; ``profiles[k]`` names the ICC profile that
+    decoded frame ``k`` (``transfer`` None: an embedded non-sRGB profile decodes its frame)."""
     stack, size, first, exifs, notes, saturated = None, None, None, [], [], []
+    given, profiles = transfer, [None] * len(images)
     for k, image in enumerate(tqdm(images, unit="image", desc="import", disable=not progress)):
         photo = read_photo(image)
         notes += photo.notes
@@ -241,10 +245,22 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
                     f"{image} must be greyscale like {images[0].name}; got a colour photograph. Convert every "
                     "photograph to the same kind (or the first one to colour)."
                 )
-        saturated.append(int((pixels >= CLIP).any(-1).sum()) if first.clipped else 0)
-        stack[k] = transfer.decode(pixels.to(dtype)).permute(2, 0, 1).float().numpy()
+        clipped = (pixels >= CLIP).any(-1, keepdim=True) if first.clipped else torch.zeros(size[:2] + (1,), dtype=bool)
+        saturated.append(int(clipped.sum()))
+        linear, decoder = photo.decode(pixels.to(dtype), given)
+        if decoder.startswith("icc:"):  # the matrix moves a clipped sample off 1: keep it at the level
+            linear = torch.where(clipped, linear.clamp(min=CLIP), linear)
+            profiles[k] = decoder[4:]
+            outside = int((linear < 0).any(-1).sum())
+            if outside:  # radiance is non-negative: a colour outside sRGB's gamut is clipped to it
+                notes.append(
+                    f"{image}: {outside} pixel(s) outside the sRGB gamut after its ICC profile; their negative "
+                    "components are set to 0."
+                )
+                linear = linear.clamp(min=0)
+        stack[k] = linear.permute(2, 0, 1).float().numpy()
         exifs.append(photo.exif)
-    return stack, transfer, first.encoding, exifs, notes, saturated
+    return stack, transfer, first.encoding, exifs, notes, saturated, profiles
 
 
 def import_rti(
@@ -290,7 +306,7 @@ def import_rti(
     output.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{output.name}.import-", dir=output.parent))
     try:
-        stack, transfer, encoding, exifs, image_notes, saturated = _read_stack(
+        stack, transfer, encoding, exifs, image_notes, saturated, profiles = _read_stack(
             images, transfer, torch.float64, scratch, progress
         )
         notes += image_notes
@@ -307,6 +323,7 @@ def import_rti(
             "lines": [entry.line for entry in lights.entries],
             "encoding": encoding,
             "transfer": str(transfer),
+            "icc_profiles": profiles if any(profiles) else None,
             "saturation": CLIP if encoding != "float" else None,
             "saturated_pixels": saturated,
             "exif": exifs if any(exifs) else None,
