@@ -367,3 +367,27 @@ def test_shared_rti_folders_import_and_pass_info(tmp_path, shared, folder, frame
     assert all("saturated pixel(s) (clipped at 1," in w for w in report["warnings"])
     if folder == "chrome-sphere":
         assert imported.matched == "order" and "chrome.mask.png" not in [p.name for p in imported.images]
+
+
+def test_lp_norms_of_real_files_and_cr_line_ends(tmp_path):
+    """Norms 0.80-1.06 as in the tools' files: a note beyond 5 % only; old Mac CR line ends."""
+    path = tmp_path / "dirs.lp"
+    path.write_bytes(b"3\rimg1.jpg 0 0 1.06\rimg2.jpg 0 0.6 0.78\rimg3.jpg 0 0 0.96\r")
+    lights = read_light_file(path)
+    assert [e.line for e in lights.entries] == [2, 3, 4]
+    assert [round(e.norm, 4) for e in lights.entries] == [1.06, round(math.hypot(0.6, 0.78), 4), 0.96]
+    assert len(lights.notes) == 1 and "line 2: the direction's norm is 1.06; normalised" in lights.notes[0]
+
+
+def test_failed_import_leaves_the_previous_output_untouched(tmp_path):
+    """--overwrite replaces the output only once the new capture is complete: an error midway
+    (a truncated JPEG) leaves the old capture as it was, and no temporary folder behind."""
+    lp = _capture(tmp_path / "rti", ".jpg")
+    import_rti(lp, tmp_path / "out")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "out").rglob("*") if p.is_file()}
+    data = (tmp_path / "rti" / "img04.jpg").read_bytes()
+    (tmp_path / "rti" / "img04.jpg").write_bytes(data[: len(data) // 3])
+    with pytest.raises(ImageError, match=r"img04\.jpg cannot be read"):
+        import_rti(lp, tmp_path / "out", overwrite=True)
+    after = {p.name: p.read_bytes() for p in (tmp_path / "out").rglob("*") if p.is_file()}
+    assert after == before and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
