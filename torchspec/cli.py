@@ -53,11 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_import_command(commands) -> None:
     """``import``."""
     command = commands.add_parser("import", help="import an RTI capture: .lp light file + JPEG/PNG/TIFF/RAW photos")
-    command.add_argument("source", type=Path, help="an .lp light file, or a folder holding one (or a lights.txt)")
+    command.add_argument("source", type=Path, help="an .lp light file (or Relight .relight/.dome, or lights.txt), "
+                                                   "or a folder holding one")
     command.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
     command.add_argument("--transfer", default=None, metavar="{srgb,linear,gamma:G}",
-                         help="the photographs' tone curve, decoded to linear (default: srgb for 8 and 16-bit files, "
-                              "linear for float and RAW)")
+                         help="the photographs' tone curve, decoded to linear (default: an embedded ICC profile, "
+                              "else srgb for 8 and 16-bit files, linear for float and RAW)")
     command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
     sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
