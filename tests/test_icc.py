@@ -10,7 +10,7 @@ import torch
 from PIL import Image, ImageCms
 
 from torchspec.io.icc import read_icc
-from torchspec.io.images import Transfer, read_photo
+from torchspec.io.images import ImageError, Transfer, read_photo
 from torchspec.io.rti import import_rti
 
 ADOBE = ((0.60974, 0.31111, 0.01947), (0.20528, 0.62567, 0.06087), (0.14919, 0.06322, 0.74457))
@@ -22,23 +22,28 @@ def _s15(*values):
     return b"".join(struct.pack(">i", round(v * 65536)) for v in values)
 
 
-def matrix_profile(colorants=ADOBE, gamma=GAMMA, name="Test wide RGB") -> bytes:
-    """A minimal ICC v2 matrix/TRC display profile (the tags littleCMS needs), written by hand."""
+def matrix_profile(colorants=ADOBE, gamma=GAMMA, name="Test wide RGB", grey=False) -> bytes:
+    """A minimal ICC v2 matrix/TRC display profile (the tags littleCMS needs), written by hand; or
+    a grey one (``kTRC`` only)."""
     text = name.encode() + b"\0"
     desc = b"desc\0\0\0\0" + struct.pack(">I", len(text)) + text + b"\0" * 8 + b"\0\0\0" + b"\0" * 67
     xyz = [b"XYZ \0\0\0\0" + _s15(*c) for c in colorants]
     white = b"XYZ \0\0\0\0" + _s15(0.9642, 1.0, 0.8249)
     curve = b"curv\0\0\0\0" + struct.pack(">IH", 1, round(gamma * 256)) + b"\0\0"
     cprt = b"text\0\0\0\0" + b"none\0"
-    tags = [(b"desc", desc), (b"wtpt", white), (b"rXYZ", xyz[0]), (b"gXYZ", xyz[1]), (b"bXYZ", xyz[2])]
-    tags += [(b"rTRC", curve), (b"gTRC", curve), (b"bTRC", curve), (b"cprt", cprt)]
+    tags = [(b"desc", desc), (b"wtpt", white), (b"cprt", cprt)]
+    if grey:
+        tags += [(b"kTRC", curve)]
+    else:
+        tags += [(b"rXYZ", xyz[0]), (b"gXYZ", xyz[1]), (b"bXYZ", xyz[2])]
+        tags += [(b"rTRC", curve), (b"gTRC", curve), (b"bTRC", curve)]
     offset, table, body = 128 + 4 + 12 * len(tags), b"", b""
     for signature, data in tags:
         data += b"\0" * (-len(data) % 4)
         table += signature + struct.pack(">II", offset + len(body), len(data))
         body += data
     size = offset + len(body)
-    header = struct.pack(">I4sI4s4s4s", size, b"none", 0x02100000, b"mntr", b"RGB ", b"XYZ ")
+    header = struct.pack(">I4sI4s4s4s", size, b"none", 0x02100000, b"mntr", b"GRAY" if grey else b"RGB ", b"XYZ ")
     header += b"\0" * 12 + b"acsp" + b"\0" * 24 + struct.pack(">I", 0) + _s15(0.9642, 1.0, 0.8249)
     header += b"\0" * (128 - len(header))
     return header + struct.pack(">I", len(tags)) + table + body
@@ -125,3 +130,33 @@ def test_srgb_profile_is_plain_srgb(tmp_path):
     Image.fromarray(_codes()).save(tmp_path / "a.jpg", icc_profile=srgb)
     photo = read_photo(tmp_path / "a.jpg")
     assert photo.profile is None and photo.notes == ()
+
+
+def test_other_profiles_converted_by_littlecms(tmp_path, monkeypatch):
+    """A profile that is not a matrix/TRC one (here: one made to look so) is applied by littleCMS
+    to 8-bit sRGB in a JPEG, with a note (the sRGB profile leaves the codes as they were, within a
+    code); in a TIFF or PNG (16-bit possible) it is an error naming the file."""
+    import torchspec.io.images as images
+
+    monkeypatch.setattr(images, "read_icc", lambda data: None)
+    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    Image.fromarray(_codes()).save(tmp_path / "a.tif", tiffinfo={34675: srgb})  # read by tifffile: 8 and 16 bits
+    with pytest.raises(ImageError, match=r"a\.tif embeds an ICC profile that is not a matrix/TRC one"):
+        read_photo(tmp_path / "a.tif")
+    Image.fromarray(_codes()).save(tmp_path / "a.jpg", icc_profile=srgb, quality=100, subsampling=0)
+    photo = read_photo(tmp_path / "a.jpg")
+    assert "RGB image converted to 8-bit sRGB with its ICC profile 'sRGB built-in' (littleCMS)" in photo.notes[0]
+    assert photo.profile is None and photo.encoding == "8-bit"
+    plain = np.asarray(Image.open(tmp_path / "a.jpg").convert("RGB"), dtype=np.float64) / 255
+    assert np.abs(photo.pixels - plain).max() <= 1.5 / 255
+
+
+def test_grey_profile_decodes_a_greyscale_jpeg(tmp_path):
+    codes = _codes()[:, :, 1]
+    Image.fromarray(codes).save(tmp_path / "g.jpg", icc_profile=matrix_profile(gamma=1.8, name="Grey 1.8", grey=True))
+    photo = read_photo(tmp_path / "g.jpg")
+    assert photo.pixels.shape[2] == 1 and photo.profile.description == "Grey 1.8"
+    linear, decoder = photo.decode(torch.from_numpy(photo.pixels).double(), None)
+    assert decoder == "icc:Grey 1.8"
+    gamma = round(1.8 * 256) / 256
+    assert np.abs(linear.numpy() - photo.pixels.astype(np.float64) ** gamma).max() < 1e-6
