@@ -1,5 +1,6 @@
 """Light directions from a chrome sphere (torchspec.sphere, torchspec calibrate-sphere)."""
 
+import json
 import math
 
 import numpy as np
@@ -8,8 +9,10 @@ import torch
 from PIL import Image
 
 from torchspec.cli import main
+from torchspec.errors import TorchspecError
+from torchspec.io.images import read_photo
 from torchspec.io.lp import read_light_file
-from torchspec.sphere import Circle, circle_from_mask, sphere_directions
+from torchspec.sphere import Circle, circle_from_mask, find_sphere, sphere_directions
 
 CIRCLE = Circle(cx=40.3, cy=35.7, r=25.0)
 LIGHTS = [
@@ -62,3 +65,60 @@ def test_command_line_writes_an_lp(tmp_path):
     got = torch.tensor([e.direction for e in lights.entries], dtype=torch.float64)
     assert torch.rad2deg(torch.acos((got * torch.tensor(LIGHTS, dtype=torch.float64)).sum(-1).clamp(-1, 1))).max() < 1
     assert (tmp_path / "out" / "dome.json").is_file()
+
+
+def _ball_scene(circle=CIRCLE, h=72, w=80, lights=LIGHTS, seed=0, noise=0.005):
+    """A dark chrome ball on a background brighter above than below (only its upper rim contrasts),
+    a bright rim on its left, its highlights, and sensor noise."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    distance = np.hypot(cols - circle.cx, rows - circle.cy)
+    ball = np.clip(circle.r + 0.5 - distance, 0, 1)  # anti-aliased coverage
+    background = 0.3 * np.clip(1 - rows / h * 1.5, 0, 1)
+    rim = 0.3 * (distance > circle.r - 3) * (cols < circle.cx - 0.5 * circle.r)  # grazing reflections
+    scene = background * (1 - ball) + ball * (0.02 + rim)
+    frames = _sphere_frames(lights, circle, h, w).numpy() * ball + scene
+    frames = frames + rng.normal(0, noise, frames.shape)
+    return torch.from_numpy(frames.clip(0, 1))
+
+
+def test_find_sphere_from_a_partial_outline():
+    found = find_sphere(_ball_scene())
+    assert math.hypot(found.cx - CIRCLE.cx, found.cy - CIRCLE.cy) < 0.5 and abs(found.r - CIRCLE.r) < 0.5, found
+    result = sphere_directions(_ball_scene(), found)
+    truth = torch.tensor(LIGHTS, dtype=torch.float64)
+    assert torch.rad2deg(torch.acos((result.directions * truth).sum(-1).clamp(-1, 1))).max() < 2
+
+
+def test_find_sphere_refuses_blank_frames():
+    with pytest.raises(TorchspecError, match="--mask or --circle"):
+        find_sphere(torch.zeros(3, 3, 40, 50, dtype=torch.float64))
+
+
+def test_command_line_finds_the_sphere(tmp_path):
+    for k, frame in enumerate(_ball_scene()):
+        codes = (frame.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        Image.fromarray(codes).save(tmp_path / f"s.{k}.png")
+    assert main(["calibrate-sphere", str(tmp_path), "-o", str(tmp_path / "dome.lp")]) == 0
+    lights = read_light_file(tmp_path / "dome.lp")
+    got = torch.tensor([e.direction for e in lights.entries], dtype=torch.float64)
+    assert torch.rad2deg(torch.acos((got * torch.tensor(LIGHTS, dtype=torch.float64)).sum(-1).clamp(-1, 1))).max() < 2
+    sidecar = json.loads((tmp_path / "dome.json").read_text())
+    assert len(sidecar["lights"]) == 4 and all(light["uncertainty_deg"] > 0 for light in sidecar["lights"])
+
+
+def test_chrome_sphere_found_like_its_mask(shared):
+    """The shared chrome ball (a partial outline on a dark cloth): the outline found agrees with its
+    mask's within 1.5 pixels, and the directions with lights.txt as well as the mask's do."""
+    folder = shared("rti/chrome-sphere")
+    frames = torch.stack(
+        [torch.from_numpy(read_photo(folder / f"chrome.{k}.png").pixels).permute(2, 0, 1) for k in range(12)]
+    )
+    mask, found = circle_from_mask(folder / "chrome.mask.png"), find_sphere(frames)
+    assert math.hypot(found.cx - mask.cx, found.cy - mask.cy) < 1.5 and abs(found.r - mask.r) < 1.5, (found, mask)
+    truth = torch.tensor([e.direction for e in read_light_file(folder / "lights.txt").entries], dtype=torch.float64)
+    angles = []
+    for circle in (mask, found):
+        directions = sphere_directions(frames, circle).directions
+        angles.append(torch.rad2deg(torch.acos((directions * truth).sum(-1).clamp(-1, 1))).median())
+    assert angles[1] < angles[0] + 0.5 and angles[0] < 2.5, angles

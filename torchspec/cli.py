@@ -53,18 +53,19 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_import_command(commands) -> None:
     """``import``."""
     command = commands.add_parser("import", help="import an RTI capture: .lp light file + JPEG/PNG/TIFF/RAW photos")
-    command.add_argument("source", type=Path, help="an .lp light file, or a folder holding one (or a lights.txt)")
+    command.add_argument("source", type=Path, help="an .lp light file (or Relight .relight/.dome, or lights.txt), "
+                                                   "or a folder holding one")
     command.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
     command.add_argument("--transfer", default=None, metavar="{srgb,linear,gamma:G}",
-                         help="the photographs' tone curve, decoded to linear (default: srgb for 8 and 16-bit files, "
-                              "linear for float and RAW)")
+                         help="the photographs' tone curve, decoded to linear (default: an embedded ICC profile, "
+                              "else srgb for 8 and 16-bit files, linear for float and RAW)")
     command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
     sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
     sphere.add_argument("folder", type=Path, help="the sphere's photographs, one per light (natural order)")
     sphere.add_argument("-o", "--output", type=Path, required=True, help="the .lp to write (a .json beside)")
-    where = sphere.add_mutually_exclusive_group(required=True)
-    where.add_argument("--mask", type=Path, help="an image, white on the sphere")
+    where = sphere.add_mutually_exclusive_group()
+    where.add_argument("--mask", type=Path, help="an image, white on the sphere (default: the outline is found)")
     where.add_argument("--circle", type=float, nargs=3, metavar=("CX", "CY", "R"), help="the sphere's outline, pixels")
 
 
@@ -73,17 +74,21 @@ def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace)
 
     from .io.images import read_photo
     from .io.rti import photographs
-    from .sphere import Circle, circle_from_mask, sphere_directions, write_lp
+    from .sphere import Circle, circle_from_mask, find_sphere, sphere_directions, write_lp
 
     images = photographs(args.folder)
     if len(images) < 1:
         raise TorchspecError(f"{args.folder} must hold the sphere's photographs; got none.")
-    circle = Circle(*args.circle) if args.circle else circle_from_mask(args.mask)
     frames = torch.stack([torch.from_numpy(read_photo(path).pixels).permute(2, 0, 1) for path in images])
+    if args.circle:
+        circle = Circle(*args.circle)
+    else:
+        circle = circle_from_mask(args.mask) if args.mask else find_sphere(frames)
     result = sphere_directions(frames, circle)
     write_lp(args.output, [path.name for path in images], result)
-    print(f"wrote {args.output}: {len(images)} lights from a sphere at ({circle.cx:.1f}, {circle.cy:.1f}), radius "
-          f"{circle.r:.1f} px; uncertainty {float(result.uncertainty_deg.median()):.2f} deg (median), "
+    found = "" if args.circle or args.mask else "found "
+    print(f"wrote {args.output}: {len(images)} lights from a sphere {found}at ({circle.cx:.1f}, {circle.cy:.1f}), "
+          f"radius {circle.r:.1f} px; uncertainty {float(result.uncertainty_deg.median()):.2f} deg (median), "
           f"{float(result.uncertainty_deg.max()):.2f} deg (largest)")
     return 0
 

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ..errors import TorchspecError
+from .icc import ColourProfile, read_icc
 
 __all__ = ["IMAGE_SUFFIXES", "RAW_SUFFIXES", "ImageError", "Photo", "Transfer", "read_photo", "exposure_value"]
 
@@ -119,12 +120,26 @@ class Photo:
         encoding: ``"8-bit"``, ``"16-bit"``, ``"float"`` or ``"raw"`` (linear 16-bit from rawpy).
         exif: ``exposure_time`` (s), ``f_number`` and ``iso`` where the file records them.
         notes: what was assumed or converted, naming the file.
+        profile: the embedded ICC profile (:mod:`torchspec.io.icc`) when it is a matrix/TRC or
+            grey one other than sRGB: it, not a :class:`Transfer`, decodes the pixels to linear
+            sRGB primaries (:meth:`decode`). ``None`` without a profile, with an sRGB one, or when
+            the image was converted to sRGB on reading (a CMYK or lookup-table profile; noted).
     """
 
     pixels: np.ndarray
     encoding: str
     exif: dict[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    profile: ColourProfile | None = None
+
+    def decode(self, pixels: torch.Tensor, transfer: Transfer | None) -> tuple[torch.Tensor, str]:
+        """``pixels`` (this photo's ``(H, W, C)`` values, any dtype) to linear: with ``transfer``
+        when given, else with the embedded profile, else with :attr:`default_transfer`. Returns
+        the linear values and what decoded them (``"icc:DESCRIPTION"`` or the transfer's name)."""
+        if transfer is None and self.profile is not None:
+            return self.profile.decode(pixels), f"icc:{self.profile.description}"
+        transfer = transfer or self.default_transfer
+        return transfer.decode(pixels), str(transfer)
 
     @property
     def clipped(self) -> bool:
@@ -170,7 +185,45 @@ def _channels(array: np.ndarray, path: Path, notes: list[str]) -> np.ndarray:
     return array
 
 
-def _with_pillow(path: Path, notes: list[str]) -> tuple[np.ndarray, dict[str, float]]:
+def _to_srgb(image, icc: bytes | None, path: Path, notes: list[str]):
+    """A CMYK image, or one whose profile is not a matrix/TRC one, converted to 8-bit sRGB by
+    littleCMS (Pillow's ImageCms) with its embedded profile; a CMYK image without one is an error."""
+    import io
+
+    from PIL import ImageCms
+
+    if not icc:
+        raise ImageError(
+            f"{path} is a CMYK image without a colour profile; photographs for a fit must be RGB or greyscale. "
+            "Convert it to RGB with its colour profile (e.g. `magick in.jpg -colorspace sRGB out.jpg`)."
+        )
+    try:
+        source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+        name = (ImageCms.getProfileDescription(source) or "unnamed").strip()
+        converted = ImageCms.profileToProfile(image, source, ImageCms.createProfile("sRGB"), outputMode="RGB")
+    except (ImageCms.PyCMSError, OSError, ValueError) as error:
+        raise ImageError(f"{path}: its {image.mode} colour profile cannot be applied: {error}.") from error
+    notes.append(f"{path}: {image.mode} image converted to 8-bit sRGB with its ICC profile {name!r} (littleCMS).")
+    return converted
+
+
+def _profile(icc: bytes | None, path: Path, notes: list[str]) -> ColourProfile | None:
+    """The embedded profile that decodes the pixels, or ``None`` (none, or sRGB)."""
+    if not icc:
+        return None
+    profile = read_icc(icc)
+    if profile is None:
+        raise ImageError(
+            f"{path} embeds an ICC profile that is not a matrix/TRC one; convert it to sRGB or a matrix profile "
+            "(e.g. Adobe RGB) first."
+        )
+    if profile.is_srgb:
+        return None
+    notes.append(f"{path}: decoded to linear sRGB primaries with its embedded ICC profile {profile.description!r}.")
+    return profile
+
+
+def _with_pillow(path: Path, notes: list[str]) -> tuple[np.ndarray, dict[str, float], bytes | None]:
     from PIL import Image
 
     try:
@@ -178,11 +231,9 @@ def _with_pillow(path: Path, notes: list[str]) -> tuple[np.ndarray, dict[str, fl
             image.load()
             mode = image.mode
             exif = image.getexif().get_ifd(_EXIF_IFD)
-            if mode == "CMYK":
-                raise ImageError(
-                    f"{path} is a CMYK image; photographs for a fit must be RGB or greyscale. Convert it to RGB "
-                    "with its colour profile (e.g. `magick in.jpg -colorspace sRGB out.jpg`)."
-                )
+            icc = image.info.get("icc_profile")
+            if mode == "CMYK" or (icc and mode in ("RGB", "L") and read_icc(icc) is None):
+                image, mode, icc = _to_srgb(image, icc, path, notes), "RGB", None
             if mode in ("P", "PA", "1", "YCbCr", "LAB", "HSV"):
                 notes.append(f"{path}: {mode} image converted to RGB.")
                 image = image.convert("RGBA" if mode == "PA" else "RGB")
@@ -194,7 +245,7 @@ def _with_pillow(path: Path, notes: list[str]) -> tuple[np.ndarray, dict[str, fl
     except Exception as error:  # Pillow's errors for a truncated or foreign file are of many kinds
         raise ImageError(f"{path} cannot be read as an image: {error}. Re-export or re-copy the file.") from error
     values = {name: float(exif[tag]) for name, tag in _EXIF_TAGS.items() if tag in exif and _positive(exif[tag])}
-    return array, values
+    return array, values, icc
 
 
 def _positive(value) -> bool:
@@ -220,7 +271,18 @@ def _with_pypng(path: Path) -> np.ndarray:
     return array
 
 
-def _with_tifffile(path: Path) -> tuple[np.ndarray, dict[str, float]]:
+def _png_profile(path: Path) -> bytes | None:
+    """The PNG's iCCP profile (pypng does not read it; Pillow reads the chunks only)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            return image.info.get("icc_profile")
+    except Exception:  # the pixels are read by pypng, which names the file's fault
+        return None
+
+
+def _with_tifffile(path: Path) -> tuple[np.ndarray, dict[str, float], bytes | None]:
     import tifffile
 
     try:
@@ -231,6 +293,8 @@ def _with_tifffile(path: Path) -> tuple[np.ndarray, dict[str, float]]:
             axes = page.axes
             tags = page.tags.get("ExifTag")
             exif = dict(tags.value) if tags is not None else {}
+            icc = page.tags.get(34675)  # InterColorProfile
+            icc = bytes(icc.value) if icc is not None else None
     except Exception as error:  # tifffile's TiffFileError, and the codecs' errors of a truncated file
         raise ImageError(f"{path} cannot be read as a TIFF: {error}. Re-export or re-copy the file.") from error
     if photometric == tifffile.PHOTOMETRIC.SEPARATED:
@@ -245,7 +309,7 @@ def _with_tifffile(path: Path) -> tuple[np.ndarray, dict[str, float]]:
             value = value[0] / value[1]
         if value is not None and _positive(value):
             values[name] = float(value)
-    return array, values
+    return array, values, icc
 
 
 def _with_rawpy(path: Path) -> np.ndarray:
@@ -287,15 +351,22 @@ def read_photo(path: str | Path) -> Photo:
         array, encoding = _with_rawpy(path).astype(np.float32) / 65535.0, "raw"
         return Photo(pixels=_channels(array, path, notes), encoding=encoding, notes=tuple(notes))
     if suffix == ".png":
-        array = _with_pypng(path)
+        array, icc = _with_pypng(path), _png_profile(path)
     elif suffix in (".tif", ".tiff"):
-        array, exif = _with_tifffile(path)
+        array, exif, icc = _with_tifffile(path)
     elif suffix in IMAGE_SUFFIXES:
-        array, exif = _with_pillow(path, notes)
+        array, exif, icc = _with_pillow(path, notes)
     else:
         raise ImageError(
             f"{path} must be an image of a known kind ({', '.join(IMAGE_SUFFIXES)}, or camera RAW); got "
             f"{suffix or 'no suffix'}."
         )
     pixels, encoding = _integer(array, path)
-    return Photo(pixels=_channels(pixels, path, notes), encoding=encoding, exif=exif, notes=tuple(notes))
+    pixels = _channels(pixels, path, notes)
+    profile = _profile(icc, path, notes) if encoding != "float" else None
+    if profile is not None and len(profile.curves) != pixels.shape[2]:
+        raise ImageError(
+            f"{path} embeds a {len(profile.curves)}-channel ICC profile for a {pixels.shape[2]}-channel image; "
+            "re-export it with a matching profile."
+        )
+    return Photo(pixels=pixels, encoding=encoding, exif=exif, notes=tuple(notes), profile=profile)

@@ -25,7 +25,17 @@ from pathlib import Path, PureWindowsPath
 
 from ..errors import TorchspecError
 
-__all__ = ["HORIZON", "LIFT", "NORM_NOTE", "LightEntry", "LightFile", "LightFileError", "read_light_file"]
+__all__ = [
+    "HORIZON",
+    "LIFT",
+    "NORM_NOTE",
+    "LightEntry",
+    "LightFile",
+    "LightFileError",
+    "direction_notes",
+    "light_entry",
+    "read_light_file",
+]
 
 NORM_NOTE = 0.05
 """A direction whose norm differs from 1 by more than this is normalised with a note (the
@@ -54,6 +64,8 @@ class LightEntry:
         norm: the norm of the vector as written.
         lifted: the vector was at the horizon (``-HORIZON < z / norm < LIFT``) and was moved to
             ``z = LIFT``, its azimuth kept.
+        where: where in the file it was read when that is not a line (``images[3]`` of a
+            Relight JSON file); ``None`` for a line.
     """
 
     name: str | None
@@ -61,6 +73,12 @@ class LightEntry:
     line: int
     norm: float
     lifted: bool = False
+    where: str | None = None
+
+    @property
+    def place(self) -> str:
+        """``line N``, or :attr:`where`, for messages."""
+        return self.where or f"line {self.line}"
 
     @property
     def basename(self) -> str | None:
@@ -78,12 +96,23 @@ class LightFile:
         declared: the count on the first line (``None`` when the file has none).
         notes: what was assumed to read it (a count that disagrees, vectors normalised by more
             than :data:`NORM_NOTE`), one sentence each, naming the file and line.
+        folder: the folder of the images (a Relight project names its own); ``None``: the file's.
+        positions: ``(K, 3)`` light positions where the file gives them (a Relight dome,
+            :mod:`torchspec.io.relight`), in units of the image's width, origin at the image's
+            centre, x right, y up, z towards the camera; ``None`` otherwise.
     """
 
     path: Path
     entries: tuple[LightEntry, ...]
     declared: int | None
     notes: tuple[str, ...]
+    folder: Path | None = None
+    positions: tuple[tuple[float, float, float], ...] | None = None
+
+    @property
+    def image_folder(self) -> Path:
+        """Where the images are: :attr:`folder`, or the file's folder."""
+        return self.folder if self.folder is not None else self.path.parent
 
     @property
     def named(self) -> bool:
@@ -123,17 +152,27 @@ def _entry(path: Path, number: int, text: str) -> LightEntry:
             f"{path}: line {number} must be 'image-name x y z' (or 'x y z'); got {text.strip()!r}. "
             "Fix or delete the line."
         )
-    x, y, z = values
     name = None
     if len(tokens) > 3:
         name = text.strip().rsplit(None, 3)[0].strip("\"'")
+    return light_entry(path, values, name, line=number)
+
+
+def light_entry(
+    path: Path, vector, name: str | None, *, line: int = 0, where: str | None = None, remedy: str = "delete the line"
+) -> LightEntry:
+    """A light towards ``vector`` (any length), checked and normalised (a light at the horizon
+    lifted, see :data:`HORIZON`); :class:`LightFileError` naming ``path`` and the line (or
+    ``where``) for a zero, non-finite or below-the-horizon vector."""
+    x, y, z = (float(v) for v in vector)
+    place = where or f"line {line}"
     norm = math.sqrt(x * x + y * y + z * z)
     if not math.isfinite(norm) or norm == 0:
-        raise LightFileError(f"{path}: line {number} must give a non-zero finite direction; got ({x:g}, {y:g}, {z:g}).")
+        raise LightFileError(f"{path}: {place} must give a non-zero finite direction; got ({x:g}, {y:g}, {z:g}).")
     if not z / norm > -HORIZON:
         raise LightFileError(
-            f"{path}: line {number} must give a direction above the surface (z > 0); got "
-            f"({x:g}, {y:g}, {z:g}). A light below the horizon lights nothing: delete the line."
+            f"{path}: {place} must give a direction above the surface (z > 0); got "
+            f"({x:g}, {y:g}, {z:g}). A light below the horizon lights nothing: {remedy}."
         )
     lifted = not z / norm >= LIFT
     if lifted:  # at the horizon, within what a light file can measure: just above it
@@ -141,7 +180,23 @@ def _entry(path: Path, number: int, text: str) -> LightEntry:
         direction = (x * planar, y * planar, LIFT)
     else:
         direction = (x / norm, y / norm, z / norm)
-    return LightEntry(name=name, direction=direction, line=number, norm=norm, lifted=lifted)
+    return LightEntry(name=name, direction=direction, line=line, norm=norm, lifted=lifted, where=where)
+
+
+def direction_notes(path: Path, entries) -> list[str]:
+    """The notes of entries normalised by more than :data:`NORM_NOTE`, or lifted to the horizon."""
+    notes = []
+    for entry in entries:
+        if abs(entry.norm - 1) > NORM_NOTE:
+            notes.append(
+                f"{path}: {entry.place}: the direction's norm is {entry.norm:.4g}; normalised to a unit vector."
+            )
+        if entry.lifted:
+            notes.append(
+                f"{path}: {entry.place}: the light is at the horizon (z within {HORIZON:g} of 0 after "
+                f"normalising); lifted to z = {LIFT:g}, its azimuth kept."
+            )
+    return notes
 
 
 def read_light_file(path: str | Path) -> LightFile:
@@ -189,16 +244,7 @@ def read_light_file(path: str | Path) -> LightFile:
             f"{path}: line {head} says {declared} lights but {len(entries)} lines follow; the {len(entries)} lines "
             "are used."
         )
-    for entry in entries:
-        if abs(entry.norm - 1) > NORM_NOTE:
-            notes.append(
-                f"{path}: line {entry.line}: the direction's norm is {entry.norm:.4g}; normalised to a unit vector."
-            )
-        if entry.lifted:
-            notes.append(
-                f"{path}: line {entry.line}: the light is at the horizon (z within {HORIZON:g} of 0 after "
-                f"normalising); lifted to z = {LIFT:g}, its azimuth kept."
-            )
+    notes += direction_notes(path, entries)
     kinds = {entry.name is None for entry in entries}
     if len(kinds) > 1:
         first = next(entry for entry in entries if entry.name is None)

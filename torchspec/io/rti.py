@@ -8,12 +8,15 @@ suffix); when no name matches and the folder holds as many photographs as lights
 file of directions only is matched by order (names in natural order: ``2`` before ``10``; files
 whose name holds ``mask`` or ``normal`` are not photographs). Otherwise each missing image is named.
 
-Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with one recorded
-transfer, and written as a float32 EXR: point lights (the light file's directions), irradiance 1,
-exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to the median frame's where it differs
-between frames. A clipped sample (an integer image's largest code) reads as exactly 1, the clipping
-level the fit detects (``FitConfig.saturation``); the manifest's ``source`` records the light file,
-the images, the transfer, that level and what was assumed.
+Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with one recorded transfer
+(or, without ``--transfer``, with its embedded ICC profile when that is not sRGB: to linear sRGB
+primaries, colours outside sRGB's gamut clipped at 0 with a note; the manifest's
+``source.icc_profiles`` names each frame's profile), and written as a float32 EXR: point lights (the
+light file's directions), irradiance 1, exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to
+the median frame's where it differs between frames. A clipped sample (an integer image's largest
+code) reads as exactly 1, the clipping level the fit detects (``FitConfig.saturation``); the
+manifest's ``source`` records the light file, the images, the transfer, that level and what was
+assumed.
 
 The capture is written to a temporary folder beside OUTPUT and renamed to it once complete: a
 failure leaves nothing behind, and an OUTPUT that holds files is replaced only with ``overwrite``.
@@ -38,8 +41,9 @@ from ..errors import TorchspecError
 from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
 from .lp import LightFile, read_light_file
+from .relight import RELIGHT_SUFFIXES, read_relight
 
-__all__ = ["RTIImportError", "Imported", "find_light_file", "match_images", "import_rti", "photographs"]
+__all__ = ["RTIImportError", "Imported", "find_light_file", "import_rti", "match_images", "photographs", "read_lights"]
 
 CLIP = 1.0
 """The linear value of a clipped sample, whatever the transfer."""
@@ -64,6 +68,10 @@ class Imported:
         transfer: the tone curve the photographs were decoded with.
         saturated: clipped pixels (any channel at the clipping level), per frame.
         notes: what was assumed (also warned about, and kept in the manifest's ``source``).
+        positions: ``(K, 3)`` float64 light positions in image widths (origin at the image's
+            centre, x right, y up, z towards the camera) when the light file gives them (a Relight
+            spherical or lights3d dome), in frame order; ``None`` otherwise. The manifest does not
+            hold them yet: they are also kept in its ``source.positions``.
     """
 
     capture: Capture
@@ -73,30 +81,39 @@ class Imported:
     transfer: Transfer
     saturated: tuple[int, ...]
     notes: tuple[str, ...]
+    positions: torch.Tensor | None = None
 
 
 def find_light_file(source: str | Path) -> Path:
-    """The light file of SOURCE: the file itself, or the folder's one ``.lp`` (else its
-    ``lights.txt``). :class:`RTIImportError` when there is none, or several."""
+    """The light file of SOURCE: the file itself, or the folder's one ``.lp`` (else its one
+    Relight ``.relight`` project, else its one ``.dome``, else its ``lights.txt``).
+    :class:`RTIImportError` when there is none, or several of the first kind found."""
     source = Path(source)
     if source.is_file():
         return source
     if not source.is_dir():
         raise RTIImportError(f"{source} must be an .lp light file or a folder holding one; got no such file or folder.")
-    found = sorted(path for path in source.iterdir() if path.suffix.lower() == ".lp" and path.is_file())
-    if len(found) > 1:
-        raise RTIImportError(
-            f"{source} must hold one .lp light file; got {len(found)} ({', '.join(p.name for p in found)}). "
-            "Pass the one to use as SOURCE."
-        )
-    if found:
-        return found[0]
+    for suffix in (".lp", *RELIGHT_SUFFIXES):
+        found = sorted(path for path in source.iterdir() if path.suffix.lower() == suffix and path.is_file())
+        if len(found) > 1:
+            raise RTIImportError(
+                f"{source} must hold one {suffix} light file; got {len(found)} ({', '.join(p.name for p in found)}). "
+                "Pass the one to use as SOURCE."
+            )
+        if found:
+            return found[0]
     if (source / "lights.txt").is_file():
         return source / "lights.txt"
     raise RTIImportError(
-        f"{source} must hold an .lp light file (or a lights.txt of directions); got none. Pass the light file "
-        "as SOURCE."
+        f"{source} must hold an .lp light file (or a Relight .relight or .dome file, or a lights.txt of "
+        "directions); got none. Pass the light file as SOURCE."
     )
+
+
+def read_lights(path: Path) -> LightFile:
+    """The light file ``path``: a Relight ``.relight`` or ``.dome`` (:mod:`torchspec.io.relight`),
+    else an ``.lp`` or a file of directions (:mod:`torchspec.io.lp`)."""
+    return read_relight(path) if path.suffix.lower() in RELIGHT_SUFFIXES else read_light_file(path)
 
 
 def _natural(name: str) -> list:
@@ -135,7 +152,7 @@ def match_images(lights: LightFile) -> tuple[list[Path], str, list[str]]:
     Raises:
         RTIImportError: an image cannot be found; the message names each missing one and its line.
     """
-    folder = lights.path.parent
+    folder = lights.image_folder
     found_photos = photographs(folder)
     if lights.named:
         listing = {path.name.lower(): path for path in folder.iterdir() if path.is_file()}
@@ -148,11 +165,11 @@ def match_images(lights: LightFile) -> tuple[list[Path], str, list[str]]:
         if not any(found) and len(found_photos) == len(lights.entries):
             note = (
                 f"{lights.path}: no image is named as in the light file; the {len(found_photos)} photographs of "
-                f"{folder} are matched by order ({found_photos[0].name} to line {lights.entries[0].line}, ...)."
+                f"{folder} are matched by order ({found_photos[0].name} to {lights.entries[0].place}, ...)."
             )
             return found_photos, "order", [note]
         missing = [entry for entry, path in zip(lights.entries, found, strict=True) if path is None]
-        shown = "; ".join(f"{entry.name!r} (line {entry.line})" for entry in missing)
+        shown = "; ".join(f"{entry.name!r} ({entry.place})" for entry in missing)
         raise RTIImportError(
             f"{lights.path}: {len(missing)} of {len(lights.entries)} images are missing from {folder}: {shown}. "
             "Restore them, or fix their names in the light file."
@@ -207,8 +224,10 @@ def _frame_name(k: int, image: Path) -> str:
 
 def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
     """Decode every photograph into a ``(K, C, H, W)`` float32 array: ``(stack, transfer,
-    encoding, exifs, notes, saturated)``."""
+    encoding, exifs, notes, saturated, profiles)``; ``profiles[k]`` names the ICC profile that
+    decoded frame ``k`` (``transfer`` None: an embedded non-sRGB profile decodes its frame)."""
     stack, size, first, exifs, notes, saturated = None, None, None, [], [], []
+    given, profiles = transfer, [None] * len(images)
     for k, image in enumerate(tqdm(images, unit="image", desc="import", disable=not progress)):
         photo = read_photo(image)
         notes += photo.notes
@@ -241,10 +260,22 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
                     f"{image} must be greyscale like {images[0].name}; got a colour photograph. Convert every "
                     "photograph to the same kind (or the first one to colour)."
                 )
-        saturated.append(int((pixels >= CLIP).any(-1).sum()) if first.clipped else 0)
-        stack[k] = transfer.decode(pixels.to(dtype)).permute(2, 0, 1).float().numpy()
+        clipped = (pixels >= CLIP).any(-1, keepdim=True) if first.clipped else torch.zeros(size[:2] + (1,), dtype=bool)
+        saturated.append(int(clipped.sum()))
+        linear, decoder = photo.decode(pixels.to(dtype), given)
+        if decoder.startswith("icc:"):  # the matrix moves a clipped sample off 1: keep it at the level
+            linear = torch.where(clipped, linear.clamp(min=CLIP), linear)
+            profiles[k] = decoder[4:]
+            outside = int((linear < 0).any(-1).sum())
+            if outside:  # radiance is non-negative: a colour outside sRGB's gamut is clipped to it
+                notes.append(
+                    f"{image}: {outside} pixel(s) outside the sRGB gamut after its ICC profile; their negative "
+                    "components are set to 0."
+                )
+                linear = linear.clamp(min=0)
+        stack[k] = linear.permute(2, 0, 1).float().numpy()
         exifs.append(photo.exif)
-    return stack, transfer, first.encoding, exifs, notes, saturated
+    return stack, transfer, first.encoding, exifs, notes, saturated, profiles
 
 
 def import_rti(
@@ -275,7 +306,7 @@ def import_rti(
             nothing is written then.
     """
     output = Path(output)
-    lights = read_light_file(find_light_file(source))
+    lights = read_lights(find_light_file(source))
     images, matched, notes = match_images(lights)
     notes = list(lights.notes) + notes
     _check_output(output, overwrite)
@@ -290,7 +321,7 @@ def import_rti(
     output.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{output.name}.import-", dir=output.parent))
     try:
-        stack, transfer, encoding, exifs, image_notes, saturated = _read_stack(
+        stack, transfer, encoding, exifs, image_notes, saturated, profiles = _read_stack(
             images, transfer, torch.float64, scratch, progress
         )
         notes += image_notes
@@ -303,10 +334,12 @@ def import_rti(
             "importer": f"torchspec {__version__} import",
             "light_file": str(lights.path),
             "matched": matched,
-            "images": [str(image.relative_to(lights.path.parent)) for image in images],
-            "lines": [entry.line for entry in lights.entries],
+            "images": [os.path.relpath(image, lights.path.parent) for image in images],
+            "lines": [entry.where or entry.line for entry in lights.entries],
             "encoding": encoding,
             "transfer": str(transfer),
+            "icc_profiles": profiles if any(profiles) else None,
+            "positions": None if lights.positions is None else [list(p) for p in lights.positions],
             "saturation": CLIP if encoding != "float" else None,
             "saturated_pixels": saturated,
             "exif": exifs if any(exifs) else None,
@@ -333,7 +366,8 @@ def import_rti(
     for note in notes:
         warnings.warn(note, stacklevel=2)
     written = read_capture(output)
-    return Imported(written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes))
+    positions = None if lights.positions is None else torch.tensor(lights.positions, dtype=torch.float64)
+    return Imported(written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes), positions)
 
 
 def _replace(new: Path, output: Path, scratch: Path) -> None:
