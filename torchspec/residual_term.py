@@ -50,9 +50,9 @@ MAP_NAME = "residual_term"
 """The term's map in an SVBRDF folder (``residual_term.exr``) and its key in ``svbrdf.json``."""
 BASE_MAP = "residual_term_base"
 """The map of :attr:`ResidualTerm.base` (``residual_term_base.exr``: the codes of :data:`BASES`)."""
-BASES = ("model", "diffuse", "none")
-"""What the term is added to, per pixel: the whole physical model, its diffuse part alone (the lobe
-left out of relighting), or nothing (the term alone: the RTI fitters' HSH of the photographs)."""
+BASES = ("model", "none")
+"""What the term is added to, per pixel: the physical model, or nothing (the term alone: the RTI
+fitters' HSH of the photographs, where the physical model predicts left-out frames worse)."""
 
 _A = 0.055
 _KNEE = 0.0031308
@@ -113,20 +113,22 @@ class ResidualTerm:
         chosen: ``(*,)`` bool, the pixels that carry a term.
         base: ``(*,)`` int8 codes of :data:`BASES` or ``None`` (all ``model``): what the term is
             added to in relighting (:meth:`relit`), the one whose left-out prediction (with the term
-            where it is chosen) is best. The physical maps are unchanged: a pixel relit from its
-            diffuse part or from nothing keeps its lobe and normal in the maps.
-        left_out: ``(*,)`` the left-out prediction's squared error (encoded units) of what is kept
-            (not saved with the maps; ``None`` when unknown).
+            where it is chosen) is better. The physical maps are unchanged: a pixel relit from
+            the term alone keeps its maps.
+        left_out: ``(*, S, K, C)`` the left-out prediction's errors (encoded units) of what is
+            kept, per fold scheme, frame and channel, and ``noise`` (0-dim) the encoded noise level
+            they were judged in: what :func:`fit_term` knows of its choice (not saved with the maps;
+            ``None`` otherwise).
     """
 
     coefficients: Tensor
     chosen: Tensor
     base: Tensor | None = None
     left_out: Tensor | None = None
+    noise: Tensor | None = None
 
     def relit(self, svbrdf: SVBRDF) -> SVBRDF:
-        """The maps to render before :meth:`apply`: ``svbrdf`` without its lobes where the
-        :attr:`base` is ``diffuse``, and black where it is ``none``."""
+        """The maps to render before :meth:`apply`: ``svbrdf``, black where the :attr:`base` is ``none``."""
         if self.base is None or not bool(self.base.any()):
             return svbrdf
         return without(svbrdf, self.base.to(svbrdf.diffuse.device))
@@ -208,14 +210,12 @@ class ResidualTerm:
 
 
 def without(svbrdf: SVBRDF, base: Tensor) -> SVBRDF:
-    """``svbrdf (*,)`` without its lobes where ``base (*,)`` is ``diffuse`` (1) and black where it
-    is ``none`` (2) (:data:`BASES`)."""
-    lobe = (base == 0)[..., None]
-    light = (base < 2)[..., None]
+    """``svbrdf (*,)`` black where ``base (*,)`` is ``none`` (:data:`BASES`)."""
+    light = (base == 0)[..., None]
     second = {}
     if svbrdf.specular2 is not None:
-        second["specular2"] = svbrdf.specular2 * lobe
-    return replace(svbrdf, diffuse=svbrdf.diffuse * light, specular=svbrdf.specular * lobe, **second)
+        second["specular2"] = svbrdf.specular2 * light
+    return replace(svbrdf, diffuse=svbrdf.diffuse * light, specular=svbrdf.specular * light, **second)
 
 
 def fit_term(
@@ -228,6 +228,7 @@ def fit_term(
     order: int = 3,
     z: float = 3.0,
     ridge: float = 1e-6,
+    held_out: Tensor | None = None,
 ) -> ResidualTerm:
     """Fit the term on top of a physical prediction and keep it where it predicts left-out frames.
 
@@ -242,6 +243,11 @@ def fit_term(
         z: the margin of :func:`~torchspec.pipeline.prediction.predicts_better`.
         ridge: Tikhonov damping relative to each pixel's mean diagonal (a pixel whose valid frames
             leave a coefficient undetermined gets it near 0 rather than a wild value).
+        held_out: ``(n, S, K, C)`` the physical model's prediction of each sample from a fit
+            without the sample's fold (:func:`torchspec.pipeline.prediction.held_out`), used for
+            the left-out frames' errors; default ``model`` (a model that did not see the frames,
+            or none). A model fitted on every frame predicts its own frames too well: judged on
+            them, the term would look worse than it is, and the model better.
 
     Returns:
         a :class:`ResidualTerm` of ``n`` pixels, fitted on all valid samples where chosen.
@@ -261,26 +267,33 @@ def fit_term(
     right = torch.einsum("kj,nkc->njc", basis, target)
     coefficients = _solve(normal, right, ridge)
     count = int(folds.max()) + 1 if folds.numel() else 0
-    schemes = []
-    for scheme in folds:  # a handful of folds: each a batched solve over every pixel
+    schemes, plain = [], []
+    for s, scheme in enumerate(folds):  # a handful of folds: each a batched solve over every pixel
+        # what the model fitted without each fold leaves of it (default: the model's own residual)
+        left_target = (
+            target
+            if held_out is None
+            else (encode(observed / scale) - encode(held_out[:, s] / scale)) * weight[..., None]
+        )
         errors = torch.zeros_like(target)
         for fold in range(count):
             out = scheme == fold
             held = torch.einsum("nk,kij->nij", weight[:, out], outer[out])
             partial = _solve(normal - held, right - torch.einsum("kj,nkc->njc", basis[out], target[:, out]), ridge)
             predicted = torch.einsum("kj,njc->nkc", basis[out], partial) * weight[:, out, None]
-            errors[:, out] = target[:, out] - predicted
+            errors[:, out] = left_target[:, out] - predicted
         schemes.append(errors)
+        plain.append(left_target)
     # In the encoded domain, where the term is fitted and the photographs are judged, the samples'
     # noise is taken as one level: the robust spread of what the term leaves on the fitted frames.
     left = (target - torch.einsum("kj,njc->nkc", basis, coefficients) * weight[..., None])[valid]
     sigma = (1.4826 * left.abs().median()).clamp(min=1e-4) if left.numel() else target.new_tensor(1.0)
     candidate = torch.stack(schemes, 1) / sigma  # (n, S, K, C) in noise units
-    current = (target / sigma)[:, None].expand_as(candidate)
+    current = torch.stack(plain, 1) / sigma
     chosen = predicts_better(candidate, current, z)
     coefficients = torch.where(chosen[:, None, None], coefficients, torch.zeros_like(coefficients))
     kept = torch.where(chosen[:, None, None, None], candidate, current) * sigma  # encoded units
-    return ResidualTerm(coefficients=coefficients, chosen=chosen, left_out=kept.square().sum((2, 3)).mean(1))
+    return ResidualTerm(coefficients=coefficients, chosen=chosen, left_out=kept, noise=sigma)
 
 
 def _solve(normal: Tensor, right: Tensor, ridge: float) -> Tensor:

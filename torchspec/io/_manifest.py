@@ -29,9 +29,16 @@ _REQUIRED = ("width", "height", "channels", "camera", "light", "frames")
 # Optional top-level keys read without a warning (kept in Capture.extra): "generator" records
 # how a synthetic capture was made, by the development data's renderer and by torchspec simulate;
 # "source" where an imported one came from (torchspec import: light file, images, transfer, clipping).
-_OPTIONAL = ("generator", "source")
+_OPTIONAL = ("generator", "source", "unknown")
+# "unknown": what the capture does not know of its lights, a list of "irradiance" (the frames'
+# irradiance is a placeholder: torchspec fit calibrates a gain per frame and channel) and
+# "position" (the lights are near and their positions are to be found). Older readers ignore it.
+UNKNOWN_VALUES = ("irradiance", "position")
 _KNOWN = ("format", "version") + _REQUIRED
 _FRAME_KEYS = ("file", "direction", "irradiance", "exposure")
+_FRAME_OPTIONAL = ("position",)
+# "position" (optional, every frame or none): a near light's position in object units (below); a
+# reader that ignores it takes the direction, the light seen from the image's centre.
 _LIGHT_KEYS = {"point": (), "gaussian": ("domain", "sigma"), "tabulated": ("file", "extent"), "unknown": ("symmetric",)}
 _DOMAINS = ("projected", "angular")
 _UNIT_TOLERANCE = 1e-3
@@ -57,12 +64,15 @@ class Frame:
         irradiance: ``(C,)`` one value per capture channel. A single number is accepted when
             constructing and expanded to every channel by :class:`Capture`.
         exposure: scale of the recorded value.
+        position: a near light's position ``(x, y, z)`` in object units (the image's width; origin
+            at its centre, x right, y up, z towards the camera), or ``None`` for a distant light.
     """
 
     file: str
     direction: tuple[float, float, float]
     irradiance: tuple[float, ...]
     exposure: float
+    position: tuple[float, float, float] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "direction", _floats(self.direction))
@@ -131,6 +141,10 @@ def parse_manifest(data: Any, source: Path, notes: list[str], *, extra_known: bo
     if [key for key in unknown if key not in _OPTIONAL] and not extra_known:
         strange = [key for key in unknown if key not in _OPTIONAL]
         notes.append(f"{source}: unknown top-level key(s) {strange} are kept in Capture.extra and not used.")
+    if "unknown" in data:
+        told = data["unknown"]
+        if not isinstance(told, list) or not all(isinstance(v, str) and v in UNKNOWN_VALUES for v in told):
+            raise where.error("unknown", f"be a list of {list(UNKNOWN_VALUES)}", told)
     width = _positive_int(where, "width", data["width"])
     height = _positive_int(where, "height", data["height"])
     channels = data["channels"]
@@ -213,7 +227,7 @@ def _frames(where: Where, frames: Any, count: int, notes: list[str]) -> tuple[Fr
                 key, "be an object", raw, 'E.g. {"file": ..., "direction": ..., "irradiance": 1, "exposure": 1}.'
             )
         require_keys(where, key, raw, _FRAME_KEYS, _FRAME_KEYS)
-        _unknown(where, key, raw, _FRAME_KEYS, notes)
+        _unknown(where, key, raw, _FRAME_KEYS + _FRAME_OPTIONAL, notes)
         file = _relative_file(where, f"{key}.file", raw["file"])
         normal = os.path.normpath(file)
         if normal in seen:
@@ -233,7 +247,14 @@ def _frames(where: Where, frames: Any, count: int, notes: list[str]) -> tuple[Fr
         else:
             irradiance = (_positive(where, f"{key}.irradiance", irradiance),) * count
         exposure = _positive(where, f"{key}.exposure", raw["exposure"])
-        out.append(Frame(file=file, direction=direction, irradiance=irradiance, exposure=exposure))
+        position = _position(where, f"{key}.position", raw["position"]) if "position" in raw else None
+        out.append(Frame(file=file, direction=direction, irradiance=irradiance, exposure=exposure, position=position))
+    placed = [frame.position is not None for frame in out]
+    if any(placed) and not all(placed):
+        first = placed.index(not placed[0])
+        raise where.error(
+            f"frames[{first}].position", "be given for every frame or for none", raw_of(frames, first, "position")
+        )
     _distinct_directions(where, out)
     return tuple(out)
 
@@ -279,6 +300,19 @@ def _direction(where: Where, key: str, value: Any, notes: list[str]) -> tuple[fl
             key, "point above the surface (z > 0)", value, "A direction at or below the horizon sees or lights nothing."
         )
     return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def _position(where: Where, key: str, value: Any) -> tuple[float, float, float]:
+    if not isinstance(value, list) or len(value) != 3 or not all(_is_number(v) for v in value):
+        raise where.error(key, "be a list of 3 finite numbers (x, y, z in image widths)", value)
+    if not value[2] > 0:
+        raise where.error(key, "lie above the object (z > 0)", value)
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def raw_of(frames: list, k: int, name: str) -> Any:
+    """Frame ``k``'s ``name`` as written (a marker when absent)."""
+    return frames[k].get(name, _Text("absent"))
 
 
 def _unknown(where: Where, key: str, obj: dict, known: Sequence[str], notes: list[str]) -> None:
@@ -359,9 +393,10 @@ def to_manifest(capture: Capture, source: Path) -> dict[str, Any]:
         if isinstance(irradiance, list) and irradiance and all(v == irradiance[0] for v in irradiance):
             irradiance = irradiance[0]
         direction = list(frame.direction) if isinstance(frame.direction, tuple) else frame.direction
-        frames.append(
-            {"file": frame.file, "direction": direction, "irradiance": irradiance, "exposure": frame.exposure}
-        )
+        entry = {"file": frame.file, "direction": direction, "irradiance": irradiance, "exposure": frame.exposure}
+        if getattr(frame, "position", None) is not None:
+            entry["position"] = list(frame.position)
+        frames.append(entry)
     view = list(capture.view) if isinstance(capture.view, tuple) else capture.view
     manifest = {
         "format": FORMAT,

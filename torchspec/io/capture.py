@@ -253,6 +253,17 @@ class Capture:
         values = [frame.irradiance for frame in self.frames]
         return torch.tensor(values, dtype=torch.float64).reshape(-1, len(self.channels))
 
+    def positions(self) -> torch.Tensor | None:
+        """``(K, 3)`` float64 near-light positions (``Frame.position``), or ``None`` for distant lights."""
+        if not self.frames or self.frames[0].position is None:
+            return None
+        return torch.tensor([frame.position for frame in self.frames], dtype=torch.float64).reshape(-1, 3)
+
+    @property
+    def unknown(self) -> tuple[str, ...]:
+        """What the manifest's ``unknown`` key says the capture does not know (``irradiance``, ``position``)."""
+        return tuple(self.extra.get("unknown", ()))
+
     def exposure(self) -> torch.Tensor:
         """``(K,)`` float64 exposure per frame."""
         return torch.tensor([frame.exposure for frame in self.frames], dtype=torch.float64)

@@ -173,6 +173,20 @@ class _Job:
         return f"tile {first // self.tile} (pixels {first}..{stop - 1}, rows {first // w}..{(stop - 1) // w})"
 
 
+def _distant(begun):
+    """``begun`` (a :class:`~torchspec.pipeline.plan.Setup`), if its lights are distant.
+
+    Raises:
+        TorchspecError: near lights (frames with a ``position``), which the cluster does not fit yet.
+    """
+    if begun.positions is not None:
+        raise TorchspecError(
+            f"{begun.capture.manifest}: its frames give near-light positions, which a fit on a cluster does not "
+            "handle yet; fit it in one process (without --scheduler / --workers)."
+        )
+    return begun
+
+
 def fit_on_cluster(
     capture: Capture | str | Path,
     client,
@@ -220,7 +234,7 @@ def fit_on_cluster(
         >>> write_fit("maps", result)  # doctest: +SKIP
     """
     started = time.perf_counter()
-    begun = setup(capture, config, frames)
+    begun = _distant(setup(capture, config, frames))
     config, picked, lights, view = begun.config, begun.picked, begun.lights, begun.view
     capture = replace(begun.capture, root=begun.capture.root.resolve())  # the workers' working folders differ
     k, c, h, w = len(picked), len(capture.channels), capture.height, capture.width

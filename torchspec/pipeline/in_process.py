@@ -17,6 +17,7 @@ from .result import Fit
 from .settings import FitConfig
 from .start import light_context
 from .tile import fit_tile
+from .tiling import tiling_of
 
 __all__ = ["fit"]
 
@@ -78,29 +79,30 @@ def fit(
     k, c, h, w = stack.shape
     pixels = h * w
     config, tile = plan(config, k, c, h, w, stack.element_size())
-    flat = stack.flatten(2)  # (K, C, H W), a view
+    tiling = tiling_of(h, w, tile, job.positions)
+    flat = tiling.pixels(stack.flatten(2))  # (K, C, H W) in the fit's order (a view for row-major tiles)
+    kinds = [tiling.pixels(m) for m in kinds]
     folder = Path(checkpoint) if checkpoint is not None else None
     done = {}
     if folder is not None:
         done = open_checkpoint(folder, job_record(capture, job.picked, config, tile, pixels), resume)
-    firsts = range(0, pixels, tile)
     parts = []
     with progress_bar(pixels, desc="fit", unit="px", enabled=progress) as bar:
         try:
-            for first in firsts:
-                stop = min(first + tile, pixels)
+            for first, stop in tiling.ranges:
                 if first in done:  # resumed: the tile as it was computed (its times are that run's)
                     out = done[first].to(view.device)
                 else:
                     at = slice(first, stop)
                     values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
-                    out = fit_tile(first, values, tile_masks, lights, view, capture.channels, config, ctx, folder)
+                    here, here_ctx = tiling.lights(lights, ctx, first, stop)
+                    out = fit_tile(first, values, tile_masks, here, view, capture.channels, config, here_ctx, folder)
                 parts.append(out)
                 bar.update(stop - first)
         except KeyboardInterrupt as interrupt:
             if folder is None:
                 raise
-            raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
+            raise FitInterrupted(len(parts), len(tiling.ranges), folder) from interrupt
     stats = run_stats(
         capture=capture,
         picked=job.picked,
@@ -113,4 +115,6 @@ def fit(
         masked=masks.counts(),
     )
     # clock: when the masks began
-    return assemble(parts, height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds)
+    return assemble(
+        tiling.restore(parts), height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds
+    )

@@ -100,6 +100,8 @@ class Setup:
         config: the settings; capture: the capture (its manifest read); picked: the frames fitted.
         lights: the picked frames' lights (``K``), on the settings' device and dtype.
         view: ``(3,)`` the view direction, alike.
+        positions: ``(K, 3)`` the picked frames' near-light positions (``Frame.position``; object
+            units, :mod:`torchspec.near_lights`), alike; ``None`` for distant lights.
     """
 
     config: FitConfig
@@ -107,6 +109,7 @@ class Setup:
     picked: list[int]
     lights: Lights
     view: Tensor
+    positions: Tensor | None = None
 
 
 def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str | list[int] | None) -> Setup:
@@ -139,4 +142,7 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
         everything.directions[index], everything.kernel, everything.irradiance[index], everything.exposure[index]
     ).to(device=device)
     view = torch.tensor(capture.view, dtype=dtype, device=device)
-    return Setup(config=config, capture=capture, picked=picked, lights=lights, view=view)
+    positions = capture.positions()
+    if positions is not None:
+        positions = positions[index].to(dtype=dtype, device=device)
+    return Setup(config=config, capture=capture, picked=picked, lights=lights, view=view, positions=positions)

@@ -14,14 +14,15 @@ from torch import Tensor
 
 from ..brdf import SVBRDF
 from ..lights import Lights
+from ..models import get_model
 from ..rendering import render
-from ..residual_term import ResidualTerm, fit_term, without
+from ..residual_term import ResidualTerm, fit_term
 from .checkpoint import save_tile
 from .checks import Checks, check_choice, quality_of
-from .prediction import light_folds
+from .prediction import held_out, held_out_refit, light_folds, predicts_better
 from .samples import TileSamples
 from .selection import select_models
-from .settings import FitConfig
+from .settings import MODEL_CODES, FitConfig
 from .smoothing import PlainFit, plain_alternative
 from .start import LightContext, starting_point
 
@@ -115,7 +116,7 @@ def fit_pixels(
     term = None
     if config.residual_term:
         t0 = time.perf_counter()
-        term = residual_term(choice.svbrdf, y, valid if kept is None else kept, data, config)
+        term = residual_term(choice, sensor, y, valid if kept is None else kept, data, config)
         times["residual_term"] = time.perf_counter() - t0
     rms = data.relative_rms(choice.cost)
     quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
@@ -154,38 +155,54 @@ def fit_pixels(
     )
 
 
-def residual_term(svbrdf: SVBRDF, y: Tensor, kept: Tensor, data: TileSamples, config: FitConfig) -> ResidualTerm:
-    """The residual term (:func:`torchspec.residual_term.fit_term`) of a tile's chosen maps
-    ``svbrdf`` on the samples ``kept (n, K)`` of ``y (n, K, C)``, judged on the folds of ``auto``'s
-    choice.
+def residual_term(
+    choice, sensor: Tensor, y: Tensor, kept: Tensor, data: TileSamples, config: FitConfig
+) -> ResidualTerm:
+    """The residual term (:func:`torchspec.residual_term.fit_term`) of a tile's chosen models
+    (``choice``, :func:`~torchspec.pipeline.selection.select_models`) on the samples ``kept (n, K)``
+    of ``y (n, K, C)``, judged on the folds of ``auto``'s choice.
 
-    The term is fitted on three bases (:data:`torchspec.residual_term.BASES`): the whole model, its
-    diffuse part alone, and nothing; each pixel keeps the one that predicts left-out frames best
-    (``ResidualTerm.base``): a lobe, or a whole physical model, whose left-out prediction a smooth
-    term beats is not used to relight that pixel (its maps are unchanged)."""
+    The term is fitted on two bases (:data:`torchspec.residual_term.BASES`): the chosen model,
+    judged by its prediction of each fold from a fit without it
+    (:func:`~torchspec.pipeline.prediction.held_out`), and nothing (the term alone); each pixel
+    keeps the base that predicts left-out frames better by ``FitConfig.term_z``, the model where
+    neither does (``ResidualTerm.base``; the maps are unchanged)."""
     kept = kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
-    every = torch.arange(y.shape[0], device=y.device)
+
     folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
-
-    kept_term = term_at(every, svbrdf, values, kept, folds, data, config)
-    base = torch.zeros(y.shape[0], dtype=torch.int8, device=y.device)
-    for code in (1, 2):  # the diffuse part alone; nothing (the term alone)
-        other = term_at(every, without(svbrdf, torch.full_like(base, code)), values, kept, folds, data, config)
-        better = other.left_out < kept_term.left_out
-        base = torch.where(better, torch.full_like(base, code), base)
-        kept_term = ResidualTerm(
-            coefficients=torch.where(better[:, None, None], other.coefficients, kept_term.coefficients),
-            chosen=torch.where(better, other.chosen, kept_term.chosen),
-            left_out=torch.where(better, other.left_out, kept_term.left_out),
-        )
-    return replace(kept_term, base=base, left_out=None)
+    model = render(choice.svbrdf, data.lights, data.view, quadrature=config.rule)
+    predicted = held_out_values(choice, model, sensor, folds, data, config)
+    order = config.residual_term
+    with_model = fit_term(values, kept, model, data.lights, folds, order=order, z=config.term_z, held_out=predicted)
+    alone = fit_term(values, kept, torch.zeros_like(model), data.lights, folds, order=order, z=config.term_z)
+    sigma = with_model.noise
+    better = predicts_better(alone.left_out / sigma, with_model.left_out / sigma, config.term_z)
+    base = better.to(torch.int8)
+    coefficients = torch.where(better[:, None, None], alone.coefficients, with_model.coefficients)
+    chosen = torch.where(better, alone.chosen, with_model.chosen)
+    return ResidualTerm(coefficients=coefficients, chosen=chosen, base=base)
 
 
-def term_at(index, maps, values, kept, folds, data: TileSamples, config: FitConfig) -> ResidualTerm:
-    """:func:`~torchspec.residual_term.fit_term` of pixels ``index`` under ``maps`` (of those pixels)."""
-    model = render(maps, data.lights, data.view, quadrature=config.rule)
-    return fit_term(values[index], kept[index], model, data.lights, folds, order=config.residual_term, z=config.term_z)
+def held_out_values(
+    choice, model: Tensor, sensor: Tensor, folds: Tensor, data: TileSamples, config: FitConfig
+) -> Tensor:
+    """``(n, S, K, C)`` each pixel's chosen model's prediction of each valid sample from a fit
+    without its fold (:func:`~torchspec.pipeline.prediction.held_out`); ``model (n, K, C)``, the fit
+    on every frame, at samples the fit did not use."""
+    out = model[:, None].expand(-1, folds.shape[0], -1, -1).clone()
+    for code, name in enumerate(MODEL_CODES):
+        index = (choice.code == code).nonzero().squeeze(1)
+        if index.numel() == 0:
+            continue
+        inverse = data.inverse_noise(sensor, index, config.noise_floor)  # (m, K, C)
+        # held_out's residuals: (render - observed) in noise units
+        predict = held_out_refit if config.refit else held_out
+        residual = predict(get_model(name), choice.svbrdf[index], index, data, inverse, folds, config)
+        valid = inverse[:, None] > 0
+        fitted = data.observed[index, None] + residual / torch.where(valid, inverse[:, None], torch.ones_like(residual))
+        out[index] = torch.where(valid, fitted, out[index])
+    return out
 
 
 def fit_tile(
@@ -205,7 +222,7 @@ def fit_tile(
     samples of each kind."""
     y = values.permute(2, 0, 1)  # (n, K, C)
     valid = ~(masks[0] | masks[1] | masks[2]).T
-    out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~(masks[0] | masks[1]).T)
+    out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~masks[0].T)
     out = replace(out, masked={name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)})
     if folder is not None:
         save_tile(folder, first, out)
