@@ -153,6 +153,10 @@ def _add_fit_command(commands) -> None:
                      choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
                      help="auto (default): each pixel's model by what it predicts of frames left out of its fit; "
                           "or one forced on every pixel")
+    fit.add_argument("--calibrate", default=None, choices=["auto", "none", "gains", "positions"],
+                     help="estimate the lights from the photographs with the maps: auto (default: what the capture's "
+                          "manifest lists as unknown, e.g. an imported capture's irradiance), none, gains (one per "
+                          "frame and channel) or positions (near lights' positions, and gains)")
     fit.add_argument("--residual-term", type=int, default=None, choices=[0, 2, 3], metavar="{0,2,3}",
                      help="fit a smooth per-pixel residual term (hemispherical harmonics of order 2 or 3) where it "
                           "predicts left-out frames better, for relighting what the physical model cannot (cast "
@@ -363,6 +367,8 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
     if args.model is not None:
         config = replace(config, model=args.model)
+    if args.calibrate is not None:
+        config = replace(config, calibrate=args.calibrate)
     if args.residual_term is not None:
         config = replace(config, residual_term=args.residual_term)
     checkpoint = args.output / CHECKPOINT

@@ -70,8 +70,8 @@ class Imported:
         notes: what was assumed (also warned about, and kept in the manifest's ``source``).
         positions: ``(K, 3)`` float64 light positions in image widths (origin at the image's
             centre, x right, y up, z towards the camera) when the light file gives them (a Relight
-            spherical or lights3d dome), in frame order; ``None`` otherwise. The manifest does not
-            hold them yet: they are also kept in its ``source.positions``.
+            spherical or lights3d dome), in frame order; ``None`` otherwise. Each frame's
+            ``position`` in the manifest (and its ``source.positions``).
     """
 
     capture: Capture
@@ -326,9 +326,18 @@ def import_rti(
         )
         notes += image_notes
         exposures = _exposures(exifs, images, notes)
+        places = lights.positions if lights.positions is not None else [None] * len(images)
         frames = tuple(
-            Frame(file=_frame_name(k, image), direction=entry.direction, irradiance=1.0, exposure=exposure)
-            for k, (image, entry, exposure) in enumerate(zip(images, lights.entries, exposures, strict=True))
+            Frame(
+                file=_frame_name(k, image),
+                direction=entry.direction,
+                irradiance=1.0,
+                exposure=exposure,
+                position=None if place is None else tuple(float(v) for v in place),
+            )
+            for k, (image, entry, exposure, place) in enumerate(
+                zip(images, lights.entries, exposures, places, strict=True)
+            )
         )
         record = {
             "importer": f"torchspec {__version__} import",
@@ -354,7 +363,8 @@ def import_rti(
             view=(0.0, 0.0, 1.0),
             light=LightSpec(kernel="point"),
             frames=frames,
-            extra={"source": record},
+            # A light file gives no light's intensity: the fit calibrates a gain per frame and channel.
+            extra={"source": record, "unknown": ["irradiance"]},
         )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # directions are unit to float round-off: renormalised silently

@@ -12,7 +12,7 @@ from ..photometric import sample_masks
 from ..progress import bar as progress_bar
 from .assembly import assemble, run_stats
 from .checkpoint import FitInterrupted, job_record, open_checkpoint
-from .plan import plan, setup
+from .plan import calibrated, plan, setup
 from .result import Fit
 from .settings import FitConfig
 from .start import light_context
@@ -73,6 +73,8 @@ def fit(
     config = job.config
     masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
     kinds = [m.flatten(1) for m in (masks.nonfinite, masks.saturated, masks.shadowed)]  # (K, H W) views
+    job, calibration = calibrated(job, stack, ~(masks.nonfinite | masks.saturated))
+    lights = job.lights
     ctx = light_context(lights)
     mask_seconds = time.perf_counter() - clock
 
@@ -114,6 +116,7 @@ def fit(
         seconds={"read": read_seconds, "masks": mask_seconds},
         masked=masks.counts(),
     )
+    stats["lights"] = calibration
     # clock: when the masks began
     return assemble(
         tiling.restore(parts), height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds

@@ -146,3 +146,45 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     if positions is not None:
         positions = positions[index].to(dtype=dtype, device=device)
     return Setup(config=config, capture=capture, picked=picked, lights=lights, view=view, positions=positions)
+
+
+def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict | None]:
+    """``job`` with its lights calibrated from the photographs (:func:`torchspec.lightcal.calibrate_lights`)
+    where ``FitConfig.calibrate`` asks for it, and the record of what was estimated (``None``: nothing).
+
+    ``calibrate``: ``auto`` calibrates what the capture's manifest lists under ``unknown``
+    (``irradiance``: a gain per frame and channel; ``position``: near lights' positions), ``gains``
+    and ``positions`` force them (``positions`` with gains), ``none`` takes the lights as written.
+    Gains multiply the frames' irradiance (normalised to a geometric mean of 1 per channel: the
+    capture's overall brightness stays in the diffuse map). ``stack (K, C, H, W)`` are the
+    frames, ``usable (K, H, W)`` the samples to calibrate from (not saturated, finite).
+    """
+    wanted = job.config.calibrate
+    unknown = job.capture.unknown
+    gains = wanted in ("gains", "positions") or (wanted == "auto" and bool(unknown))
+    near = wanted == "positions" or (wanted == "auto" and "position" in unknown)
+    if not gains:
+        return job, None
+    from ..lightcal import calibrate_lights  # the stage that estimates lights from photographs
+
+    lights = job.lights
+    scale = lights.scale.to(stack)  # (K, C or 1)
+    start = job.positions / job.positions.norm(dim=-1, keepdim=True) if job.positions is not None else None
+    directions = lights.directions if start is None else start
+    valid = usable[:, None].expand_as(stack) & stack.isfinite()
+    found = calibrate_lights(stack / scale[:, :, None, None], directions.to(stack), valid=valid, near=near)
+    irradiance = lights.irradiance.to(stack) * found.gains
+    calibrated_lights = Lights(found.directions.to(stack), lights.kernel, irradiance, lights.exposure.to(stack))
+    positions = found.positions.to(stack) if near and found.positions is not None else job.positions
+    record = {
+        "calibrated": ["irradiance", "position"] if near else ["irradiance"],
+        "gains": found.gains.tolist(),
+        "gain_std": found.gain_std.tolist(),
+        "positions": None if found.positions is None else found.positions.tolist(),
+        "position_std": None if found.position_std is None else found.position_std.tolist(),
+        "explained_share": float(found.explained.double().mean()),
+        "rms": found.rms.tolist(),
+        "iterations": found.iterations,
+    }
+    return replace(job, lights=calibrated_lights, positions=positions), record
+

@@ -33,6 +33,8 @@ AUTO = "auto"
 """``FitConfig.model`` that picks each pixel's model."""
 LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
 """The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
+CALIBRATE = ("auto", "none", "gains", "positions")
+"""The values of ``FitConfig.calibrate``."""
 MODEL_CODES = tuple(MODELS)
 """``model.exr``'s codes: the index of each pixel's model in this tuple."""
 COMPILE_PIXELS = 1 << 17
@@ -97,6 +99,10 @@ class FitConfig:
         refit: ``0``: each fold's refit is one Gauss-Newton step from the solution (one Jacobian
             per model and pixel); ``N``: ``N`` steps of the solver per fold (all folds of all pixels
             in one batch: about ``folds`` times the cost of the fits).
+        calibrate: the lights estimated from the photographs with the maps
+            (:func:`torchspec.pipeline.plan.calibrated`): ``auto`` (what the capture's manifest
+            lists as ``unknown``: its irradiance, a gain per frame and channel; its lights'
+            positions), ``gains``, ``positions`` (near lights' positions and gains) or ``none``.
         lobe_resolution: with point lights, no lobe narrower than ``lobe_resolution`` times the
             half vectors' spacing (:func:`torchspec.layout.resolvable_roughness`): a narrower one
             falls between the frames, fits one frame's sample and predicts nothing between them
@@ -156,6 +162,7 @@ class FitConfig:
     fold_regions: bool = False
     refit: int = 0
     lobe_resolution: float = 1.0
+    calibrate: str = "auto"
     residual_term: int = 0
     term_z: float = 1.0
     broad_alpha: float = 0.25
@@ -205,6 +212,8 @@ class FitConfig:
             raise ConfigError(
                 f"FitConfig.residual_term must be 0 (off) or an order in {sorted(TERMS)}; got {self.residual_term!r}."
             )
+        if self.calibrate not in CALIBRATE:
+            raise ConfigError(f"FitConfig.calibrate must be one of {list(CALIBRATE)}; got {self.calibrate!r}.")
         if not (self.lobe_resolution >= 0 and math.isfinite(self.lobe_resolution)):
             raise ConfigError(f"FitConfig.lobe_resolution must be >= 0 and finite; got {self.lobe_resolution!r}.")
         if not (self.term_z >= 0 and math.isfinite(self.term_z)):
