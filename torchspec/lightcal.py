@@ -65,8 +65,10 @@ SOLVE_CHUNK = 8192
 """Pixels a photometric-stereo pass handles at once."""
 RADII = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 12.0, 25.0)
 """Dome radii (image widths) tried for the starting point of near lights when no radius is given."""
-DARK = 0.02
-"""Before the first solve, samples below this fraction of the pixel's brightest are shadows."""
+DARK = 0.05
+"""Before the first solve, samples below this fraction of the pixel's median are shadows."""
+RIDGE = 1e-30
+"""The least ridge of a pixel's normal equations (one with no inlier then solves to 0, unexplained)."""
 FLOOR = 1e-3
 """The robust scale is at least this fraction of the pixel's RMS value (a noise-free capture)."""
 
@@ -180,10 +182,10 @@ def _solve(a: Tensor, y: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
     aw = a * w[..., None]
     m = torch.einsum("nkci,nkcj->ncij", aw, a)
     rhs = torch.einsum("nkci,nkc->nci", aw, y)
-    ridge = 1e-12 * m.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)
+    ridge = (1e-12 * m.diagonal(dim1=-2, dim2=-1).sum(-1)).clamp_min(RIDGE)
     eye = torch.eye(3, dtype=a.dtype, device=a.device)
     m = m + ridge[..., None, None] * eye
-    return torch.linalg.solve(m, rhs), m
+    return torch.linalg.solve(m, rhs).nan_to_num(0.0, 0.0, 0.0), m
 
 
 def _stereo(values, valid, unit, vector, gains, *, shadow: float, cut: float, shift: bool, rounds: int = 5):
@@ -200,8 +202,8 @@ def _stereo(values, valid, unit, vector, gains, *, shadow: float, cut: float, sh
     solved on ``weight`` (the inliers) and ``lit`` the valid samples in front of ``b``'s normal.
     """
     a = vector[:, :, None, :] * gains[None, :, :, None]
-    top = torch.where(valid, values, torch.zeros_like(values)).amax(1, keepdim=True)
-    weight = valid & (values > DARK * top)
+    typical = torch.where(valid, values, torch.nan).nanmedian(1, keepdim=True).values.nan_to_num(0.0)
+    weight = valid & (values > DARK * typical)
     for _ in range(rounds):
         b, _ = _solve(a, values, weight.to(values.dtype))
         normal = b / b.norm(dim=-1, keepdim=True).clamp_min(1e-300)
@@ -311,7 +313,7 @@ def _normal_equations(values, weight, b, points, directions, positions, gains, n
         jtr += torch.einsum("nkcp,nkc->kp", dw, r).reshape(-1)
         m = torch.einsum("nkci,nkcj->ncij", a * w[..., None], a)
         eye = torch.eye(3, dtype=y.dtype, device=y.device)
-        m = m + 1e-12 * m.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)[..., None, None] * eye
+        m = m + (1e-12 * m.diagonal(dim1=-2, dim2=-1).sum(-1)).clamp_min(RIDGE)[..., None, None] * eye
         dwa = torch.einsum("nkcp,nkci->ncikp", dw, a).reshape(y.shape[0], c, 3, k * p)  # A^T W D
         g = torch.linalg.inv(m) @ dwa  # M^-1 A^T W D: (n, C, 3, KP)
         jtj -= dwa.reshape(-1, k * p).T @ g.reshape(-1, k * p)
