@@ -96,6 +96,22 @@ def render_near(svbrdf, positions: torch.Tensor, gains: torch.Tensor) -> torch.T
     return value.reshape(height, width, *gains.shape).permute(2, 3, 0, 1)
 
 
+def by_ring(rings, gain_error: torch.Tensor, position_error: torch.Tensor) -> list[dict]:
+    """The largest gain and position errors of each ring of the dome."""
+    out, start = [], 0
+    for elevation, count in rings:
+        part = slice(start, start + int(count))
+        out.append(
+            {
+                "elevation_deg": elevation,
+                "gain_max": float(gain_error[part].max()),
+                "position_max": float(position_error[part].max()),
+            }
+        )
+        start += int(count)
+    return out
+
+
 def angular_error(normal: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.acos((normal * truth).sum(-1).clamp(-1, 1)))
 
@@ -153,6 +169,7 @@ def simulated(config: Simulated) -> dict:
         "gain_std_median": float(cal.gain_std.median()),
         "position_rel_error": {"median": float(position_error.median()), "max": float(position_error.max())},
         "position_std_median": float(cal.position_std.norm(dim=-1).median()),
+        "by_ring": by_ring(config.rings, gain_error.amax(1), position_error),
         "radius_median": float(cal.positions.norm(dim=-1).median()),
         "explained_fraction": float(cal.explained.double().mean()),
         "maps": maps,
@@ -162,7 +179,7 @@ def simulated(config: Simulated) -> dict:
 def read_real(folder: Path, scratch: Path, downsample: int):
     """``(frames (K, C, h, w), valid, directions (K, 3))`` of an RTI folder, exposure divided out,
     average-pooled by ``downsample``; a pooled pixel is invalid when any of its pixels is saturated."""
-    imported = import_rti(folder, scratch / folder.name)
+    imported = import_rti(folder, scratch)
     capture = imported.capture
     frames = capture.read_frames(dtype=torch.float64) / capture.exposure().to(torch.float64)[:, None, None, None]
     level = capture.saturation
@@ -177,7 +194,8 @@ def per_frame(rms: torch.Tensor) -> dict:
 
 
 def real(entry: Real, data: Path, scratch: Path, settings: Settings) -> dict:
-    frames, valid, directions = read_real(data / entry.name, scratch, settings.downsample)
+    where = scratch / f"{entry.name}-{'near' if entry.near else 'distant'}"
+    frames, valid, directions = read_real(data / entry.name, where, settings.downsample)
     start = time.perf_counter()
     cal = calibrate_lights(frames, directions, valid=valid, near=entry.near, iterations=settings.iterations)
     seconds = time.perf_counter() - start
@@ -220,6 +238,8 @@ def print_simulated(sim: dict) -> None:
     print(f"  gains rel error: median {g['median']:.4f} max {g['max']:.4f}", end="")
     print(f" (distant lights, gains only: {gd['median']:.4f}, {gd['max']:.4f})")
     print(f"  positions rel error: median {p['median']:.4f} max {p['max']:.4f}; radius {sim['radius_median']:.3f}")
+    rings = ", ".join(f"{r['elevation_deg']:g} deg {r['gain_max']:.4f}/{r['position_max']:.4f}" for r in sim["by_ring"])
+    print(f"  max gain/position rel error per ring: {rings}")
     print(f"  {'lights':34s} {'normal median deg':>18s} {'on explained':>13s}")
     for name, row in sim["maps"].items():
         print(f"  {name:34s} {row['normal_median_deg']:18.3f} {row['normal_median_deg_explained']:13.3f}")

@@ -69,6 +69,8 @@ DARK = 0.05
 """Before the first solve, samples below this fraction of the pixel's median are shadows."""
 RIDGE = 1e-30
 """The least ridge of a pixel's normal equations (one with no inlier then solves to 0, unexplained)."""
+MIN_SAMPLES = 20
+"""A frame's gain in a channel is estimated from at least this many inlier samples (else kept)."""
 FLOOR = 1e-3
 """The robust scale is at least this fraction of the pixel's RMS value (a noise-free capture)."""
 
@@ -339,17 +341,57 @@ def _gauge(gains: Tensor, positions: Tensor | None) -> Tensor:
     return torch.linalg.qr(basis).Q
 
 
-def _step(jtj: Tensor, jtr: Tensor, gauge: Tensor, sigma2: Tensor, damping: float) -> tuple[Tensor, Tensor]:
-    """A damped Gauss-Newton step with no component along ``gauge``, and the covariance of the
-    gauge-fixed parameters ``sigma2 P (JtJ + mu G G^T)^-1 P``."""
+def _step(jtj, jtr, gauge, sigma2, damping: float, frozen: Tensor) -> tuple[Tensor, Tensor]:
+    """A damped Gauss-Newton step with no component along ``gauge`` nor on the ``frozen (KP,)``
+    parameters, and the covariance of the gauge-fixed parameters ``sigma2 P (JtJ + mu G G^T)^-1 P``
+    (infinite on the frozen ones: nothing determines them)."""
     mu = jtj.diagonal().mean().clamp_min(1e-300)
-    fixed = jtj + mu * gauge @ gauge.T
+    fixed = jtj + mu * gauge @ gauge.T + torch.diag(frozen.to(jtj.dtype) * 1e12 * mu)
     project = torch.eye(jtj.shape[0], dtype=jtj.dtype, device=jtj.device) - gauge @ gauge.T
-    inverse = torch.linalg.pinv(fixed, hermitian=True)
-    covariance = sigma2 * project @ inverse @ project
+    covariance = sigma2 * project @ torch.linalg.pinv(fixed, hermitian=True) @ project
+    covariance.diagonal()[frozen] = math.inf
     damped = fixed + damping * torch.diag(fixed.diagonal())
     delta = project @ torch.linalg.solve(damped, jtr)
-    return delta, covariance
+    return torch.where(frozen, 0.0, delta), covariance
+
+
+def _objective(values, weight, points, directions, positions, gains) -> Tensor:
+    """The weighted sum of squares with the maps solved per pixel on ``weight`` (variable projection)."""
+    total = values.new_zeros(())
+    for s in range(0, values.shape[0], SOLVE_CHUNK):
+        _, vector = _lighting(points[s : s + SOLVE_CHUNK], directions, positions)
+        a = vector[:, :, None, :] * gains[None, :, :, None]
+        y, w = values[s : s + SOLVE_CHUNK], weight[s : s + SOLVE_CHUNK].to(values.dtype)
+        b, _ = _solve(a, y, w)
+        total += (w * (y - torch.einsum("nkcj,ncj->nkc", a, b)) ** 2).sum()
+    return total
+
+
+def _update(values, weight, b, points, directions, positions, gains, near: bool, damping: float):
+    """A Levenberg-Marquardt step of the lights on fixed inliers (a step is taken only when it lowers
+    the sum of squares; the damping grows tenfold until it does): ``(gains, positions, covariance,
+    change, damping)``. A frame with fewer than :data:`MIN_SAMPLES` inliers in a channel keeps its
+    gain (and its position)."""
+    k, c = gains.shape
+    jtj, jtr, chi2, n = _normal_equations(values, weight, b, points, directions, positions, gains, near)
+    sigma2 = chi2 / (n - 3 * c * values.shape[0] - jtj.shape[0]).clamp_min(1)
+    frozen = weight.sum(0) < MIN_SAMPLES
+    if near:
+        frozen = torch.cat([frozen, frozen.any(1, keepdim=True).expand(k, 3)], 1)
+    old = torch.cat([gains, positions], 1) if near else gains
+    gauge = _gauge(gains, positions)
+    for _ in range(8):
+        delta, covariance = _step(jtj, jtr, gauge, sigma2, damping, frozen.reshape(-1))
+        delta = delta.reshape(old.shape)
+        trial_gains, trial_positions = _normalised(gains + delta[:, :c]), positions
+        if near:
+            moved = positions + delta[:, c:]
+            trial_positions = torch.where(moved[:, 2:] > 0.05 * positions[:, 2:], moved, positions)
+        if _objective(values, weight, points, directions, trial_positions, trial_gains) <= chi2 * (1 + 1e-12):
+            change = float((delta.abs() / old.abs().amax(0, keepdim=True)).amax())
+            return trial_gains, trial_positions, covariance, change, max(damping / 10, 1e-12)
+        damping *= 10
+    return gains, positions, covariance, 0.0, damping
 
 
 def _sample(count: int, sample: int, device) -> Tensor:
@@ -455,19 +497,9 @@ def calibrate_lights(
         b, weight, _, _, sel, level = _explained_pass(
             values, ok, points, dirs, positions, gains, **options, shift=not strict
         )
-        jtj, jtr, chi2, n = _normal_equations(
-            values[sel], weight[sel], b[sel], points[sel], dirs, positions, gains, near
+        gains, positions, covariance, change, damping = _update(
+            values[sel], weight[sel], b[sel], points[sel], dirs, positions, gains, near, damping
         )
-        unknowns = 3 * c * int(sel.sum()) + jtj.shape[0]
-        sigma2 = chi2 / (n - unknowns).clamp_min(1)
-        delta, covariance = _step(jtj, jtr, _gauge(gains, positions), sigma2, damping)
-        old = torch.cat([gains, positions], 1) if near else gains
-        delta = delta.reshape(old.shape)
-        gains = _normalised(gains + delta[:, :c])
-        if near:
-            moved = positions + delta[:, c:]
-            positions = torch.where(moved[:, 2:] > 0.05 * positions[:, 2:], moved, positions)
-        change = float((delta.abs() / old.abs().amax(0, keepdim=True)).amax())
         if strict and change < tolerance:
             break
         # the first half with frame shifts (gains far off), the rest strict (highlights out)
@@ -498,10 +530,11 @@ def _full_pass(frames, valid, dirs, positions, gains, options, level, pixels=Non
     residual2 = torch.zeros(k, dtype=work, device=frames.device)
     energy = torch.zeros_like(residual2)
     flat_pixels = None if pixels is None else pixels.reshape(-1).to(frames.device)
+    every = pixel_points(height, width, dtype=work, device=frames.device)
     for s in range(0, height * width, SOLVE_CHUNK):
         index = torch.arange(s, min(s + SOLVE_CHUNK, height * width), device=frames.device)
         values, ok = _gather(frames, valid, index, work)
-        points = pixel_points(height, width, dtype=work, device=frames.device)[index]
+        points = every[index]
         b, _, lit, rms, explained, _ = _explained_pass(
             values, ok, points, dirs, positions, gains, **options, level=level
         )
