@@ -25,7 +25,8 @@ residual exceeds ``cut`` times the pixel's robust scale (1.4826 MAD: highlights,
 weight 0; a pixel is *explained* when its relative RMS on its inliers is within ``explain`` times
 the median pixel's and most of its lit samples are inliers; and (b) a damped Gauss-Newton step on
 the lights' parameters (``C`` gains and, when ``near``, 3 coordinates per light) by variable
-projection: the maps are eliminated per pixel, so the step accounts for what the maps absorb.
+projection: the maps are eliminated per pixel, so the step accounts for what the maps absorb;
+a step is taken only when it lowers the sum of squares (Levenberg-Marquardt).
 
 What is determined. Each channel's gains only up to one factor (the albedo takes the rest): they
 are normalised to a geometric mean of 1. With distant lights the directions are not estimated
