@@ -381,3 +381,19 @@ def test_auto_gives_broad_strong_lobes_a_lobe_and_trusts_no_wrong_normal(tmp_pat
     varnished = m["models_varnished"]
     assert varnished.get("diffuse", 0) <= 0.05 * sum(varnished.values()), varnished
     assert m["trusted_off_share"] <= 0.01, m["trusted_off_by_model"]
+
+
+def test_light_calibration_runs(tmp_path):
+    """A tiny simulated dome (no real captures): the per-pixel near-light renderer agrees with
+    render_image for distant lights, and the calibration recovers gains and positions."""
+    result = _main(
+        "light_calibration",
+        tmp_path,
+        "data: ../shared/data/rti\nsimulated: {size: 24, rings: [[20, 6], [45, 6], [70, 4]], radius: 3.0,\n"
+        "  gain_spread: 0.3, seed: 1, sensor: {photons_per_unit: 1.0e+6}, iterations: 8}\n"
+        "real: []\ndownsample: 4\niterations: 8\nthreads: 1\n",
+    )
+    sim = result["simulated"]
+    assert sim["renderer_check"] < 1e-7  # 1 / R of the radius 1e9 stand-in for distant lights
+    assert sim["gain_rel_error"]["max"] < 0.05 and sim["position_rel_error"]["max"] < 0.1
+    assert json.loads((tmp_path / "light_calibration.json").read_text())["simulated"]["frames"] == 16
