@@ -147,6 +147,9 @@ def _add_fit_command(commands) -> None:
     fit.add_argument("--model", default=None,
                      choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
                      help="auto (default): each pixel's model by the BIC; or one forced on every pixel")
+    fit.add_argument("--threads", default=None, metavar="N|auto",
+                     help="torch threads per tile: auto (the default: the cores other processes leave free, "
+                          "measured before each tile) or a number")
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
                           f"{CHECKPOINT})")
@@ -351,6 +354,10 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
     if args.model is not None:
         config = replace(config, model=args.model)
+    if args.threads is not None:
+        if args.threads != "auto" and not args.threads.isdigit():
+            parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
+        config = replace(config, threads=args.threads if args.threads == "auto" else int(args.threads))
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")
