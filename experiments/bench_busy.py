@@ -13,9 +13,13 @@ anything else on the machine) used during it.
 
 The captures: ``small`` and ``synthetic`` are crops (pixels and frames) of the simulated painting of
 ``experiments/configs/bench_fit.yaml`` (simulated on the first run, then cached); the real ones are
-imported from ``data`` with :func:`torchspec.io.rti.import_rti` (full size) and fitted on every frame.
+imported from ``data`` with :func:`torchspec.io.rti.import_rti` (full size, or their top-left
+``real_crop`` pixels) and fitted on every frame.
 
     python experiments/bench_busy.py [--config experiments/configs/bench_busy.yaml] [--output experiments/results]
+        [--parts busy,real]
+
+``data`` is relative to the current folder (``../shared/data/rti`` from the main checkout).
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ class Settings:
     repeats: int
     variants: list[Variant]
     scratch: str  # imported and cropped captures (kept between runs)
+    real_crop: int = 0  # > 0: fit the top-left real_crop x real_crop pixels of each real capture (0: all)
 
 
 NEIGHBOUR = "while True: pass"
@@ -199,6 +204,8 @@ def real_rates(settings: Settings, synthetic: Path, scratch: Path) -> list[dict]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 import_rti(Path(settings.data) / name, folder, overwrite=True)
+        if settings.real_crop:
+            folder = crop(folder, Crop(settings.real_crop, "all"), scratch / f"{name}-{settings.real_crop}")
         targets.append((name, folder))
     for name, folder in targets:
         capture = read_capture(folder)
@@ -214,25 +221,7 @@ def real_rates(settings: Settings, synthetic: Path, scratch: Path) -> list[dict]
     return rows
 
 
-def main(argv: list[str] | None = None) -> dict:
-    args = parse_args(__doc__, "bench_busy.yaml", argv)
-    settings = load_config(args.config, Settings)
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import bench_fit
-
-    source = bench_fit._capture(load_config(ROOT / settings.simulation, bench_fit.Settings))
-    scratch = Path(settings.scratch).expanduser()
-    scratch.mkdir(parents=True, exist_ok=True)
-    small = crop(
-        source, settings.small, scratch / f"small-{settings.small.size}-{settings.small.frames.replace(':', '_')}"
-    )
-    synthetic = crop(
-        source,
-        settings.synthetic,
-        scratch / f"synthetic-{settings.synthetic.size}-{settings.synthetic.frames.replace(':', '_')}",
-    )
-    print(f"busy table: {small} ({settings.neighbours} neighbours, {settings.repeats} repeats); {os.cpu_count()} cores")
-    rows = busy_table(settings, small)
+def _print_busy(rows: list[dict]) -> None:
     print(
         f"\n{'variant':38s} {'quiet s':>8s} {'busy s':>8s} {'slow-down':>9s} {'/best quiet':>11s} {'quiet kpf/s':>11s}"
     )
@@ -242,20 +231,48 @@ def main(argv: list[str] | None = None) -> dict:
             f"{row['slow_down']:9.2f} {row['busy_over_best_quiet']:11.2f} "
             f"{row['pixel_frames_per_second']['quiet'] / 1e3:11.1f}"
         )
-    print("\nthe default fit, no neighbour:")
-    real = real_rates(settings, synthetic, scratch)
-    rate = real[0]["pixel_frames_per_second"]
-    for row in real[1:]:
-        row["rate_over_synthetic"] = row["pixel_frames_per_second"] / rate
-        print(f"  {row['capture']:16s} {row['rate_over_synthetic']:.2f}x the synthetic benchmark's pixel-frames/s")
-    out = {
-        "settings": asdict(settings),
-        "torch": torch.__version__,
-        "cores": os.cpu_count(),
-        "busy": rows,
-        "real": real,
-    }
-    write_json(args.output / f"{Path(args.config).stem}.json", out)
+
+
+def _parts(parser) -> None:
+    parser.add_argument(
+        "--parts", default="busy,real", help="busy, real or both (the JSON keeps the other part of an earlier run)"
+    )
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(__doc__, "bench_busy.yaml", argv, options=_parts)
+    settings = load_config(args.config, Settings)
+    parts = set(args.parts.split(","))
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import bench_fit
+
+    source = bench_fit._capture(load_config(ROOT / settings.simulation, bench_fit.Settings))
+    scratch = Path(settings.scratch).expanduser()
+    scratch.mkdir(parents=True, exist_ok=True)
+    target = args.output / f"{Path(args.config).stem}.json"
+    out = json.loads(target.read_text()) if target.exists() else {}
+    out.update({"settings": asdict(settings), "torch": torch.__version__, "cores": os.cpu_count()})
+    if "real" in parts:
+        name = f"synthetic-{settings.synthetic.size}-{settings.synthetic.frames.replace(':', '_')}"
+        synthetic = crop(source, settings.synthetic, scratch / name)
+        print("\nthe default fit, no neighbour:")
+        real = real_rates(settings, synthetic, scratch)
+        rate = real[0]["pixel_frames_per_second"]
+        for row in real[1:]:
+            row["rate_over_synthetic"] = row["pixel_frames_per_second"] / rate
+            print(f"  {row['capture']:16s} {row['rate_over_synthetic']:.2f}x the synthetic benchmark's pixel-frames/s")
+        out["real"] = real
+        write_json(target, out)
+    if "busy" in parts:
+        name = f"small-{settings.small.size}-{settings.small.frames.replace(':', '_')}"
+        small = crop(source, settings.small, scratch / name)
+        print(
+            f"busy table: {small} ({settings.neighbours} neighbours, {settings.repeats} repeats); "
+            f"{os.cpu_count()} cores"
+        )
+        out["busy"] = busy_table(settings, small)
+        _print_busy(out["busy"])
+        write_json(target, out)
     return out
 
 

@@ -3,9 +3,10 @@
 Torch's CPU kernels run on an OpenMP pool (GNU libgomp in the Linux wheels). A thread that reaches
 the end of a parallel region first spins (busy-waits) for the others, by default about 3 ms per
 region before it sleeps. With more threads than free cores, every region then waits for a thread
-the kernel has descheduled, while the spinning one burns the core the neighbour needed: a fit of a
-small capture on 2 threads ran 4x slower beside other workers than on 1 thread, 17x with a busy
-neighbour more (issue 21; ``experiments/bench_busy.py``). So, by default:
+the kernel has descheduled, while the spinning one burns the core the neighbour needed: on a 2-core
+machine shared with other work, a 64 x 64 x 48 fit on 2 threads took 93 s against 16 s on 1
+thread, and 273 s beside a neighbour keeping both cores busy (issue 21; ``experiments/bench_busy.py``).
+So, by default:
 
 - :func:`quiet_waits`: ``OMP_WAIT_POLICY=passive`` in the environment before torch loads its OpenMP
   runtime (``import torchspec`` does it first thing, unless the user chose a policy or
