@@ -161,6 +161,9 @@ def _add_fit_command(commands) -> None:
                      help="fit a smooth per-pixel residual term (hemispherical harmonics of order 2 or 3) where it "
                           "predicts left-out frames better, for relighting what the physical model cannot (cast "
                           "shadows); written to residual_term.exr, the physical maps unchanged (default 0: off)")
+    fit.add_argument("--threads", default=None, metavar="N|auto",
+                     help="torch threads per tile: auto (the default: the cores other processes leave free, "
+                          "measured before each tile) or a number")
     fit.add_argument("--resume", action="store_true",
                      help="continue an interrupted fit into the same OUTPUT (finished tiles are kept in OUTPUT/"
                           f"{CHECKPOINT})")
@@ -371,6 +374,10 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         config = replace(config, calibrate=args.calibrate)
     if args.residual_term is not None:
         config = replace(config, residual_term=args.residual_term)
+    if args.threads is not None:
+        if args.threads != "auto" and not args.threads.isdigit():
+            parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
+        config = replace(config, threads=args.threads if args.threads == "auto" else int(args.threads))
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")

@@ -64,7 +64,7 @@ def job_record(capture: Capture, picked: list[int], config: FitConfig, tile: int
         "manifest": _stamp(capture.manifest) if capture.manifest.is_file() else None,
         "files": [_stamp(f) if f.is_file() else None for f in files],
         "frames": picked,
-        "settings": asdict(config),
+        "settings": {k: v for k, v in asdict(config).items() if k != "threads"},  # tiles of any count resume
         "tile_pixels": tile,
         "pixels": pixels,
     }

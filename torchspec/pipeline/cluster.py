@@ -247,7 +247,8 @@ def fit_on_cluster(
     _check_workers(client, capture, folder)  # before a job is recorded in the folder
     done = open_checkpoint(folder, job_record(capture, picked, config, tile, pixels), resume)
     _refuse_stale_tiles(folder, done)
-    job = _Job(capture, picked, config, tile, lights, view, light_context(lights), folder)
+    # Each task on the one thread its worker pins (workers, not threads, share the cores).
+    job = _Job(capture, picked, replace(config, threads=1), tile, lights, view, light_context(lights), folder)
     firsts = list(range(0, pixels, tile))
     todo = [first for first in firsts if first not in done]
     seconds: dict[str, float] = {}

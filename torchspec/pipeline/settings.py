@@ -150,6 +150,11 @@ class FitConfig:
             runtime and a tile (tiles are sized to what is left, at least 256 pixels).
         dtype: ``float32`` or ``float64``.
         device: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ...
+        threads: torch's CPU threads for each tile: ``auto`` (the default): torch's own count
+            (``torch.set_num_threads``, ``OMP_NUM_THREADS``) when its threads sleep at a barrier
+            (``import torchspec`` sets ``OMP_WAIT_POLICY=passive``), else the cores other processes
+            leave free, measured before each tile; or a number, used as it is
+            (:mod:`torchspec.threads`). A cluster's tasks run on one thread each.
         lm: the solver's settings.
     """
 
@@ -191,6 +196,7 @@ class FitConfig:
     memory_gib: float = 2.0
     dtype: str = "float32"
     device: str = "auto"
+    threads: int | str = "auto"
     lm: LMConfig = field(default_factory=LMConfig)
 
     def __post_init__(self):
@@ -249,6 +255,10 @@ class FitConfig:
         for name in (*positive, "flag_peak_misfit", "flag_astray", "flag_reach"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FitConfig.{name} must be > 0; got {getattr(self, name)!r}.")
+        if self.threads != AUTO and (
+            isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
+        ):
+            raise ConfigError(f"FitConfig.threads must be 'auto' or a number >= 1; got {self.threads!r}.")
         if self.tile < 0:
             raise ConfigError(f"FitConfig.tile must be >= 0 (0: from memory_gib); got {self.tile}.")
 

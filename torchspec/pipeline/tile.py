@@ -17,6 +17,7 @@ from ..lights import Lights
 from ..models import get_model
 from ..rendering import render
 from ..residual_term import ResidualTerm, fit_term
+from ..threads import fit_threads
 from .checkpoint import save_tile
 from .checks import Checks, check_choice, quality_of
 from .prediction import held_out, held_out_refit, light_folds, predicts_better
@@ -218,11 +219,13 @@ def fit_tile(
 ) -> TileResult:
     """One tile, as every driver fits it: the pixels ``first .. first + n - 1`` of the image from
     their values ``(K, C, n)`` and their masks of :data:`MASK_KINDS` (each ``(K, n)``); saved in the
-    checkpoint ``folder`` when given. Returns :func:`fit_pixels`'s result with the count of masked
+    checkpoint ``folder`` when given; on ``config.threads`` torch threads
+    (:func:`torchspec.threads.fit_threads`). Returns :func:`fit_pixels`'s result with the count of masked
     samples of each kind."""
     y = values.permute(2, 0, 1)  # (n, K, C)
     valid = ~(masks[0] | masks[1] | masks[2]).T
-    out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~masks[0].T)
+    with fit_threads(config.threads):  # auto: the cores free now (other processes share them)
+        out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~masks[0].T)
     out = replace(out, masked={name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)})
     if folder is not None:
         save_tile(folder, first, out)
