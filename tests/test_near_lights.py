@@ -123,3 +123,47 @@ def test_positions_must_be_given_for_every_frame_or_none(tmp_path):
     capture.manifest.write_text(json.dumps(data))
     with pytest.raises(CaptureError, match=r"frames\[3\]\.position.*z > 0"):
         read_capture(capture.root)
+
+
+def _lambertian_with_gains(root, gains: torch.Tensor, scramble: float = 0.0) -> tuple[Capture, torch.Tensor]:
+    """A distant-light Lambertian relief whose frames' intensities are ``gains`` (the manifest lists
+    its irradiance as unknown and writes 1); ``scramble``: a random factor per sample that no
+    reflectance explains."""
+    capture, normal = _lambertian_near_capture(root / "near", radius=1e4, size=24)
+    frames = capture.read_frames(dtype=D) * gains[:, None, None, None]
+    if scramble:
+        generator = torch.Generator().manual_seed(1)
+        frames = frames * (1 + scramble * torch.rand(frames.shape, generator=generator, dtype=D))
+    flat = Capture(
+        **{
+            **capture.__dict__,
+            "root": root / "gains",
+            "frames": tuple(Frame(f.file, f.direction, f.irradiance, f.exposure) for f in capture.frames),
+            "extra": {"unknown": ["irradiance"]},
+        }
+    )
+    return write_capture(root / "gains", flat, frames.float()), normal
+
+
+def test_unknown_irradiance_is_calibrated_from_the_photographs(tmp_path):
+    gains = 1 + 0.3 * (2 * torch.rand(25, generator=torch.Generator().manual_seed(2), dtype=D) - 1)
+    capture, truth = _lambertian_with_gains(tmp_path, gains)
+    assert read_capture(capture.root).unknown == ("irradiance",)
+    calibrated = fit(capture, config=FitConfig(model="diffuse", compile=False))
+    nominal = fit(capture, config=FitConfig(model="diffuse", compile=False, calibrate="none"))
+    record = calibrated.stats["lights"]
+    assert record["calibrated"] == ["irradiance"] and nominal.stats["lights"] is None
+    found = torch.tensor(record["gains"], dtype=D)[:, 0]
+    expected = gains / gains.log().mean().exp()  # the estimate's gauge: geometric mean 1
+    assert float(((found - expected) / expected).abs().max()) < 0.01  # noise-free: the clamp's edge only
+    error = torch.rad2deg(angle(calibrated.svbrdf.normal.double(), truth)).median()
+    assert float(error) < 0.5 < float(torch.rad2deg(angle(nominal.svbrdf.normal.double(), truth)).median())
+
+
+def test_lights_the_photographs_do_not_determine_are_kept_with_a_warning(tmp_path):
+    from torchspec.pipeline import FitWarning
+
+    capture, _ = _lambertian_with_gains(tmp_path, torch.ones(25, dtype=D), scramble=0.8)
+    with pytest.warns(FitWarning, match="not calibrated from the photographs"):
+        result = fit(capture, config=FitConfig(model="diffuse", compile=False))
+    assert result.stats["lights"]["calibrated"] == []

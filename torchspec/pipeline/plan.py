@@ -148,6 +148,14 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     return Setup(config=config, capture=capture, picked=picked, lights=lights, view=view, positions=positions)
 
 
+CALIBRATION_EXPLAINED = 0.8
+"""``FitConfig.calibrate = auto`` keeps calibrated lights only when the Lambertian model of
+:mod:`torchspec.lightcal` explains at least this share of the pixels ..."""
+CALIBRATION_RMS = 0.05
+"""... with a median relative misfit per frame of at most this: on a coin or a relief in cast
+shadow, gains and positions take up what the model lacks (``experiments/results/light_calibration.json``)."""
+
+
 def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict | None]:
     """``job`` with its lights calibrated from the photographs (:func:`torchspec.lightcal.calibrate_lights`)
     where ``FitConfig.calibrate`` asks for it, and the record of what was estimated (``None``: nothing).
@@ -155,6 +163,8 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     ``calibrate``: ``auto`` calibrates what the capture's manifest lists under ``unknown``
     (``irradiance``: a gain per frame and channel; ``position``: near lights' positions), ``gains``
     and ``positions`` force them (``positions`` with gains), ``none`` takes the lights as written.
+    ``auto`` keeps the estimate only where the photographs determine it (:data:`CALIBRATION_RMS`,
+    :data:`CALIBRATION_EXPLAINED`; else a :class:`FitWarning` and the lights as written).
     Gains multiply the frames' irradiance (normalised to a geometric mean of 1 per channel: the
     capture's overall brightness stays in the diffuse map). ``stack (K, C, H, W)`` are the
     frames, ``usable (K, H, W)`` the samples to calibrate from (not saturated, finite).
@@ -173,6 +183,21 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     directions = lights.directions if start is None else start
     valid = usable[:, None].expand_as(stack) & stack.isfinite()
     found = calibrate_lights(stack / scale[:, :, None, None], directions.to(stack), valid=valid, near=near)
+    explained, misfit = float(found.explained.double().mean()), float(found.rms.double().median())
+    if explained < CALIBRATION_EXPLAINED or misfit > CALIBRATION_RMS:
+        message = (
+            f"{job.capture.root}: the lights were not calibrated from the photographs: the Lambertian model they are "
+            f"estimated with explains {100 * explained:.0f} % of the pixels with a median relative misfit of "
+            f"{100 * misfit:.1f} % per frame (needed: {100 * CALIBRATION_EXPLAINED:.0f} % and "
+            f"{100 * CALIBRATION_RMS:.0f} %), so gains and positions would take up what the model lacks; "
+            "the lights are taken as written"
+        )
+        if wanted == "auto":
+            warnings.warn(message + ".", FitWarning, stacklevel=3)
+            return job, {"calibrated": [], "refused": message, "explained_share": explained, "rms": found.rms.tolist()}
+        warnings.warn(
+            message.replace("were not calibrated", "are calibrated as asked, but") + ".", FitWarning, stacklevel=3
+        )
     irradiance = lights.irradiance.to(stack) * found.gains
     calibrated_lights = Lights(found.directions.to(stack), lights.kernel, irradiance, lights.exposure.to(stack))
     positions = found.positions.to(stack) if near and found.positions is not None else job.positions
@@ -187,4 +212,3 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         "iterations": found.iterations,
     }
     return replace(job, lights=calibrated_lights, positions=positions), record
-
