@@ -64,7 +64,7 @@ def fit(
     """
     clock = time.perf_counter()
     job = setup(capture, config, frames)
-    capture, lights, view = job.capture, job.lights, job.view
+    capture, view = job.capture, job.view
     # NaN or Inf pixels (a failed HDR merge) are masked like saturated ones, with a warning per frame.
     stack = capture.read_frames(job.picked, dtype=view.dtype, device=view.device, nonfinite="keep")  # (K, C, H, W)
     read_seconds = time.perf_counter() - clock
@@ -74,8 +74,7 @@ def fit(
     masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
     kinds = [m.flatten(1) for m in (masks.nonfinite, masks.saturated, masks.shadowed)]  # (K, H W) views
     job, calibration = calibrated(job, stack, ~(masks.nonfinite | masks.saturated))
-    lights = job.lights
-    ctx = light_context(lights)
+    lights, ctx = job.lights, light_context(job.lights)
     mask_seconds = time.perf_counter() - clock
 
     k, c, h, w = stack.shape
@@ -98,7 +97,8 @@ def fit(
                     at = slice(first, stop)
                     values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
                     here, here_ctx = tiling.lights(lights, ctx, first, stop)
-                    out = fit_tile(first, values, tile_masks, here, view, capture.channels, config, here_ctx, folder)
+                    out = fit_tile(first, values, tile_masks, here, view, capture.channels, config, here_ctx, folder,
+                                   job.gains)  # fmt: skip
                 parts.append(out)
                 bar.update(stop - first)
         except KeyboardInterrupt as interrupt:

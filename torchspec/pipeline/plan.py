@@ -102,6 +102,7 @@ class Setup:
         view: ``(3,)`` the view direction, alike.
         positions: ``(K, 3)`` the picked frames' near-light positions (``Frame.position``; object
             units, :mod:`torchspec.near_lights`), alike; ``None`` for distant lights.
+        gains: ``(K, C)`` the gains :func:`calibrated` found (in ``lights``' irradiance), else ``None``.
     """
 
     config: FitConfig
@@ -110,6 +111,7 @@ class Setup:
     lights: Lights
     view: Tensor
     positions: Tensor | None = None
+    gains: Tensor | None = None
 
 
 def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str | list[int] | None) -> Setup:
@@ -211,4 +213,4 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         "rms": found.rms.tolist(),
         "iterations": found.iterations,
     }
-    return replace(job, lights=calibrated_lights, positions=positions), record
+    return replace(job, lights=calibrated_lights, positions=positions, gains=found.gains.to(stack)), record

@@ -92,10 +92,13 @@ def fit_pixels(
     config: FitConfig,
     ctx: LightContext,
     kept: Tensor | None = None,
+    gains: Tensor | None = None,
 ) -> TileResult:
     """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
-    The residual term (``FitConfig.residual_term``) is fitted on the samples ``kept (n, K)``
-    (default ``valid``): the fit's masks leave out shadowed samples, which the term is to carry.
+    ``gains (K, C)``: the lights' calibrated gains (in ``lights``), which the residual term leaves
+    out (:func:`residual_term`). The residual term (``FitConfig.residual_term``) is fitted on the
+    samples ``kept (n, K)`` (default ``valid``): the fit's masks leave out shadowed samples, which
+    the term is to carry.
 
     The stages: :func:`~torchspec.pipeline.start.starting_point`, then
     :func:`~torchspec.pipeline.selection.select_models`, then
@@ -117,7 +120,7 @@ def fit_pixels(
     term = None
     if config.residual_term:
         t0 = time.perf_counter()
-        term = residual_term(choice, sensor, y, valid if kept is None else kept, data, config)
+        term = residual_term(choice, sensor, y, valid if kept is None else kept, data, config, gains)
         times["residual_term"] = time.perf_counter() - t0
     rms = data.relative_rms(choice.cost)
     quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
@@ -157,7 +160,7 @@ def fit_pixels(
 
 
 def residual_term(
-    choice, sensor: Tensor, y: Tensor, kept: Tensor, data: TileSamples, config: FitConfig
+    choice, sensor: Tensor, y: Tensor, kept: Tensor, data: TileSamples, config: FitConfig, gains: Tensor | None
 ) -> ResidualTerm:
     """The residual term (:func:`torchspec.residual_term.fit_term`) of a tile's chosen models
     (``choice``, :func:`~torchspec.pipeline.selection.select_models`) on the samples ``kept (n, K)``
@@ -167,16 +170,26 @@ def residual_term(
     judged by its prediction of each fold from a fit without it
     (:func:`~torchspec.pipeline.prediction.held_out`), and nothing (the term alone); each pixel
     keeps the base that predicts left-out frames better by ``FitConfig.term_z``, the model where
-    neither does (``ResidualTerm.base``; the maps are unchanged)."""
+    neither does (``ResidualTerm.base``; the maps are unchanged).
+
+    With calibrated ``gains (K, C)`` the term is fitted under the lights as written (the gains
+    divided out of the model's prediction): it then carries how the photographs' brightness
+    varies with the light's direction, which a render under lights as written (new or left-out
+    ones, whose gain no photograph gave) needs."""
     kept = kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
 
     folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
     model = render(choice.svbrdf, data.lights, data.view, quadrature=config.rule)
     predicted = held_out_values(choice, model, sensor, folds, data, config)
+    lights = data.lights
+    if gains is not None:  # the model under the lights as written
+        gains = gains.to(model)
+        model, predicted = model / gains, predicted / gains[None]
+        lights = Lights(lights.directions, lights.kernel, lights.irradiance / gains, lights.exposure)
     order = config.residual_term
-    with_model = fit_term(values, kept, model, data.lights, folds, order=order, z=config.term_z, held_out=predicted)
-    alone = fit_term(values, kept, torch.zeros_like(model), data.lights, folds, order=order, z=config.term_z)
+    with_model = fit_term(values, kept, model, lights, folds, order=order, z=config.term_z, held_out=predicted)
+    alone = fit_term(values, kept, torch.zeros_like(model), lights, folds, order=order, z=config.term_z)
     sigma = with_model.noise
     better = predicts_better(alone.left_out / sigma, with_model.left_out / sigma, config.term_z)
     base = better.to(torch.int8)
@@ -216,16 +229,17 @@ def fit_tile(
     config: FitConfig,
     ctx: LightContext,
     folder: Path | None,
+    gains: Tensor | None = None,
 ) -> TileResult:
-    """One tile, as every driver fits it: the pixels ``first .. first + n - 1`` of the image from
-    their values ``(K, C, n)`` and their masks of :data:`MASK_KINDS` (each ``(K, n)``); saved in the
-    checkpoint ``folder`` when given; on ``config.threads`` torch threads
-    (:func:`torchspec.threads.fit_threads`). Returns :func:`fit_pixels`'s result with the count of masked
-    samples of each kind."""
+    """One tile, as every driver fits it (``gains``: :func:`fit_pixels`'s): the pixels ``first ..
+    first + n - 1`` of the image from their values ``(K, C, n)`` and their masks of
+    :data:`MASK_KINDS` (each ``(K, n)``); saved in the checkpoint ``folder`` when given; on
+    ``config.threads`` torch threads (:func:`torchspec.threads.fit_threads`). Returns
+    :func:`fit_pixels`'s result with the count of masked samples of each kind."""
     y = values.permute(2, 0, 1)  # (n, K, C)
     valid = ~(masks[0] | masks[1] | masks[2]).T
     with fit_threads(config.threads):  # auto: the cores free now (other processes share them)
-        out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~masks[0].T)
+        out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~masks[0].T, gains=gains)
     out = replace(out, masked={name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)})
     if folder is not None:
         save_tile(folder, first, out)
