@@ -242,7 +242,18 @@ def test_rti_relight_runs(tmp_path):
     real, synth = result["captures"]
     assert real["left_out"] == [2, 7] and real["size"] == [8, 8]
     methods = {row["method"]: row for row in real["rows"]}
-    assert list(methods) == ["PTM", "HSH", "torchspec auto", "torchspec diffuse"]
+    assert list(methods) == [
+        "PTM",
+        "HSH",
+        "torchspec auto",
+        "torchspec auto + term",
+        "torchspec diffuse",
+        "torchspec diffuse + term",
+    ]
+    # a Lambertian capture: the physical model predicts it, and the term (kept only where it
+    # predicts left-out frames better) costs it little
+    assert methods["torchspec diffuse + term"]["psnr_db"] > methods["torchspec diffuse"]["psnr_db"] - 1.0
+    assert 0 <= methods["torchspec diffuse + term"]["term_share"] <= 1
     assert methods["torchspec diffuse"]["psnr_db"] > 35 and methods["torchspec diffuse"]["lobe_share"] == 0
     assert 0.9 < methods["torchspec diffuse"]["worst_brightness_ratio"] < 1.1
     assert all(0 <= row["ssim"] <= 1 and row["fit_seconds"] >= 0 for row in real["rows"])

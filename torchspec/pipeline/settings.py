@@ -166,7 +166,7 @@ class FitConfig:
     folds: int = 5
     fold_regions: bool = False
     refit: int = 0
-    lobe_resolution: float = 1.0
+    lobe_resolution: float = 0.5
     calibrate: str = "auto"
     residual_term: int = 0
     term_z: float = 1.0
