@@ -18,6 +18,9 @@ least-squares photometric stereo on the same frames' luminance.
 - per method: the worst left-out frame's mean brightness ratio (predicted over photographed, in
   linear values; the frame furthest from 1).
 
+The figure (``rti_relight.png``): per capture, the most grazing and the highest left-out light,
+the photograph beside HSH and each torchspec prediction.
+
     python experiments/rti_relight.py [--config experiments/configs/rti_relight.yaml] [--output experiments/results]
 """
 
@@ -217,9 +220,10 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
     d = capture.directions()
     test_d = target_capture.directions()[predicted]
     truth = target_codes[predicted]
-    rows = []
+    rows, shown = [], {"photograph": truth}
     for name, basis in BASES.items():
         values, seconds = polynomial(basis, d[fitted], codes[fitted], test_d)
+        shown[name] = _quantise(values)
         rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth)})
         rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]  # the frame's index in the target
     for model in settings.models:
@@ -229,23 +233,26 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
         for name, prediction in ((f"torchspec {model}", values), (f"torchspec {model} + term", termed)):
             if prediction is None:
                 continue
-            row = {"method": name, "fit_seconds": seconds, **scores(SRGB.encode(prediction.clamp(0, 1)), truth)}
+            shown[name] = _quantise(SRGB.encode(prediction.clamp(0, 1)))
+            row = {"method": name, "fit_seconds": seconds, **scores(shown[name], truth)}
             row["worst_frame"] = predicted[row["worst_frame"]]
             row["lobe_share"] = float(fit.lobe.double().mean())
             row["term_share"] = None if fit.term is None else float(fit.term.chosen.double().mean())
             row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
             rows.append(row)
-    return rows, fit
+    shown["elevation"] = test_d[:, 2]
+    return rows, fit, shown
 
 
-def run_capture(folder: Path, scratch: Path, settings: Settings) -> dict:
-    """Every score of one capture (SynthRTI: the left-out protocol on Dome/, Dome -> Test, normals)."""
+def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: list) -> dict:
+    """Every score of one capture (SynthRTI: the left-out protocol on Dome/, Dome -> Test, normals);
+    its left-out frames' images appended to ``figure_rows`` (:func:`figure`)."""
     synth = (folder / "Dome").is_dir()
     capture, linear, codes = _load(folder / "Dome" if synth else folder, scratch, settings.downsample)
     count = len(capture.frames)
     predicted = [i for i in range(count) if i % 5 == settings.left_out]
     fitted = [i for i in range(count) if i % 5 != settings.left_out]
-    rows, _ = relight(capture, linear, codes, fitted, predicted, settings)
+    rows, _, shown = relight(capture, linear, codes, fitted, predicted, settings)
     out = {
         "capture": folder.name,
         "size": [capture.width, capture.height],
@@ -253,10 +260,11 @@ def run_capture(folder: Path, scratch: Path, settings: Settings) -> dict:
         "left_out": predicted,
         "rows": rows,
     }
+    figure_rows.append((folder.name, shown))
     if synth:
         target = _load(folder / "Test", scratch, settings.downsample)
         every = list(range(count))
-        dome_rows, fit = relight(capture, linear, codes, every, list(range(len(target[0].frames))), settings, target)
+        dome_rows, fit, _ = relight(capture, linear, codes, every, list(range(len(target[0].frames))), settings, target)
         out["dome_to_test"] = dome_rows
         out["normals"] = normal_errors(
             fit.svbrdf.normal, folder / "Dome" / "normals.png", linear, capture.directions(), settings.downsample
@@ -285,17 +293,47 @@ def _print(result: dict) -> None:
         )
 
 
+def figure(shown: list, path: Path) -> None:
+    """Per capture, its most grazing and its highest left-out light: the photograph, HSH and each
+    torchspec prediction (8-bit sRGB), one row each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = [name for name in shown[0][1] if name not in ("elevation", "PTM")]
+    fig, axes = plt.subplots(2 * len(shown), len(methods), figsize=(2.2 * len(methods), 2.3 * 2 * len(shown)))
+    axes = axes.reshape(2 * len(shown), len(methods))
+    for row, (name, images) in enumerate(shown):
+        elevation = torch.rad2deg(torch.asin(images["elevation"].clamp(-1, 1)))
+        for half, frame in enumerate((int(elevation.argmin()), int(elevation.argmax()))):
+            for col, method in enumerate(methods):
+                ax = axes[2 * row + half, col]
+                ax.imshow(images[method][frame].permute(1, 2, 0).squeeze(-1).clamp(0, 1).numpy(), cmap="gray")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if col == 0:
+                    ax.set_ylabel(f"{name}\n{float(elevation[frame]):.0f} deg", fontsize=7)
+                if row == 0 and half == 0:
+                    ax.set_title(method, fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(__doc__, "rti_relight.yaml", argv)
     settings = load_config(args.config, Settings)
     torch.set_num_threads(settings.threads)
     data = Path(settings.data) if Path(settings.data).is_absolute() else ROOT / settings.data
-    results = []
+    results, shown = [], []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:
         for name in settings.captures:
-            results.append(run_capture(data / name, Path(scratch), settings))
+            results.append(run_capture(data / name, Path(scratch), settings, shown))
             _print(results[-1])
+    figure(shown, Path(args.output) / f"{Path(args.config).stem}.png")
     out = {
         "settings": asdict(settings),
         "torch_threads": torch.get_num_threads(),
