@@ -35,8 +35,9 @@ from torchspec.atomic import write_json
 from torchspec.brdf import lambert, ward_cosine
 from torchspec.config import load_config
 from torchspec.io.rti import import_rti
-from torchspec.lightcal import calibrate_lights, lambert_fit, near_light, pixel_points
+from torchspec.lightcal import calibrate_lights, lambert_fit
 from torchspec.lights import Kernel, Lights
+from torchspec.near_lights import image_points, near_light
 from torchspec.rendering import render_image
 from torchspec.synth import PaintingConfig, SensorConfig, painting, sense
 
@@ -84,7 +85,7 @@ def render_near(svbrdf, positions: torch.Tensor, gains: torch.Tensor) -> torch.T
     """``(K, C, H, W)``: the maps under point lights at ``positions`` (per-pixel direction and
     falloff), Lambert + Ward lobe of the format, times each frame's gains."""
     height, width = svbrdf.shape
-    direction, falloff = near_light(positions, pixel_points(height, width))  # (N, K, 3), (N, K)
+    direction, falloff = near_light(positions, image_points(height, width))  # (N, K, 3), (N, K)
     n = svbrdf.normal.reshape(-1, 1, 3)
     view = torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype).expand_as(direction)
     cos = (n * direction).sum(-1).clamp_min(0)

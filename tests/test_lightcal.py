@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.errors import TorchspecError
-from torchspec.lightcal import calibrate_lights, lambert_fit, near_light, pixel_points
+from torchspec.lightcal import calibrate_lights, lambert_fit
+from torchspec.near_lights import image_points, near_light
 
 F64 = torch.float64
 
@@ -37,7 +38,7 @@ def make_capture(*, size=32, frames=16, radius=3.0, near=True, noise=0.0, lobe=0
     normal = normal / normal.norm(dim=-1, keepdim=True)
     albedo = 0.3 + 0.6 * torch.rand(size * size, 1, c, generator=gen, dtype=F64)
     if near:
-        direction, falloff = near_light(positions, pixel_points(size, size))
+        direction, falloff = near_light(positions, image_points(size, size))
     else:
         direction, falloff = unit.expand(size * size, -1, -1), torch.ones(size * size, k, dtype=F64)
     cos = (normal[:, None] * direction).sum(-1).clamp_min(0)
@@ -66,8 +67,8 @@ def test_near_light_hand_computed():
     torch.testing.assert_close(falloff[0], torch.tensor([1.0 / 1.25, 2.0 / 1.25], dtype=F64))
 
 
-def test_pixel_points_geometry():
-    points = pixel_points(2, 4)  # H = 2, W = 4: x = (j + 0.5) / 4 - 0.5, y = (1 - (i + 0.5)) / 4
+def test_image_points_geometry():
+    points = image_points(2, 4)  # H = 2, W = 4: x = (j + 0.5) / 4 - 0.5, y = (1 - (i + 0.5)) / 4
     assert points.shape == (8, 3)
     torch.testing.assert_close(points[0], torch.tensor([-0.375, 0.125, 0.0], dtype=F64))
     torch.testing.assert_close(points[7], torch.tensor([0.375, -0.125, 0.0], dtype=F64))

@@ -9,10 +9,11 @@ well.
 
 Model. Frame ``k``, channel ``c``, pixel ``x``: ``I = g_kc s_k(x) <b_c(x), d_k(x)>`` where
 ``b_c = albedo_c * normal`` (per pixel and channel), ``g_kc`` the gain and, for a distant light,
-``d_k`` the given direction and ``s_k = 1``; for a near light at ``p_k``, :func:`near_light`
-gives ``d_k(x)`` and the falloff ``s_k(x)``.
+``d_k`` the given direction and ``s_k = 1``; for a near light at ``p_k``,
+:func:`torchspec.near_lights.near_light` gives ``d_k(x)`` and the falloff ``s_k(x)``.
 
-Geometry (shared with the fit, which reuses :func:`pixel_points` and :func:`near_light`): the
+Geometry (:mod:`torchspec.near_lights`, shared with the fit; points from
+:func:`torchspec.near_lights.image_points`): the
 object plane is ``z = 0``, the origin at the image centre, ``x`` right, ``y`` up, ``z`` towards
 the camera; the unit is the image width. Pixel (row ``i``, column ``j``) of an ``H x W`` image
 lies at ``x = (j + 0.5) / W - 0.5``, ``y = (H / 2 - (i + 0.5)) / W``. A near light at ``p_k``
@@ -48,6 +49,7 @@ import torch
 from torch import Tensor
 
 from .errors import TorchspecError
+from .near_lights import image_points, near_light
 
 __all__ = [
     "LightCalibration",
@@ -55,8 +57,6 @@ __all__ = [
     "LambertFit",
     "calibrate_lights",
     "lambert_fit",
-    "near_light",
-    "pixel_points",
 ]
 
 MAD_SCALE = 1.4826
@@ -121,35 +121,6 @@ class LambertFit:
     albedo: Tensor
     explained: Tensor
     rms: Tensor
-
-
-def pixel_points(height: int, width: int, *, dtype=torch.float64, device=None) -> Tensor:
-    """The ``(H * W, 3)`` points of the pixels of an ``H x W`` image, row-major (module geometry)."""
-    j = (torch.arange(width, dtype=dtype, device=device) + 0.5) / width - 0.5
-    i = (height / 2 - (torch.arange(height, dtype=dtype, device=device) + 0.5)) / width
-    y, x = torch.meshgrid(i, j, indexing="ij")
-    return torch.stack([x, y, torch.zeros_like(x)], dim=-1).reshape(-1, 3)
-
-
-def near_light(positions: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
-    """Directions and falloff of near lights at points of the object.
-
-    Args:
-        positions: ``(K, 3)`` light positions ``p_k``.
-        points: ``(N, 3)`` points ``x`` (e.g. :func:`pixel_points`).
-
-    Returns:
-        ``(directions (N, K, 3), falloff (N, K))``: ``(p_k - x) / |p_k - x|`` and
-        ``|p_k|^2 / |p_k - x|^2`` (1 at the origin).
-
-    Example:
-        >>> d, s = near_light(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0.0, 0.0]]))
-        >>> d[0, 0].tolist(), round(float(s[0, 0]), 6)
-        ([-0.4472135901451111, 0.0, 0.8944271802902222], 0.8)
-    """
-    v = positions[None, :, :] - points[:, None, :]
-    distance2 = (v * v).sum(-1)
-    return v / distance2.sqrt()[..., None], (positions * positions).sum(-1)[None, :] / distance2
 
 
 def _check(frames: Tensor, directions: Tensor, valid: Tensor | None) -> None:
@@ -486,7 +457,7 @@ def calibrate_lights(
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     index = _sample(height * width, sample, device)
     values, ok = _gather(frames, valid, index, work)
-    points = pixel_points(height, width, dtype=work, device=device)[index]
+    points = image_points(height, width, dtype=work, device=device)[index]
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     gains = torch.ones(k, c, dtype=work, device=device)
     positions = None
@@ -531,7 +502,7 @@ def _full_pass(frames, valid, dirs, positions, gains, options, level, pixels=Non
     residual2 = torch.zeros(k, dtype=work, device=frames.device)
     energy = torch.zeros_like(residual2)
     flat_pixels = None if pixels is None else pixels.reshape(-1).to(frames.device)
-    every = pixel_points(height, width, dtype=work, device=frames.device)
+    every = image_points(height, width, dtype=work, device=frames.device)
     for s in range(0, height * width, SOLVE_CHUNK):
         index = torch.arange(s, min(s + SOLVE_CHUNK, height * width), device=frames.device)
         values, ok = _gather(frames, valid, index, work)
@@ -593,6 +564,6 @@ def lambert_fit(
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     index = _sample(height * width, sample, device)
     values, ok = _gather(frames, valid, index, work)
-    points = pixel_points(height, width, dtype=work, device=device)[index]
+    points = image_points(height, width, dtype=work, device=device)[index]
     level = _explained_pass(values, ok, points, dirs, positions, gains, **options)[-1]
     return _full_pass(frames, valid, dirs, positions, gains, options, level, pixels)

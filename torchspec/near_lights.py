@@ -36,8 +36,14 @@ def image_points(height: int, width: int, *, dtype=torch.float64, device=None) -
 
 
 def near_light(positions: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
-    """Each point's light directions ``(N, K, 3)`` and falloff ``(N, K)`` (``(|p| / |p - x|)^2``)
-    under lights at ``positions (K, 3)``, for ``points (N, 3)``."""
+    """Each point's light directions ``(N, K, 3)`` and falloff ``(N, K)`` (``(|p| / |p - x|)^2``,
+    1 at the origin) under lights at ``positions (K, 3)``, for ``points (N, 3)``.
+
+    Example:
+        >>> d, s = near_light(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0.0, 0.0]]))
+        >>> d[0, 0].tolist(), round(float(s[0, 0]), 6)
+        ([-0.4472135901451111, 0.0, 0.8944271802902222], 0.8)
+    """
     offset = positions[None] - points[:, None]  # (N, K, 3)
     distance = offset.norm(dim=-1)
     falloff = (positions.norm(dim=-1)[None] / distance).square()
