@@ -44,6 +44,7 @@ from torchspec.io import write_capture
 from torchspec.io.images import Transfer, read_photo
 from torchspec.io.rti import import_rti
 from torchspec.lights import Lights
+from torchspec.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
 
 SRGB = Transfer("srgb")
 LUMA = (0.2126, 0.7152, 0.0722)
@@ -106,25 +107,6 @@ def ptm_basis(d: torch.Tensor) -> torch.Tensor:
     """``(K, 6)`` the PTM terms of unit directions ``d (K, 3)``."""
     u, v = d[:, 0], d[:, 1]
     return torch.stack([u * u, v * v, u * v, u, v, torch.ones_like(u)], -1)
-
-
-def hsh_basis(d: torch.Tensor) -> torch.Tensor:
-    """``(K, 9)`` hemispherical harmonics of order 3 (Gautron et al.; the RTI fitters' HSH)."""
-    t = d[:, 2].clamp(0, 1)
-    phi = torch.atan2(d[:, 1], d[:, 0])
-    s = (t - t * t).clamp(min=0).sqrt()
-    terms = [
-        torch.full_like(t, 1 / math.sqrt(2 * math.pi)),
-        math.sqrt(6 / math.pi) * torch.cos(phi) * s,
-        math.sqrt(3 / (2 * math.pi)) * (2 * t - 1),
-        math.sqrt(6 / math.pi) * torch.sin(phi) * s,
-        math.sqrt(30 / math.pi) * torch.cos(2 * phi) * (t * t - t),
-        math.sqrt(30 / math.pi) * torch.cos(phi) * (2 * t - 1) * s,
-        math.sqrt(5 / (2 * math.pi)) * (6 * t * t - 6 * t + 1),
-        math.sqrt(30 / math.pi) * torch.sin(phi) * (2 * t - 1) * s,
-        math.sqrt(30 / math.pi) * torch.sin(2 * phi) * (t * t - t),
-    ]
-    return torch.stack(terms, -1)
 
 
 BASES = {"PTM": ptm_basis, "HSH": hsh_basis}
