@@ -13,7 +13,7 @@ least-squares photometric stereo on the same frames' luminance.
 - PTM (6 terms: ``lu^2, lv^2, lu lv, lu, lv, 1``) and HSH (order 3, 9 terms) are fitted per pixel
   and channel by least squares on the sRGB values (one ``torch.linalg.lstsq`` for all pixels).
 - torchspec: :func:`torchspec.fit` on the fitted frames with each ``models`` entry (``auto``, or a
-  forced model), the maps rendered under the left-out lights by :func:`torchspec.render`; the
+  forced model), the maps rendered under the left-out lights by :func:`torchspec.rendering.render_image`; the
   share of pixels given a lobe (``Fit.lobe``) is reported.
 - per method: the worst left-out frame's mean brightness ratio (predicted over photographed, in
   linear values; the frame furthest from 1).
@@ -44,11 +44,11 @@ from torchspec.io import write_capture
 from torchspec.io.images import Transfer, read_photo
 from torchspec.io.rti import import_rti
 from torchspec.lights import Lights
+from torchspec.rendering import render_image
 from torchspec.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
 
 SRGB = Transfer("srgb")
 LUMA = (0.2126, 0.7152, 0.0722)
-TILE = 4096
 
 
 @dataclass(frozen=True)
@@ -136,15 +136,11 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, se
         warnings.simplefilter("ignore")
         fit = torchspec.fit(capture, config=config, frames=fitted)
     seconds = fit.stats["seconds"]["total"]
-    flat = fit.svbrdf.flatten().to(torch.float64)
     view = torch.tensor(capture.view, dtype=torch.float64)
-    parts = [torchspec.render(flat[i : i + TILE], lights, view) for i in range(0, flat.shape[0], TILE)]
-    values = torch.cat(parts).reshape(capture.height, capture.width, len(lights.directions), -1)
+    values = render_image(fit.svbrdf.to(torch.float64), lights, view)  # (H, W, K, C)
     termed = None
     if fit.term is not None:  # the maps relit as torchspec render does (ResidualTerm.relit, then apply)
-        relit = fit.term.relit(fit.svbrdf).flatten().to(torch.float64)
-        parts = [torchspec.render(relit[i : i + TILE], lights, view) for i in range(0, relit.shape[0], TILE)]
-        base = torch.cat(parts).reshape(values.shape)
+        base = render_image(fit.term.relit(fit.svbrdf).to(torch.float64), lights, view)
         termed = fit.term.apply(base, lights).permute(2, 3, 0, 1)
     return values.permute(2, 3, 0, 1), termed, seconds, fit
 
