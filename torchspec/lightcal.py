@@ -50,6 +50,7 @@ from torch import Tensor
 
 from .errors import TorchspecError
 from .near_lights import image_points, near_light
+from .photometric import MAD_SCALE
 
 __all__ = [
     "LightCalibration",
@@ -59,7 +60,6 @@ __all__ = [
     "lambert_fit",
 ]
 
-MAD_SCALE = 1.4826
 CHUNK = 512
 """Pixels a variable-projection step handles at once (its Jacobian is ``(chunk, C, K, P, 3)``)."""
 SOLVE_CHUNK = 8192

@@ -29,6 +29,7 @@ from torch import Tensor
 from .brdf import SVBRDF
 from .errors import TorchspecError
 from .lights import Lights, diffuse_directions
+from .photometric import MAD_SCALE
 
 __all__ = [
     "MAP_NAME",
@@ -234,7 +235,7 @@ def fit_term(
 
     Args:
         observed: ``(n, K, C)`` recorded values.
-        valid: ``(n, K)`` bool, the samples to fit (saturated and masked samples excluded).
+        valid: ``(n, K)`` bool, the samples to fit.
         model: ``(n, K, C)`` the physical model's prediction of them.
         lights: the ``K`` frames' lights (the directions and scales).
         folds: ``(S, K)`` each frame's fold per scheme
@@ -257,8 +258,8 @@ def fit_term(
     dtype = observed.dtype
     lights = lights.to(dtype=dtype, device=observed.device)
     scale = lights.scale[None]  # (1, K, C or 1)
-    unit_model = model / scale
-    target = encode(observed / scale) - encode(unit_model)  # (n, K, C)
+    recorded = encode(observed / scale)
+    target = recorded - encode(model / scale)  # (n, K, C)
     weight = valid.to(dtype)
     target = target * weight[..., None]
     basis = hsh_basis(term_directions(lights), order)  # (K, J)
@@ -273,7 +274,7 @@ def fit_term(
         left_target = (
             target
             if held_out is None
-            else (encode(observed / scale) - encode(held_out[:, s] / scale)) * weight[..., None]
+            else (recorded - encode(held_out[:, s] / scale)) * weight[..., None]
         )
         errors = torch.zeros_like(target)
         for fold in range(count):
@@ -287,12 +288,11 @@ def fit_term(
     # In the encoded domain, where the term is fitted and the photographs are judged, the samples'
     # noise is taken as one level: the robust spread of what the term leaves on the fitted frames.
     left = (target - torch.einsum("kj,njc->nkc", basis, coefficients) * weight[..., None])[valid]
-    sigma = (1.4826 * left.abs().median()).clamp(min=1e-4) if left.numel() else target.new_tensor(1.0)
-    candidate = torch.stack(schemes, 1) / sigma  # (n, S, K, C) in noise units
-    current = torch.stack(plain, 1) / sigma
-    chosen = predicts_better(candidate, current, z)
+    sigma = (MAD_SCALE * left.abs().median()).clamp(min=1e-4) if left.numel() else target.new_tensor(1.0)
+    candidate, current = torch.stack(schemes, 1), torch.stack(plain, 1)  # (n, S, K, C), encoded units
+    chosen = predicts_better(candidate / sigma, current / sigma, z)
     coefficients = torch.where(chosen[:, None, None], coefficients, torch.zeros_like(coefficients))
-    kept = torch.where(chosen[:, None, None, None], candidate, current) * sigma  # encoded units
+    kept = torch.where(chosen[:, None, None, None], candidate, current)
     return ResidualTerm(coefficients=coefficients, chosen=chosen, left_out=kept, noise=sigma)
 
 

@@ -178,7 +178,6 @@ def residual_term(
     ones, whose gain no photograph gave) needs."""
     kept = kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
-
     folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
     model = render(choice.svbrdf, data.lights, data.view, quadrature=config.rule)
     predicted = held_out_values(choice, model, sensor, folds, data, config)
