@@ -271,11 +271,7 @@ def fit_term(
     schemes, plain = [], []
     for s, scheme in enumerate(folds):  # a handful of folds: each a batched solve over every pixel
         # what the model fitted without each fold leaves of it (default: the model's own residual)
-        left_target = (
-            target
-            if held_out is None
-            else (recorded - encode(held_out[:, s] / scale)) * weight[..., None]
-        )
+        left_target = target if held_out is None else (recorded - encode(held_out[:, s] / scale)) * weight[..., None]
         errors = torch.zeros_like(target)
         for fold in range(count):
             out = scheme == fold
