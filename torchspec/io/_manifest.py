@@ -253,7 +253,7 @@ def _frames(where: Where, frames: Any, count: int, notes: list[str]) -> tuple[Fr
     if any(placed) and not all(placed):
         first = placed.index(not placed[0])
         raise where.error(
-            f"frames[{first}].position", "be given for every frame or for none", raw_of(frames, first, "position")
+            f"frames[{first}].position", "be given for every frame or for none", _raw_of(frames, first, "position")
         )
     _distinct_directions(where, out)
     return tuple(out)
@@ -310,7 +310,7 @@ def _position(where: Where, key: str, value: Any) -> tuple[float, float, float]:
     return (float(value[0]), float(value[1]), float(value[2]))
 
 
-def raw_of(frames: list, k: int, name: str) -> Any:
+def _raw_of(frames: list, k: int, name: str) -> Any:
     """Frame ``k``'s ``name`` as written (a marker when absent)."""
     return frames[k].get(name, _Text("absent"))
 

@@ -22,6 +22,7 @@ from .result import Fit
 from .settings import MODEL_CODES, FitConfig
 from .smoothing import PlainFit, smooth
 from .tile import TileResult
+from .tiling import sum_counts
 
 __all__ = ["STALLED_SHARE", "assemble", "run_stats", "stalled_warning"]
 
@@ -150,13 +151,7 @@ def stalled_warning(stats: dict) -> str | None:
 
 def _tile_stats(fit: Fit, parts: list[TileResult], stats: dict, smoothed: int | None, total: float) -> dict:
     """``stats`` completed with the tiles' times and counts and the image's statistics."""
-    times: dict[str, float] = {}
-    tried: dict[str, int] = {}
-    for part in parts:
-        for name, seconds in part.times.items():
-            times[name] = times.get(name, 0.0) + seconds
-        for name, pixels_tried in part.tried.items():
-            tried[name] = tried.get(name, 0) + pixels_tried
+    times, tried = sum_counts([part.times for part in parts]), sum_counts([part.tried for part in parts])
     status, iterations, lobe, model, criterion = fit.status, fit.iterations, fit.lobe, fit.model, fit.criterion
     finite = criterion.isfinite()
     pixels = status.numel()

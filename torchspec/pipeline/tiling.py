@@ -16,7 +16,7 @@ from ..near_lights import block_order, block_sizes, image_points, lights_at
 from .start import LightContext, light_context
 from .tile import TileResult
 
-__all__ = ["Tiling", "tiling_of", "merge_tiles"]
+__all__ = ["Tiling", "tiling_of", "merge_tiles", "sum_counts"]
 
 LEAST_BLOCK = 4
 """Under near lights a block is at least this many pixels wide ..."""
@@ -106,14 +106,15 @@ def merge_tiles(parts: list[TileResult], inverse: Tensor) -> TileResult:
         if f.name not in ("tried", "noise", "times", "masked")
     }
     summed = {
-        name: None if getattr(first, name) is None else _sum([getattr(p, name) for p in parts])
+        name: None if getattr(first, name) is None else sum_counts([getattr(p, name) for p in parts])
         for name in ("tried", "times", "masked")
     }
     noise = torch.stack([p.noise for p in parts]).median(0).values
     return TileResult(**per_pixel, **summed, noise=noise)
 
 
-def _sum(values: list[dict]) -> dict:
+def sum_counts(values: list[dict]) -> dict:
+    """The per-tile counts or seconds ``values`` summed key by key."""
     out: dict = {}
     for value in values:
         for key, number in value.items():
