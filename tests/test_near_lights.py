@@ -167,3 +167,17 @@ def test_lights_the_photographs_do_not_determine_are_kept_with_a_warning(tmp_pat
     with pytest.warns(FitWarning, match="not calibrated from the photographs"):
         result = fit(capture, config=FitConfig(model="diffuse", compile=False))
     assert result.stats["lights"]["calibrated"] == []
+
+
+def test_a_cluster_fit_refuses_lights_it_cannot_handle(tmp_path):
+    """Near lights and lights to calibrate are fitted in one process: a cluster fit says so
+    before any work (the client is not touched)."""
+    from torchspec.errors import TorchspecError
+    from torchspec.pipeline import fit_on_cluster
+
+    near, _ = _lambertian_near_capture(tmp_path / "dome", radius=3.0, size=8)
+    with pytest.raises(TorchspecError, match="near-light positions.*one process"):
+        fit_on_cluster(near, None, checkpoint=tmp_path / "tiles")
+    unknown, _ = _lambertian_with_gains(tmp_path, torch.ones(25, dtype=D))
+    with pytest.raises(TorchspecError, match="calibrated from the photographs.*--calibrate none"):
+        fit_on_cluster(unknown, None, checkpoint=tmp_path / "tiles")

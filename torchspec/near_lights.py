@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .lights import Lights
 
-__all__ = ["image_points", "block_order", "lights_at", "near_light"]
+__all__ = ["image_points", "block_order", "block_sizes", "lights_at", "near_light"]
 
 
 def image_points(height: int, width: int, *, dtype=torch.float64, device=None) -> Tensor:

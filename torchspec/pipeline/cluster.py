@@ -174,15 +174,25 @@ class _Job:
 
 
 def _distant(begun):
-    """``begun`` (a :class:`~torchspec.pipeline.plan.Setup`), if its lights are distant.
+    """``begun`` (a :class:`~torchspec.pipeline.plan.Setup`), if its lights are distant and known.
 
     Raises:
-        TorchspecError: near lights (frames with a ``position``), which the cluster does not fit yet.
+        TorchspecError: near lights (frames with a ``position``), or lights to calibrate from the
+            photographs (``FitConfig.calibrate``), which a fit on a cluster does not handle yet.
     """
-    if begun.positions is not None:
+    calibrate = begun.config.calibrate
+    if (
+        begun.positions is not None
+        or calibrate in ("gains", "positions")
+        or (calibrate == "auto" and begun.capture.unknown)
+    ):
+        what = (
+            "give near-light positions" if begun.positions is not None else "are to be calibrated from the photographs"
+        )
         raise TorchspecError(
-            f"{begun.capture.manifest}: its frames give near-light positions, which a fit on a cluster does not "
-            "handle yet; fit it in one process (without --scheduler / --workers)."
+            f"{begun.capture.manifest}: its lights {what}, which a fit on a cluster does not handle yet; fit it in "
+            "one process (without --scheduler / --workers)"
+            + ("." if begun.positions is not None else ", or take the lights as written with --calibrate none.")
         )
     return begun
 
