@@ -139,9 +139,8 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, se
     view = torch.tensor(capture.view, dtype=torch.float64)
     values = render_image(fit.svbrdf.to(torch.float64), lights, view)  # (H, W, K, C)
     termed = None
-    if fit.term is not None:  # the maps relit as torchspec render does (ResidualTerm.relit, then apply)
-        base = render_image(fit.term.relit(fit.svbrdf).to(torch.float64), lights, view)
-        termed = fit.term.apply(base, lights).permute(2, 3, 0, 1)
+    if fit.term is not None:  # as torchspec render does: the maps rendered, then the term applied
+        termed = fit.term.apply(values, lights).permute(2, 3, 0, 1)
     return values.permute(2, 3, 0, 1), termed, seconds, fit
 
 

@@ -7,6 +7,8 @@ import json
 import pytest
 import torch
 from capture_cases import write_painting
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from torchspec.cli import main
 from torchspec.layout import coverage_warning, fit_problem
@@ -82,3 +84,66 @@ def test_the_stalled_share():
     stats["status"]["max iterations"] = 11
     stats["settings"]["lm"]["max_iterations"] = 50
     assert stalled_warning(stats).startswith("11 of 100 pixels (11 %) stopped at the solver's iteration limit (50)")
+
+
+def _lights_at(plane):
+    """Point lights at l-plane positions ``plane (K, 2)``, irradiance 1."""
+    from torchspec.lights import Kernel, Lights
+
+    d = torch.cat([plane, (1 - plane.pow(2).sum(-1, keepdim=True)).sqrt()], -1)
+    k = d.shape[0]
+    return Lights(d, Kernel("point"), torch.ones(k, 1, dtype=F64), torch.ones(k, dtype=F64))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_lobe_support_is_the_ward_shape_at_the_best_light(seed):
+    """Against brute force: ward_cosine without its factors ``sqrt(<n,wi>/<n,wo>) / (4 pi ax ay)``
+    is ``exp(E)``; the support is its largest value over the lights (the sharper of two lobes)."""
+    from torchspec.brdf import SVBRDF, ward_cosine
+    from torchspec.layout import lobe_support
+
+    g = torch.Generator().manual_seed(seed)
+    n_px, k = 7, 9
+    plane = (torch.rand(k, 2, generator=g, dtype=F64) - 0.5) * 1.2
+    lights = _lights_at(plane)
+    tilt = (torch.rand(n_px, 2, generator=g, dtype=F64) - 0.5) * 0.4
+    normal = torch.cat([tilt, torch.ones(n_px, 1, dtype=F64)], -1)
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    alpha = 0.02 + 0.3 * torch.rand(n_px, 2, generator=g, dtype=F64)
+    alpha2 = 0.02 + 0.3 * torch.rand(n_px, 2, generator=g, dtype=F64)
+    rotation = torch.rand(n_px, generator=g, dtype=F64) * 3
+    ks = torch.rand(n_px, 1, generator=g, dtype=F64)
+    ks[0] = 0  # no lobe: support 1 (nothing to determine)
+    kd = torch.full((n_px, 1), 0.5, dtype=F64)
+    svbrdf = SVBRDF(normal, kd, ks, alpha, rotation, ("Y",), ks, alpha2)
+
+    def brute(a):
+        wi, wo, nn = lights.directions[None], VIEW.expand(1, k, 3), normal[:, None]
+        ci, co = (nn * wi).sum(-1), (nn * wo).sum(-1)
+        value = ward_cosine(wi, wo, nn, a[:, None].expand(-1, k, -1), rotation[:, None].expand(-1, k))
+        shape = value * 4 * torch.pi * a[:, None, 0] * a[:, None, 1] / (ci / co).clamp(min=1e-300).sqrt()
+        return shape.amax(-1)
+
+    expected = torch.minimum(brute(alpha), brute(alpha2))
+    expected[0] = 1.0
+    torch.testing.assert_close(lobe_support(svbrdf, lights, VIEW), expected, rtol=1e-10, atol=1e-12)
+
+
+def test_a_lobe_between_the_lights_is_not_supported():
+    """A lobe whose peak (the half vector n) sits midway between grid lights, narrower than their
+    spacing, is not seen within its half maximum; the same lobe at a light is, as is a broad one."""
+    from torchspec.brdf import SVBRDF
+    from torchspec.layout import lobe_support
+
+    lights = _lights_at(_grid(5, 0.6))  # l-plane spacing 0.3: half vectors ~0.15 apart
+    # n mirrors the view to l-plane point (0.15, 0.15) (midway) or (0, 0) (on a light)
+    between = torch.tensor([0.15, 0.15, (1 - 2 * 0.15**2) ** 0.5], dtype=F64)
+    normal = torch.stack([(between + VIEW) / (between + VIEW).norm(), VIEW])
+    one = torch.ones(2, 1, dtype=F64)
+    sharp = SVBRDF(normal, one, one, torch.full((2, 2), 0.04, dtype=F64))
+    support = lobe_support(sharp, lights, VIEW)
+    assert support[0] < 0.5 < support[1]
+    assert support[1] == pytest.approx(1.0)
+    broad = SVBRDF(normal, one, one, torch.full((2, 2), 0.3, dtype=F64))
+    assert bool((lobe_support(broad, lights, VIEW) > 0.5).all())

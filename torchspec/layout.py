@@ -1,7 +1,9 @@
 """Facts of a capture's light layout that the fit's stages share: where the lights lie in the
 l-plane (:func:`layout_of`: a line or a plane, a grid or scattered), how far apart they are
 (:func:`light_spacing`), the kernel's blur (:func:`kernel_variance`), and where a normal mirrors
-the view (:func:`mirror_point`, the l-plane position of a specular peak).
+the view (:func:`mirror_point`, the l-plane position of a specular peak), the narrowest lobe point
+lights resolve (:func:`resolvable_roughness`) and how close a lobe's peak lies to a light
+(:func:`lobe_support`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import torch
 from torch import Tensor
 
 from .errors import TorchspecError
+from .geometry import tangent_frame
 from .lights import Lights
 from .photometric import grid_layout
 
@@ -26,6 +29,8 @@ __all__ = [
     "light_spacing",
     "kernel_variance",
     "mirror_point",
+    "resolvable_roughness",
+    "lobe_support",
 ]
 
 MIN_FRAMES = 4
@@ -286,3 +291,46 @@ def resolvable_roughness(lights: Lights, resolution: float, least: float) -> flo
         return least
     spacing = float(light_spacing(lights.directions[:, :2].double()))
     return max(least, round(resolution * spacing / 2, 6)) if math.isfinite(spacing) else least
+
+
+def lobe_support(svbrdf, lights: Lights, view: Tensor) -> Tensor:
+    """``(n,)`` the largest fraction of its peak that each pixel's Ward lobe shape reaches at any
+    of the ``lights`` (``exp(E)`` of :func:`torchspec.brdf.ward_cosine` at each light's half
+    vector, whose peak ``exp(0) = 1`` lies at the half vector ``n``; the sharper of two lobes);
+    ``1`` where a pixel has no lobe (``k_s = 0``), ``0`` where no light is in front.
+
+    A lobe whose peak lies between the lights, farther from each than its own width (a support
+    below 1/2: no light within its half maximum), is not determined by their samples: its height is
+    extrapolated from its tails, and a light at its peak sees it at any height.
+
+    Example:
+        >>> from torchspec.brdf import SVBRDF
+        >>> from torchspec.lights import Kernel
+        >>> one = torch.ones(1, 1, dtype=torch.float64)
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> flat = SVBRDF(n, one, one, torch.full((1, 2), 0.1, dtype=torch.float64))
+        >>> at_peak = Lights(n, Kernel("point"), one, one[:, 0])
+        >>> float(lobe_support(flat, at_peak, n[0]))
+        1.0
+    """
+    dtype = svbrdf.normal.dtype
+    wi = lights.directions.to(dtype=dtype, device=svbrdf.normal.device)  # (K, 3)
+    wo = view.to(wi) / view.to(wi).norm()
+    n = svbrdf.normal[:, None]  # (n, 1, 3)
+    s, t = tangent_frame(svbrdf.normal, svbrdf.rotation)
+    h = wi + wo  # (K, 3)
+    hn = (h * n).sum(-1)  # (n, K)
+    front = (hn > 0) & ((wi * n).sum(-1) > 0) & ((wo * n).sum(-1) > 0)
+    safe = torch.where(front, hn, torch.ones_like(hn))
+
+    def shape(alpha: Tensor) -> Tensor:
+        a = alpha.clamp(min=torch.finfo(dtype).tiny)[:, None]  # (n, 1, 2)
+        hs, ht = (h * s[:, None]).sum(-1), (h * t[:, None]).sum(-1)
+        exponent = -((hs / a[..., 0]) ** 2 + (ht / a[..., 1]) ** 2) / (safe * safe)
+        return torch.where(front, torch.exp(exponent), torch.zeros_like(exponent)).amax(-1)
+
+    support = torch.where(svbrdf.specular.amax(-1) > 0, shape(svbrdf.roughness), torch.ones_like(hn[:, 0]))
+    if svbrdf.specular2 is not None:
+        second = torch.where(svbrdf.specular2.amax(-1) > 0, shape(svbrdf.roughness2), torch.ones_like(support))
+        support = torch.minimum(support, second)
+    return support

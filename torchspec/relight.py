@@ -18,7 +18,7 @@ from .io import CaptureError, read_capture, read_svbrdf, write_capture
 from .outputs import check_output
 from .quadrature import Quadrature
 from .rendering import render_image
-from .residual_term import BASE_MAP, MAP_NAME, ResidualTerm
+from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
 __all__ = ["render_capture", "psnr"]
 
@@ -75,8 +75,7 @@ def render_capture(
     found = None
     if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
         source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
-        found = ResidualTerm.from_map(maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(BASE_MAP))
-        svbrdf = found.relit(svbrdf)
+        found = ResidualTerm.from_map(maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(WEIGHT_MAP))
     values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
     if found is not None:
         values = found.apply(values, lights)

@@ -7,10 +7,11 @@ Per pixel and channel, hemispherical harmonics of the light direction (the RTI f
 sRGB-encoded domain of its value at unit light, where the photographs were recorded and are
 judged:
 
-    value_k = scale_k decode(encode(model_k / scale_k) + sum_j c_j H_j(l_k))
+    value_k = scale_k decode(w encode(model_k / scale_k) + sum_j c_j H_j(l_k))
 
 with ``scale_k`` the frame's exposure times irradiance, ``l_k`` its light's (effective) direction,
-``encode`` the sRGB transfer extended to every real value (:func:`encode`, :func:`decode`).
+``encode`` the sRGB transfer extended to every real value (:func:`encode`, :func:`decode`), and
+``w`` in ``[0, 1]`` the physical model's weight (1 but where the term alone predicts better).
 
 :func:`fit_term` fits the coefficients by least squares on a fit's valid samples and keeps them
 only at the pixels where they predict frames left out of their fit better than the physical model
@@ -21,20 +22,18 @@ a term that only fits the frames it saw is not kept.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .brdf import SVBRDF
 from .errors import TorchspecError
 from .lights import Lights, diffuse_directions
 from .photometric import MAD_SCALE
 
 __all__ = [
     "MAP_NAME",
-    "BASE_MAP",
-    "BASES",
+    "WEIGHT_MAP",
     "TERMS",
     "ResidualTerm",
     "hsh_basis",
@@ -42,6 +41,7 @@ __all__ = [
     "decode",
     "term_directions",
     "fit_term",
+    "blend",
 ]
 
 TERMS = {2: 4, 3: 9}
@@ -49,11 +49,10 @@ TERMS = {2: 4, 3: 9}
 
 MAP_NAME = "residual_term"
 """The term's map in an SVBRDF folder (``residual_term.exr``) and its key in ``svbrdf.json``."""
-BASE_MAP = "residual_term_base"
-"""The map of :attr:`ResidualTerm.base` (``residual_term_base.exr``: the codes of :data:`BASES`)."""
-BASES = ("model", "none")
-"""What the term is added to, per pixel: the physical model, or nothing (the term alone: the RTI
-fitters' HSH of the photographs, where the physical model predicts left-out frames worse)."""
+WEIGHT_MAP = "residual_term_weight"
+"""The map of :attr:`ResidualTerm.weight` (``residual_term_weight.exr``): the physical model's
+weight ``w`` in ``[0, 1]`` under the term (1: the model and the term; 0: the term alone, the RTI
+fitters' HSH of the photographs)."""
 
 _A = 0.055
 _KNEE = 0.0031308
@@ -112,10 +111,10 @@ class ResidualTerm:
     Attributes:
         coefficients: ``(*, J, C)`` per pixel, basis function and channel (0 where not chosen).
         chosen: ``(*,)`` bool, the pixels that carry a term.
-        base: ``(*,)`` int8 codes of :data:`BASES` or ``None`` (all ``model``): what the term is
-            added to in relighting (:meth:`relit`), the one whose left-out prediction (with the term
-            where it is chosen) is better. The physical maps are unchanged: a pixel relit from
-            the term alone keeps its maps.
+        weight: ``(*,)`` the physical model's weight ``w`` in ``[0, 1]`` (module docstring), or
+            ``None`` (1 everywhere): where the term alone (``w = 0``, an HSH of the
+            photographs) predicts left-out frames better than the model with its term (``w = 1``),
+            the blend of the two that predicts them best. The physical maps are unchanged.
         left_out: ``(*, S, K, C)`` the left-out prediction's errors (encoded units) of what is
             kept, per fold scheme, frame and channel, and ``noise`` (0-dim) the encoded noise level
             they were judged in: what :func:`fit_term` knows of its choice (not saved with the maps;
@@ -124,15 +123,9 @@ class ResidualTerm:
 
     coefficients: Tensor
     chosen: Tensor
-    base: Tensor | None = None
+    weight: Tensor | None = None
     left_out: Tensor | None = None
     noise: Tensor | None = None
-
-    def relit(self, svbrdf: SVBRDF) -> SVBRDF:
-        """The maps to render before :meth:`apply`: ``svbrdf``, black where the :attr:`base` is ``none``."""
-        if self.base is None or not bool(self.base.any()):
-            return svbrdf
-        return without(svbrdf, self.base.to(svbrdf.diffuse.device))
 
     @property
     def order(self) -> int:
@@ -157,26 +150,31 @@ class ResidualTerm:
             "basis": f"hemispherical harmonics of order {self.order} of the light direction (Gautron et al. 2004)",
             "terms": self.coefficients.shape[-2],
             "layout": "channel-major: channel c's coefficient j in EXR channel C{c*terms+j}",
-            "domain": "value = scale * decode(encode(model / scale) + sum_j c_j H_j(l)), encode the sRGB transfer "
+            "domain": "value = scale * decode(w * encode(model / scale) + sum_j c_j H_j(l)), encode the sRGB transfer "
             "extended to all reals, scale = exposure * irradiance",
             "pixels": int(self.chosen.sum()),
-            "base": f"{BASE_MAP}.exr: what the term is added to, codes of base_codes",
-            "base_codes": list(BASES),
-            "base_pixels": {
-                name: int((self.base == code).sum()) if self.base is not None else (0 if code else self.chosen.numel())
-                for code, name in enumerate(BASES)
-            },
+            "weight": f"{WEIGHT_MAP}.exr: the physical model's weight w in [0, 1]",
+            "weight_pixels": self._weights(),
+        }
+
+    def _weights(self) -> dict:
+        w = torch.ones_like(self.chosen, dtype=torch.float32) if self.weight is None else self.weight
+        return {
+            "model (w = 1)": int((w == 1).sum()),
+            "term alone (w = 0)": int((w == 0).sum()),
+            "blend (0 < w < 1)": int(((w > 0) & (w < 1)).sum()),
         }
 
     @staticmethod
     def from_map(
-        image: Tensor, channels: int, source: str = "residual_term.exr", base: Tensor | None = None
+        image: Tensor, channels: int, source: str = "residual_term.exr", weight: Tensor | None = None
     ) -> ResidualTerm:
         """The term of a ``(*, C J)`` map (:meth:`to_map`) of ``channels`` channels, and the
-        :attr:`base` map (codes of :data:`BASES`) when given.
+        :attr:`weight` map ``(*,)`` or ``(*, 1)`` when given.
 
         Raises:
-            TorchspecError: the map's channel count is not ``channels`` times a basis' size, naming ``source``.
+            TorchspecError: the map's channel count is not ``channels`` times a basis' size, or the
+                weight is not in ``[0, 1]`` everywhere, naming ``source``.
         """
         count = image.shape[-1] if image.dim() >= 3 else 1
         if count % channels or count // channels not in TERMS.values():
@@ -185,17 +183,22 @@ class ResidualTerm:
                 "coefficients of a residual term."
             )
         coefficients = image.reshape(*image.shape[:-1], channels, count // channels).transpose(-1, -2)
-        codes = None
-        if base is not None:
-            codes = base.to(image.device).round().to(torch.int8)
-            if bool(((codes < 0) | (codes >= len(BASES))).any()):
+        chosen = coefficients.ne(0).any(-1).any(-1)
+        if weight is not None:
+            weight = weight.to(image.device, image.dtype).reshape(chosen.shape)
+            bad = ~((weight >= 0) & (weight <= 1))
+            if bool(bad.any()):
+                where = tuple(int(i) for i in bad.nonzero()[0])
                 raise TorchspecError(
-                    f"{source}: its base map holds codes outside 0..{len(BASES) - 1} ({', '.join(BASES)})."
+                    f"{source}: its weight map ({WEIGHT_MAP}.exr) must be in [0, 1]; it holds "
+                    f"{float(weight[where])} at pixel (row, column) {where} and {int(bad.sum())} such value(s) in all."
                 )
-        return ResidualTerm(coefficients=coefficients, chosen=coefficients.ne(0).any(-1).any(-1), base=codes)
+            chosen = chosen | (weight < 1)
+        return ResidualTerm(coefficients=coefficients, chosen=chosen, weight=weight)
 
     def apply(self, values: Tensor, lights: Lights) -> Tensor:
-        """The physical prediction ``values (*, K, C)`` with the term added at chosen pixels."""
+        """The physical prediction ``values (*, K, C)`` of the maps as they are, with the term
+        added (and the model weighed by :attr:`weight`) at chosen pixels."""
         lights = lights.to(dtype=values.dtype, device=values.device)
         basis = hsh_basis(term_directions(lights), self.order)  # (K, J)
         coefficients = self.coefficients.to(values)
@@ -206,17 +209,9 @@ class ResidualTerm:
             )
         scale = lights.scale
         term = torch.einsum("kj,...jc->...kc", basis, coefficients)
-        added = decode(encode(values / scale) + term) * scale
+        weight = 1.0 if self.weight is None else self.weight.to(values)[..., None, None]
+        added = decode(weight * encode(values / scale) + term) * scale
         return torch.where(self.chosen.to(values.device)[..., None, None], added, values)
-
-
-def without(svbrdf: SVBRDF, base: Tensor) -> SVBRDF:
-    """``svbrdf (*,)`` black where ``base (*,)`` is ``none`` (:data:`BASES`)."""
-    light = (base == 0)[..., None]
-    second = {}
-    if svbrdf.specular2 is not None:
-        second["specular2"] = svbrdf.specular2 * light
-    return replace(svbrdf, diffuse=svbrdf.diffuse * light, specular=svbrdf.specular * light, **second)
 
 
 def fit_term(
@@ -297,3 +292,36 @@ def _solve(normal: Tensor, right: Tensor, ridge: float) -> Tensor:
     damping = ridge * normal.diagonal(dim1=-2, dim2=-1).mean(-1).clamp(min=1e-12)
     eye = torch.eye(size, dtype=normal.dtype, device=normal.device)
     return torch.linalg.solve(normal + damping[..., None, None] * eye, right)
+
+
+def blend(with_model: ResidualTerm, alone: ResidualTerm, z: float = 3.0) -> ResidualTerm:
+    """The two terms of :func:`fit_term` of a set of pixels, on the physical model (``with_model``)
+    and on nothing (``alone``), blended per pixel by the model's weight ``w`` in ``[0, 1]`` that
+    predicts the left-out frames best (both terms' :attr:`~ResidualTerm.left_out` errors; a
+    stacking of the two predictors, Breiman 1996): in the encoded domain the blend's error is
+    ``w e_model + (1 - w) e_alone``, least in square at
+
+        w = <e_alone, e_alone - e_model> / |e_alone - e_model|^2, clipped to [0, 1]
+
+    (1 where the two predict alike). ``w < 1`` is kept only where the blend predicts the left-out
+    frames better than the model with its term by ``z``
+    (:func:`~torchspec.pipeline.prediction.predicts_better`, in ``with_model``'s noise units):
+    the model is not given up for what noise would make look better. Its coefficients are
+    ``w c_model + (1 - w) c_alone`` (:attr:`ResidualTerm.weight` ``= w``)."""
+    from .pipeline.prediction import predicts_better  # the selection rule of the fit's models
+
+    model, other = with_model.left_out, alone.left_out
+    if model is None or other is None:
+        raise TorchspecError("blend needs the left-out errors of both terms (fit_term's left_out).")
+    gap = other - model
+    square = gap.pow(2).flatten(1).sum(1)
+    agree = square <= torch.finfo(square.dtype).tiny
+    w = ((other * gap).flatten(1).sum(1) / torch.where(agree, torch.ones_like(square), square)).clamp(0, 1)
+    w = torch.where(agree, torch.ones_like(w), w)
+    mixed = w[:, None, None, None] * model + (1 - w[:, None, None, None]) * other
+    sigma = with_model.noise if with_model.noise is not None else model.new_tensor(1.0)
+    w = torch.where(predicts_better(mixed / sigma, model / sigma, z), w, torch.ones_like(w))
+    coefficients = w[:, None, None] * with_model.coefficients + (1 - w[:, None, None]) * alone.coefficients
+    chosen = with_model.chosen | (w < 1)
+    left = w[:, None, None, None] * model + (1 - w[:, None, None, None]) * other
+    return ResidualTerm(coefficients=coefficients, chosen=chosen, weight=w, left_out=left, noise=with_model.noise)

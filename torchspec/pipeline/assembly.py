@@ -104,7 +104,7 @@ def assemble(
         term = ResidualTerm(
             coefficients=_join([p.term.coefficients for p in parts], h, w),
             chosen=_join([p.term.chosen for p in parts], h, w),
-            base=_join([p.term.base for p in parts], h, w),
+            weight=_join([p.term.weight for p in parts], h, w),
         )
         joined = replace(joined, term=term)
     smoothed = None
@@ -115,8 +115,8 @@ def assemble(
         if joined.term is not None:  # a term fitted on top of a lobe that smoothing took away: none
             kept = joined.term.chosen & (joined.model == before)
             coefficients = torch.where(kept[..., None, None], joined.term.coefficients, 0.0)
-            base = torch.where(joined.model == before, joined.term.base, torch.zeros_like(joined.term.base))
-            joined = replace(joined, term=ResidualTerm(coefficients=coefficients, chosen=kept, base=base))
+            weight = torch.where(joined.model == before, joined.term.weight, torch.ones_like(joined.term.weight))
+            joined = replace(joined, term=ResidualTerm(coefficients=coefficients, chosen=kept, weight=weight))
     svbrdf = joined.svbrdf
     if svbrdf.specular2 is not None and not bool((svbrdf.specular2 > 0).any()):
         # A ladder with ward-dual that no pixel took: no second lobe's maps or deviations.

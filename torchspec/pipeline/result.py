@@ -13,7 +13,7 @@ from ..flags import FLAGS, UNTRUSTED, bit
 from ..io import write_svbrdf
 from ..lm import STATUS
 from ..outputs import check_output
-from ..residual_term import BASE_MAP, MAP_NAME, ResidualTerm
+from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 from .checkpoint import CHECKPOINT
 from .settings import MODEL_CODES
 
@@ -115,6 +115,6 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
         extra.update(std_specular2=result.std["specular2"].float(), std_roughness2=result.std["roughness2"].float())
     if result.term is not None:  # FitConfig.residual_term: its own maps, the physical ones unchanged
         extra[MAP_NAME] = result.term.to_map().float()
-        extra[BASE_MAP] = result.term.base.float()
+        extra[WEIGHT_MAP] = result.term.weight.float()
         meta[MAP_NAME] = result.term.description()
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra, overwrite=True)

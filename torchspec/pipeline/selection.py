@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
+from ..layout import lobe_support
 from ..lm import DIVERGED, LMResult
 from ..models import get_model
 from .prediction import held_out, held_out_refit, light_folds, predicts_better
@@ -27,7 +28,7 @@ from .solver import Solved, solve_pixels
 from .start import StartingPoint
 from .uncertainty import PeakSamples, sensor_noise, uncertainty
 
-__all__ = ["ModelFit", "Choice", "assess", "resolved", "select_models"]
+__all__ = ["ModelFit", "Choice", "assess", "resolved", "supported", "select_models"]
 
 
 @dataclass(frozen=True)
@@ -261,7 +262,7 @@ def _climb(
         index = fit.index
         mine = predicted(get_model(fit.name), fit.svbrdf, index)
         better = predicts_better(mine, heldout[index], config.predict_z) & (fit.criterion < math.inf)
-        better &= resolved(fit, config.resolve)
+        better &= resolved(fit, config.resolve) & supported(fit, data, config.lobe_support)
         choice.take(fit, better)
         heldout[index[better]] = mine[better]
         return better
@@ -302,6 +303,15 @@ def resolved(fit: ModelFit, bound: float) -> Tensor:
     first = fit.std["roughness"][:, 0] < bound * fit.svbrdf.roughness[:, 0]
     second = fit.std["roughness2"][:, 0] < bound * fit.svbrdf.roughness2[:, 0]
     return first & second
+
+
+def supported(fit: ModelFit, data: TileSamples, least: float) -> Tensor:
+    """``(m,)`` bool: with point lights, a fit's lobe reaches at least ``least`` of its peak at
+    one of the frames (:func:`torchspec.layout.lobe_support`); True without a lobe, with an
+    extended kernel (whose blur sees the peak from the frames about it) or ``least = 0``."""
+    if data.lights.kernel.kind != "point" or least <= 0 or not get_model(fit.name).lobe:
+        return torch.ones_like(fit.unexplained)
+    return lobe_support(fit.svbrdf, data.lights, data.view) >= least
 
 
 def _broad_fit(start: StartingPoint, index: Tensor, data: TileSamples, config: FitConfig) -> Solved:

@@ -108,6 +108,11 @@ class FitConfig:
             falls between the frames, fits one frame's sample and predicts nothing between them
             (relighting between lights explodes). ``0``: only :data:`torchspec.models.ALPHA_BOUNDS`.
             An extended kernel's blur resolves narrower lobes: no bound from the sampling.
+        lobe_support: with point lights, ``auto`` keeps a lobe only where some frame of the fit
+            sees at least ``lobe_support`` of its peak (:func:`torchspec.layout.lobe_support`; 1/2:
+            a light within the lobe's half maximum): a lobe peaking between the lights, farther
+            from each than its width, has a height no photograph determines, and a light at its
+            peak sees it at any height. ``0``: no such test.
         residual_term: ``0`` (off), ``2`` or ``3``: the order of a smooth per-pixel residual term
             (:mod:`torchspec.residual_term`: hemispherical harmonics of the light direction, 4 or 9
             coefficients per channel, in the sRGB-encoded domain) fitted on top of the chosen model
@@ -167,6 +172,7 @@ class FitConfig:
     fold_regions: bool = False
     refit: int = 0
     lobe_resolution: float = 0.5
+    lobe_support: float = 0.5
     calibrate: str = "auto"
     residual_term: int = 0
     term_z: float = 1.0
@@ -222,6 +228,8 @@ class FitConfig:
             raise ConfigError(f"FitConfig.calibrate must be one of {list(CALIBRATE)}; got {self.calibrate!r}.")
         if not (self.lobe_resolution >= 0 and math.isfinite(self.lobe_resolution)):
             raise ConfigError(f"FitConfig.lobe_resolution must be >= 0 and finite; got {self.lobe_resolution!r}.")
+        if not 0 <= self.lobe_support <= 1:
+            raise ConfigError(f"FitConfig.lobe_support must be in [0, 1]; got {self.lobe_support!r}.")
         if not (self.term_z >= 0 and math.isfinite(self.term_z)):
             raise ConfigError(f"FitConfig.term_z must be >= 0 and finite; got {self.term_z!r}.")
         if not self.trust_rms > 0:

@@ -16,21 +16,23 @@ from ..brdf import SVBRDF
 from ..lights import Lights
 from ..models import get_model
 from ..rendering import render
-from ..residual_term import ResidualTerm, fit_term
+from ..residual_term import ResidualTerm, blend, fit_term
 from ..threads import fit_threads
 from .checkpoint import save_tile
 from .checks import Checks, check_choice, quality_of
-from .prediction import held_out, held_out_refit, light_folds, predicts_better
+from .prediction import held_out_refit, light_folds
 from .samples import TileSamples
 from .selection import select_models
 from .settings import MODEL_CODES, FitConfig
 from .smoothing import PlainFit, plain_alternative
 from .start import LightContext, starting_point
 
-__all__ = ["MASK_KINDS", "TileResult", "fit_pixels", "fit_tile"]
+__all__ = ["MASK_KINDS", "TERM_REFIT", "TileResult", "fit_pixels", "fit_tile"]
 
 MASK_KINDS = ("nonfinite", "saturated", "shadowed")
 """The masks of :class:`torchspec.photometric.Masks` that :func:`fit_tile` takes and counts."""
+TERM_REFIT = 5
+"""Solver steps of each fold's refit that judges the residual term (:func:`held_out_values`)."""
 
 
 @dataclass(frozen=True)
@@ -166,11 +168,11 @@ def residual_term(
     (``choice``, :func:`~torchspec.pipeline.selection.select_models`) on the samples ``kept (n, K)``
     of ``y (n, K, C)``, judged on the folds of ``auto``'s choice.
 
-    The term is fitted on two bases (:data:`torchspec.residual_term.BASES`): the chosen model,
-    judged by its prediction of each fold from a fit without it
-    (:func:`~torchspec.pipeline.prediction.held_out`), and nothing (the term alone); each pixel
-    keeps the base that predicts left-out frames better by ``FitConfig.term_z``, the model where
-    neither does (``ResidualTerm.base``; the maps are unchanged).
+    The term is fitted on two bases: the chosen model, judged by its prediction of each fold from
+    a refit without it (:func:`~torchspec.pipeline.prediction.held_out_refit`), and nothing (the term
+    alone, an HSH of the photographs); each pixel keeps the blend of the two that predicts the
+    left-out frames best (:func:`torchspec.residual_term.blend`: the model's weight
+    ``ResidualTerm.weight``; the maps are unchanged).
 
     With calibrated ``gains (K, C)`` the term is fitted under the lights as written (the gains
     divided out of the model's prediction): it then carries how the photographs' brightness
@@ -189,19 +191,18 @@ def residual_term(
     order = config.residual_term
     with_model = fit_term(values, kept, model, lights, folds, order=order, z=config.term_z, held_out=predicted)
     alone = fit_term(values, kept, torch.zeros_like(model), lights, folds, order=order, z=config.term_z)
-    sigma = with_model.noise
-    better = predicts_better(alone.left_out / sigma, with_model.left_out / sigma, config.term_z)
-    base = better.to(torch.int8)
-    coefficients = torch.where(better[:, None, None], alone.coefficients, with_model.coefficients)
-    chosen = torch.where(better, alone.chosen, with_model.chosen)
-    return ResidualTerm(coefficients=coefficients, chosen=chosen, base=base)
+    return blend(with_model, alone, config.term_z)
 
 
 def held_out_values(
     choice, model: Tensor, sensor: Tensor, folds: Tensor, data: TileSamples, config: FitConfig
 ) -> Tensor:
     """``(n, S, K, C)`` each pixel's chosen model's prediction of each valid sample from a fit
-    without its fold (:func:`~torchspec.pipeline.prediction.held_out`); ``model (n, K, C)``, the fit
+    without its fold, refitted by :data:`TERM_REFIT` (or ``FitConfig.refit``) solver steps
+    (:func:`~torchspec.pipeline.prediction.held_out_refit`: the one-step linear prediction of
+    :func:`~torchspec.pipeline.prediction.held_out`, good enough to rank models, can be far off
+    where a fold holds a lobe's peak, and the term would then give up a model that predicts well);
+    ``model (n, K, C)``, the fit
     on every frame, at samples the fit did not use."""
     out = model[:, None].expand(-1, folds.shape[0], -1, -1).clone()
     for code, name in enumerate(MODEL_CODES):
@@ -209,9 +210,9 @@ def held_out_values(
         if index.numel() == 0:
             continue
         inverse = data.inverse_noise(sensor, index, config.noise_floor)  # (m, K, C)
-        # held_out's residuals: (render - observed) in noise units
-        predict = held_out_refit if config.refit else held_out
-        residual = predict(get_model(name), choice.svbrdf[index], index, data, inverse, folds, config)
+        # held_out_refit's residuals: (render - observed) in noise units
+        refit = replace(config, refit=config.refit or TERM_REFIT)
+        residual = held_out_refit(get_model(name), choice.svbrdf[index], index, data, inverse, folds, refit)
         valid = inverse[:, None] > 0
         fitted = data.observed[index, None] + residual / torch.where(valid, inverse[:, None], torch.ones_like(residual))
         out[index] = torch.where(valid, fitted, out[index])
