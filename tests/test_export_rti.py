@@ -19,6 +19,7 @@ from torchspec.cli import main
 from torchspec.export import ExportWarning, export, export_gltf, export_openlime, export_png16, export_rti
 from torchspec.export.openlime import alpha_from_gloss, gloss_from_alpha
 from torchspec.export.rti import fit_hsh, fit_rti, hemisphere_directions, render_display
+from torchspec.export.rti import read_rti as read_rti_file
 from torchspec.io import write_svbrdf
 from torchspec.lights import Kernel, Lights
 from torchspec.rendering import render
@@ -106,6 +107,7 @@ def test_rti_read_back_against_the_fit_and_the_renders(tmp_path):
     assert data.startswith(b"#HSH1.2\n3\n9 6 3\n9 2 1\n")
     coefficients, header = read_rti(data)
     assert header["type"] == 3 and header["size"] == (9, 6) and header["terms"] == 9 and header["element"] == 1
+    np.testing.assert_array_equal(read_rti_file(tmp_path / "image.rti")[0], coefficients)  # torchspec's reader
 
     fit = fit_rti(maps)  # the float fit before quantisation
     held_out = hemisphere_directions(20, 70.0) @ torch.tensor(
@@ -278,3 +280,23 @@ def test_gltf_exports_pass_the_khronos_validator(tmp_path):
         )
     assert [r["numErrors"] for r in reports] == [0] * len(files), reports
     assert [r["numWarnings"] for r in reports] == [0] * len(files), reports
+
+
+def test_export_rti_experiment_runs(tmp_path):
+    """experiments/export_rti.py on small maps (its full run, on the demo's fit: experiments/results)."""
+    import importlib
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    if str(root / "experiments") not in sys.path:
+        sys.path.insert(0, str(root / "experiments"))
+    write_svbrdf(tmp_path / "maps", _maps())
+    config = tmp_path / "tiny.yaml"
+    config.write_text(f"maps: {tmp_path / 'maps'}\nfit_lights: 20\nheld_out_lights: 9\n")
+    result = importlib.import_module("export_rti").main(["--config", str(config), "--output", str(tmp_path)])
+    saved = json.loads((tmp_path / "tiny.json").read_text())
+    held = saved["rti"]["held_out_lights"]
+    assert held["count"] == 9 and held["file_vs_float_fit"]["max"] < 1.0, "quantisation: under a code"
+    assert held["file_vs_render"]["rms"] == pytest.approx(result["rti"]["held_out_lights"]["file_vs_render"]["rms"])
+    assert saved["openlime"]["alpha_relative_error"]["max"] < 0.05

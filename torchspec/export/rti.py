@@ -48,6 +48,7 @@ __all__ = [
     "fit_rti",
     "hemisphere_directions",
     "quantise",
+    "read_rti",
     "rti_bytes",
     "render_display",
 ]
@@ -59,7 +60,7 @@ FIT_LIGHTS = 100
 FIT_THETA_MAX_DEG = 75.0
 """The fitted cap of the hemisphere: lights up to 75 degrees from the zenith (15 degrees above the
 horizon, the lowest light of a usual RTI dome)."""
-_ROWS_PIXELS = 1 << 16
+_ROWS_PIXELS = 1 << 15
 
 
 @dataclass(frozen=True)
@@ -139,6 +140,38 @@ def rti_bytes(codes: np.ndarray, scale: np.ndarray, bias: np.ndarray) -> bytes:
     header = f"#HSH1.2\n3\n{width} {height} {channels}\n{terms} 2 1\n".encode("ascii")
     floats = np.asarray(scale, "<f4").tobytes() + np.asarray(bias, "<f4").tobytes()
     return header + floats + np.ascontiguousarray(codes[::-1]).tobytes()
+
+
+def read_rti(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The coefficients of an HSH ``.rti`` (as :func:`export_rti` and RTIBuilder write it):
+    ``(H, W, C, J)`` float64, row 0 at the top of the image, and the file's ``scale`` and ``bias (J,)``.
+
+    Raises:
+        ExportError: the file is not an HSH ``.rti`` of one-byte coefficients, or is cut short.
+    """
+    data = Path(path).read_bytes()
+    lines, offset = [], 0
+    while len(lines) < 3:
+        end = data.find(b"\n", offset)
+        if end < 0:
+            raise ExportError(f"{path}: not an .rti file (its header ends early).")
+        line = data[offset:end].decode("latin-1").strip()
+        offset = end + 1
+        if not line.startswith("#"):
+            lines.append(line.split())
+    try:
+        (kind,), (width, height, colours), (terms, _, element) = ([int(v) for v in line] for line in lines)
+    except ValueError as error:
+        raise ExportError(f"{path}: not an .rti header ({lines}).") from error
+    if kind != 3 or element != 1:
+        raise ExportError(f"{path}: only HSH (type 3) .rti files of 1-byte coefficients are read; got type {kind}.")
+    scale = np.frombuffer(data, "<f4", terms, offset).astype(np.float64)
+    bias = np.frombuffer(data, "<f4", terms, offset + 4 * terms).astype(np.float64)
+    body = np.frombuffer(data, np.uint8, offset=offset + 8 * terms)
+    if body.size != width * height * colours * terms:
+        raise ExportError(f"{path}: {body.size} coefficient bytes, {width * height * colours * terms} expected.")
+    codes = body.reshape(height, width, colours, terms)[::-1]
+    return codes / 255.0 * scale + bias, scale, bias
 
 
 def export_rti(
