@@ -47,7 +47,7 @@ def read_rti(data: bytes) -> tuple[np.ndarray, dict]:
     bias = np.array(struct.unpack_from(f"<{terms}f", data, offset + 4 * terms))
     body = np.frombuffer(data, np.uint8, offset=offset + 8 * terms)
     assert body.size == width * height * colours * terms, "the file holds exactly the coefficients"
-    codes = body.reshape(height, width, colours, terms)[::-1]  # the file's first row is the bottom one
+    codes = body.reshape(height, width, colours, terms)  # the file's first row is the top one
     header = {"type": kind, "size": (width, height), "colours": colours, "terms": terms, "element": element}
     header["basis_type"] = basis_type
     return codes / 255.0 * scale + bias, {**header, "scale": scale, "bias": bias}

@@ -8,8 +8,10 @@ Relight's ``src/legacy_rti.cpp`` reads it the same way):
 - text lines ``#HSH1.2``, ``3`` (the RTI type: HSH), ``W H 3`` (width, height, colour
   components), ``9 2 1`` (basis terms, basis type, bytes per element);
 - ``9`` little-endian float32 scales, then ``9`` float32 biases;
-- one byte per coefficient: rows from the bottom of the image to its top, in each row the pixels
-  left to right, for each pixel the 9 red coefficients, then the 9 green, then the 9 blue;
+- one byte per coefficient: rows from the top of the image to its bottom (RTIViewer reads them
+  into its top-down image as they come, and turns a PTM's bottom-up rows over; Relight's reader
+  and writer turn the rows of an ``.rti`` over against its bottom-up memory, not a PTM's), in each
+  row the pixels left to right, for each pixel the 9 red coefficients, then the 9 green, then the 9 blue;
   coefficient ``k`` is ``byte / 255 * scale[k] + bias[k]``.
 
 RTIViewer shows ``255 * sum_k c_k H_k(theta, phi)`` (clamped to 0..255) for the light of polar
@@ -135,11 +137,11 @@ def quantise(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def rti_bytes(codes: np.ndarray, scale: np.ndarray, bias: np.ndarray) -> bytes:
     """The ``.rti`` file of ``codes (H, W, 3, 9)`` (row 0 at the top of the image), ``scale`` and
-    ``bias (9,)``: the header, the float32 scales and biases, then the rows bottom to top."""
+    ``bias (9,)``: the header, the float32 scales and biases, then the rows top to bottom."""
     height, width, channels, terms = codes.shape
     header = f"#HSH1.2\n3\n{width} {height} {channels}\n{terms} 2 1\n".encode("ascii")
     floats = np.asarray(scale, "<f4").tobytes() + np.asarray(bias, "<f4").tobytes()
-    return header + floats + np.ascontiguousarray(codes[::-1]).tobytes()
+    return header + floats + np.ascontiguousarray(codes).tobytes()
 
 
 def read_rti(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -170,7 +172,7 @@ def read_rti(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     body = np.frombuffer(data, np.uint8, offset=offset + 8 * terms)
     if body.size != width * height * colours * terms:
         raise ExportError(f"{path}: {body.size} coefficient bytes, {width * height * colours * terms} expected.")
-    codes = body.reshape(height, width, colours, terms)[::-1]
+    codes = body.reshape(height, width, colours, terms)
     return codes / 255.0 * scale + bias, scale, bias
 
 
