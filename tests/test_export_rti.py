@@ -146,6 +146,15 @@ def test_rti_of_a_matte_flat_surface_is_close(tmp_path):
 def test_rti_refuses_bad_options(tmp_path):
     from torchspec.export import ExportError
 
+    export_rti(_maps(), tmp_path / "ok")
+    data = (tmp_path / "ok" / "image.rti").read_bytes()
+    (tmp_path / "cut.rti").write_bytes(data[:-5])
+    with pytest.raises(ExportError, match=r"cut.rti: 940 coefficient bytes, 945 expected"):
+        read_rti_file(tmp_path / "cut.rti")
+    (tmp_path / "ptm.rti").write_bytes(data.replace(b"#HSH1.2\n3\n", b"#PTM1.2\n1\n", 1))
+    with pytest.raises(ExportError, match="only HSH"):
+        read_rti_file(tmp_path / "ptm.rti")
+
     with pytest.raises(ExportError, match="at least 9 lights"):
         hemisphere_directions(5)
     with pytest.raises(ExportError, match="irradiance must be a positive"):
@@ -245,6 +254,10 @@ def test_command_exports_for_rti_tools(tmp_path, capsys, to, manifest):
         warnings.simplefilter("ignore", ExportWarning)  # openlime: the anisotropic lobes, tested above
         assert main(["export", str(tmp_path / "maps"), "--to", to, "-o", str(tmp_path / "out")]) == 0
     assert f"wrote {tmp_path / 'out' / manifest}" in capsys.readouterr().out
+    if to == "rti":
+        argv = ["export", str(tmp_path / "maps"), "--to", "rti", "-o", str(tmp_path / "e"), "--irradiance", "1.5"]
+        assert main(argv) == 0
+        assert json.loads((tmp_path / "e" / "rti.json").read_text())["irradiance"] == 1.5
     assert main(["export", str(tmp_path / "maps"), "--to", "openlime", "-o", str(tmp_path / "x"), "--irradiance", "2"])
     assert "mitsuba or rti export" in capsys.readouterr().err
 
