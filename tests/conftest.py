@@ -57,3 +57,20 @@ def unknown_light_capture(tmp_path):
     )
     write_simulation(tmp_path / "m", simulate(config))
     return tmp_path / "m"
+
+
+@pytest.fixture(autouse=True)
+def gltf_exports_are_valid(request):
+    """Every ``.gltf`` a test writes under its ``tmp_path`` passes the Khronos glTF-Validator with 0
+    errors (checked after the test, where node and the validator are installed:
+    ``tests/gltf_validator.py``; ``test_export_rti.py`` says so with a skip where they are not)."""
+    folder = request.getfixturevalue("tmp_path") if "tmp_path" in request.fixturenames else None
+    yield
+    if folder is None:
+        return
+    from gltf_validator import validate, validator
+
+    files = sorted(folder.rglob("*.gltf"))
+    if files and validator()[1] is not None:
+        bad = [report for report in validate(files) if report["numErrors"]]
+        assert not bad, f"glTF-Validator errors: {bad}"

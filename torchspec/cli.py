@@ -192,15 +192,19 @@ def _add_map_commands(commands) -> None:
     render.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_overwrite(render)
 
-    export = commands.add_parser("export", help="export SVBRDF maps: a Mitsuba 3 scene, a glTF 2.0 quad or 16-bit PNG")
+    export = commands.add_parser("export", help="export SVBRDF maps: a Mitsuba 3 scene, a glTF 2.0 quad, 16-bit "
+                                 "PNG, OpenLIME's BRDF layer or an HSH .rti for RTIViewer")
     export.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
-    export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16}", help="the format (see docs/export.md)")
+    export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16,openlime,rti}",
+                        help="the format (see docs/export.md)")
     export.add_argument("-o", "--output", type=Path, required=True, help="the folder to write")
     export.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
                         help="mitsuba: the directional emitter's direction towards the light (surface frame; "
                              "default: 45 deg elevation from the upper left, -0.5 0.5 0.707)")
     export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
-                        help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1)")
+                        help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1); "
+                             "rti: the fitted lights' irradiance, one number (default: pi, a white Lambertian "
+                             "surface facing the light shows 1)")
     _add_overwrite(export)
 
 

@@ -11,17 +11,23 @@
   ``alpha = roughness^2``), ``k_s`` through ``KHR_materials_specular`` and anisotropy through
   ``KHR_materials_anisotropy``.
 - :func:`export_png16` (:mod:`torchspec.export.png16`): the four maps as 16-bit PNG with their
-  decoding in ``png16.json``.
+  decoding in ``png16.json``; the normal map in OpenGL's and DirectX's conventions.
+- :func:`export_openlime` (:mod:`torchspec.export.openlime`): the maps of OpenLIME's BRDF layer
+  (``kd``, ``ks``, ``normals``, ``gloss``) and its options in ``info.json``; Ward's ``alpha`` to
+  the layer's gloss exactly.
+- :func:`export_rti` (:mod:`torchspec.export.rti`): an HSH ``.rti`` that RTIViewer opens, fitted
+  to the maps' renders over the hemisphere, described in ``rti.json``.
 
 :mod:`torchspec.export.arrays` holds what they share: the checked maps as numpy arrays, the
 value encodings, :class:`ExportError` and :class:`ExportWarning`.
 
 Every file is written atomically and each export's manifest (``scene.xml``, ``scene.gltf``,
-``png16.json``) last, so a folder with a manifest holds all of its files.
+``png16.json``, ``info.json``, ``rti.json``) last, so a folder with a manifest holds all of its files.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -30,7 +36,9 @@ from ..io import Maps
 from .arrays import ExportError, ExportWarning
 from .gltf import export_gltf
 from .mitsuba import MIN_ALPHA, export_mitsuba
+from .openlime import export_openlime
 from .png16 import export_png16
+from .rti import export_rti
 
 __all__ = [
     "ExportError",
@@ -41,10 +49,12 @@ __all__ = [
     "export",
     "export_gltf",
     "export_mitsuba",
+    "export_openlime",
     "export_png16",
+    "export_rti",
 ]
 
-FORMATS = ("mitsuba", "gltf", "png16")
+FORMATS = ("mitsuba", "gltf", "png16", "openlime", "rti")
 DEFAULT_LIGHT = (-0.5, 0.5, 0.5**0.5)
 """The Mitsuba export's light when none is given: a directional light at 45 degrees elevation from
 the upper left (azimuth 135 degrees from the surface's +x towards +y), a painting's usual light,
@@ -60,7 +70,7 @@ def export(
     irradiance: float | Sequence[float] | None = None,
     overwrite: bool = False,
 ) -> Path:
-    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``).
+    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``, ``"openlime"``, ``"rti"``).
 
     Args:
         maps: a folder of SVBRDF maps (read with :func:`~torchspec.io.read_svbrdf`), its
@@ -69,16 +79,18 @@ def export(
         to: the format.
         light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by
             default); without a light the scene is lit by :data:`DEFAULT_LIGHT` (a scene without
-            an emitter, to light in Mitsuba, is :func:`export_mitsuba`'s ``light=None``).
+            an emitter, to light in Mitsuba, is :func:`export_mitsuba`'s ``light=None``). ``rti``
+            takes one irradiance, its fitted lights' (default pi, :func:`export_rti`).
         overwrite: write into a folder that already holds files; refused otherwise
             (:func:`torchspec.outputs.check_output`).
 
     Returns:
-        The export's manifest: ``scene.xml``, ``scene.gltf`` or ``png16.json``.
+        The export's manifest: ``scene.xml``, ``scene.gltf``, ``png16.json``, ``info.json`` or ``rti.json``.
 
     Raises:
-        ExportError: an unknown format, a light or an irradiance for a format other than
-            ``mitsuba``, or maps that the format cannot take (see each format).
+        ExportError: an unknown format, a light for a format other than ``mitsuba``, an
+            irradiance for one other than ``mitsuba`` or ``rti``, or maps that the format cannot
+            take (see each format).
         SVBRDFError: ``maps`` is a folder that is missing or not a valid map folder.
 
     Example:
@@ -91,8 +103,21 @@ def export(
         light = DEFAULT_LIGHT if light is None else light
         irradiance = 1.0 if irradiance is None else irradiance
         return export_mitsuba(maps, output, light=light, irradiance=irradiance, overwrite=overwrite)
-    if irradiance is not None:
-        raise ExportError(f"an irradiance can only be given to a mitsuba export; got one for {to!r}. Drop it.")
     if light is not None:
         raise ExportError(f"a light can only be added to a mitsuba export; got one for {to!r}. Drop the light.")
-    return (export_gltf if to == "gltf" else export_png16)(maps, output, overwrite=overwrite)
+    if to == "rti":
+        return export_rti(maps, output, irradiance=_one_irradiance(irradiance), overwrite=overwrite)
+    if irradiance is not None:
+        raise ExportError(f"an irradiance can only be given to a mitsuba or rti export; got one for {to!r}. Drop it.")
+    writer = {"gltf": export_gltf, "png16": export_png16, "openlime": export_openlime}[to]
+    return writer(maps, output, overwrite=overwrite)
+
+
+def _one_irradiance(irradiance: float | Sequence[float] | None) -> float:
+    """The rti export's single irradiance (default pi)."""
+    if irradiance is None:
+        return math.pi
+    values = [irradiance] if isinstance(irradiance, (int, float)) else list(irradiance)
+    if len(values) != 1:
+        raise ExportError(f"an rti export takes one irradiance (its lights are white); got {values}.")
+    return float(values[0])

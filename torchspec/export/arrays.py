@@ -15,7 +15,18 @@ from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Maps, read_svbrdf
 
-__all__ = ["ExportError", "ExportWarning", "MapArrays", "map_arrays", "rgb", "srgb", "code8", "write_png", "ISOTROPIC"]
+__all__ = [
+    "ExportError",
+    "ExportWarning",
+    "MapArrays",
+    "checked_svbrdf",
+    "map_arrays",
+    "rgb",
+    "srgb",
+    "code8",
+    "write_png",
+    "ISOTROPIC",
+]
 
 ISOTROPIC = 1e-3
 """Relative difference of ``alpha_x`` and ``alpha_y`` below which a lobe counts as isotropic."""
@@ -50,10 +61,9 @@ class MapArrays:
         return (self.specular > 0).any(axis=-1)
 
 
-def map_arrays(maps) -> MapArrays:
-    """The maps (a folder, :class:`~torchspec.io.Maps` or an :class:`~torchspec.SVBRDF` of leading
-    dims ``(H, W)``) as :class:`MapArrays`, checked: channels ``R, G, B`` or ``Y``, finite values,
-    ``k_d``, ``k_s`` and ``alpha >= 0``; warns that a second lobe is dropped."""
+def checked_svbrdf(maps) -> SVBRDF:
+    """The :class:`~torchspec.SVBRDF` of ``maps`` (a folder, :class:`~torchspec.io.Maps` or an
+    SVBRDF), checked: leading dims ``(H, W)``, channels ``R, G, B`` or ``Y``."""
     if isinstance(maps, (str, Path)):
         maps = read_svbrdf(maps)
     svbrdf = maps.svbrdf if isinstance(maps, Maps) else maps
@@ -69,6 +79,15 @@ def map_arrays(maps) -> MapArrays:
             f"the maps must have channels R, G, B or Y to export; got {list(channels)}. "
             "Other channel sets have no colour meaning in Mitsuba, glTF or PNG."
         )
+    return svbrdf
+
+
+def map_arrays(maps) -> MapArrays:
+    """The maps (a folder, :class:`~torchspec.io.Maps` or an :class:`~torchspec.SVBRDF` of leading
+    dims ``(H, W)``) as :class:`MapArrays`, checked (:func:`checked_svbrdf`; finite values,
+    ``k_d``, ``k_s`` and ``alpha >= 0``); warns that a second lobe is dropped."""
+    svbrdf = checked_svbrdf(maps)
+    channels = tuple(svbrdf.channels)
 
     def array(value):
         return value.detach().cpu().double().numpy()
