@@ -12,6 +12,7 @@
   ``KHR_materials_anisotropy``.
 - :func:`export_png16` (:mod:`torchspec.export.png16`): the four maps as 16-bit PNG with their
   decoding in ``png16.json``.
+- ``web``: the relighting page of :mod:`torchspec.view` as a static site (:func:`torchspec.view.export_web`).
 
 :mod:`torchspec.export.arrays` holds what they share: the checked maps as numpy arrays, the
 value encodings, :class:`ExportError` and :class:`ExportWarning`.
@@ -44,7 +45,7 @@ __all__ = [
     "export_png16",
 ]
 
-FORMATS = ("mitsuba", "gltf", "png16")
+FORMATS = ("mitsuba", "gltf", "png16", "web")
 DEFAULT_LIGHT = (-0.5, 0.5, 0.5**0.5)
 """The Mitsuba export's light when none is given: a directional light at 45 degrees elevation from
 the upper left (azimuth 135 degrees from the surface's +x towards +y), a painting's usual light,
@@ -59,8 +60,9 @@ def export(
     light: Sequence[float] | None = None,
     irradiance: float | Sequence[float] | None = None,
     overwrite: bool = False,
+    capture: str | Path | None = None,
 ) -> Path:
-    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``).
+    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``, ``"web"``).
 
     Args:
         maps: a folder of SVBRDF maps (read with :func:`~torchspec.io.read_svbrdf`), its
@@ -72,9 +74,11 @@ def export(
             an emitter, to light in Mitsuba, is :func:`export_mitsuba`'s ``light=None``).
         overwrite: write into a folder that already holds files; refused otherwise
             (:func:`torchspec.outputs.check_output`).
+        capture: ``web`` only: the capture the maps were fitted from, whose photographs the page
+            shows beside the relit fit (:func:`torchspec.view.export_web`).
 
     Returns:
-        The export's manifest: ``scene.xml``, ``scene.gltf`` or ``png16.json``.
+        The export's manifest: ``scene.xml``, ``scene.gltf``, ``png16.json`` or (web) ``index.html``.
 
     Raises:
         ExportError: an unknown format, a light or an irradiance for a format other than
@@ -87,6 +91,12 @@ def export(
     """
     if to not in FORMATS:
         raise ExportError(f"the export format must be one of {', '.join(FORMATS)}; got {to!r}.")
+    if capture is not None and to != "web":
+        raise ExportError(f"a capture can only be given to a web export; got one for {to!r}. Drop it.")
+    if to == "web" and light is None and irradiance is None:
+        from ..view import export_web  # the viewer's page, tiled maps (torchspec.view)
+
+        return export_web(maps, output, capture=capture, overwrite=overwrite)
     if to == "mitsuba":
         light = DEFAULT_LIGHT if light is None else light
         irradiance = 1.0 if irradiance is None else irradiance
