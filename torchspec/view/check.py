@@ -25,11 +25,14 @@ MODEL_TYPES = ("diffuse", "ward-iso", "ward-aniso", "ward-dual")
 """The model types the page shades (``ward-iso-colour`` is ``ward-iso`` with a coloured ``k_s``)."""
 
 
-def model_maps(model: str, height: int = 48, width: int = 64, seed: int = 0) -> Maps:
+def model_maps(
+    model: str, height: int = 48, width: int = 64, seed: int = 0, alpha: tuple[float, float] | None = None
+) -> Maps:
     """Random maps of one model type, with the fit's extra maps (model, quality, flags, standard
     deviations) and ``svbrdf.json`` keys: normals tilted up to 25 degrees, ``k_d`` in
-    ``[0.1, 0.9]``, ``k_s`` in ``[0.02, 0.5]``, ``alpha`` in ``[0.05, 0.45]`` (anisotropic: each
-    axis, and a rotation), the dual model's second lobe broader than its first."""
+    ``[0.1, 0.9]``, ``k_s`` in ``[0.02, 0.5]``, ``alpha`` in ``[0.05, 0.45]`` or the range
+    ``alpha`` (anisotropic: each axis, and a rotation), the dual model's second lobe
+    (``alpha`` in ``[0.2, 0.5]``) broader than its first (``[0.05, 0.15]`` by default)."""
     if model not in MODEL_TYPES:
         raise ValueError(f"model must be one of {MODEL_TYPES}; got {model!r}")
     g = torch.Generator().manual_seed(seed)
@@ -40,12 +43,14 @@ def model_maps(model: str, height: int = 48, width: int = 64, seed: int = 0) -> 
     normal = normal_from_angles(uniform(-math.radians(25), math.radians(25), 2))
     kd = uniform(0.1, 0.9, 3)
     ks = uniform(0.02, 0.5, 3) * (model != "diffuse")
-    alpha = uniform(0.05, 0.45, 1).expand(height, width, 2).clone()
+    low, high = (0.05, 0.45) if alpha is None else alpha
     rotation, ks2, alpha2 = None, None, None
     if model == "ward-aniso":
-        alpha, rotation = uniform(0.05, 0.45, 2), uniform(-math.pi, math.pi)
+        alpha, rotation = uniform(low, high, 2), uniform(-math.pi, math.pi)
+    else:
+        low, high = (0.05, 0.15) if model == "ward-dual" and alpha is None else (low, high)
+        alpha = uniform(low, high, 1).expand(height, width, 2).clone()
     if model == "ward-dual":
-        alpha = uniform(0.05, 0.15, 1).expand(height, width, 2).clone()
         ks2, alpha2 = uniform(0.02, 0.3, 1), uniform(0.2, 0.5, 1).expand(height, width, 2).clone()
     if model == "diffuse":
         alpha = torch.zeros_like(alpha)

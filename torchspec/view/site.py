@@ -43,7 +43,9 @@ PHOTO_CACHE = 4
 """Photographs whose pyramids the server keeps (the frames last asked for)."""
 
 
-def _quantile(value: np.ndarray, q: float = 0.99) -> float:
+def _quantile(value: np.ndarray, q: float = 0.99, samples: int = 1 << 18) -> float:
+    """The ``q`` quantile of the positive finite values (of a regular subsample of ``samples``)."""
+    value = value.reshape(-1)[:: max(1, value.size // samples)]
     finite = value[np.isfinite(value) & (value > 0)]
     return float(np.quantile(finite, q)) if finite.size else 1.0
 

@@ -2,12 +2,13 @@
 tiles that the page (``torchspec/view/static/viewer.js``) uploads as WebGL2 textures.
 
 A tile is ``TILE x TILE`` texels of level ``l`` (level 0 the maps themselves, level ``l + 1``
-half of level ``l``, down to a level that fits in one tile); edge tiles are padded with zeros.
+half of level ``l``, down to a level that fits in one tile; edge tiles padded with zeros).
 Its file is the textures of :data:`TEXTURES`, one after the other, each ``TILE * TILE * 4``
 values (RGBA interleaved, rows top to bottom) little-endian in the texture's dtype: float32 for
 what a highlight is sensitive to (the normal, the rotation, the roughness), float16 for the rest
-(relative error 2^-11, below an 8-bit display's step). Coarser levels average ``2 x 2`` texels
-(normals renormalised); the model code, the flags and the rotation take the top-left texel.
+(relative error 2^-11, below an 8-bit display's step). Level ``l`` averages ``2^l x 2^l`` texels
+of level 0 (normals renormalised); the model code, the flags and the rotation take the top-left
+texel. The coarser levels are made in the background (:class:`Pyramid`).
 
 A photograph's tile is one float16 RGBA texture: the frame divided by its exposure and irradiance
 (the value under a unit light, comparable with the relit maps at the same exposure).
@@ -16,7 +17,8 @@ A photograph's tile is one float16 RGBA texture: the frame divided by its exposu
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -81,65 +83,84 @@ def _planes(maps: Maps) -> dict[str, torch.Tensor]:
     return {name: value.float().contiguous() for name, value in planes.items()}
 
 
-def _halve(planes: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The next level: ``2 x 2`` averages (odd sizes: the last row or column repeated), normals
-    renormalised; :data:`NEAREST` planes from the top-left texel."""
-    out = {}
-    names = [name for name in planes if name not in NEAREST]
-    stack = torch.stack([planes[name] for name in names])[None]
-    height, width = stack.shape[-2:]
-    stack = F.pad(stack, (0, width % 2, 0, height % 2), mode="replicate")
-    stack = F.avg_pool2d(stack, 2)[0]
-    out.update(zip(names, stack.unbind(0), strict=True))
-    if "normal_x" in out:
-        norm = torch.sqrt(sum(out[f"normal_{a}"] ** 2 for a in "xyz")).clamp(min=1e-12)
-        for a in "xyz":
-            out[f"normal_{a}"] = out[f"normal_{a}"] / norm
+def _reduce(block: torch.Tensor, names: tuple[str, ...], factor: int) -> torch.Tensor:
+    """``block (P, h, w)`` reduced by ``factor``: ``factor x factor`` averages
+    (edges: the last row or column repeated), normals renormalised, :data:`NEAREST` planes from
+    the top-left texel."""
+    if factor == 1:
+        return block
+    height, width = block.shape[-2:]
+    padded = F.pad(block[None], (0, -width % factor, 0, -height % factor), mode="replicate")[0]
+    out = F.avg_pool2d(padded[None], factor)[0]
+    index = {name: i for i, name in enumerate(names)}
+    if "normal_x" in index:
+        normal = out[[index[f"normal_{a}"] for a in "xyz"]]
+        out[[index[f"normal_{a}"] for a in "xyz"]] = normal / normal.norm(dim=0).clamp(min=1e-12)
     for name in NEAREST:
-        if name in planes:
-            out[name] = planes[name][::2, ::2].contiguous()
+        if name in index:
+            out[index[name]] = padded[index[name], ::factor, ::factor]
     return out
 
 
 @dataclass
 class Pyramid:
-    """Tiled levels of images with named planes; :meth:`tile` encodes one tile.
+    """Tiled levels of an image with named planes; :meth:`tile` encodes one tile.
+
+    Level 0 is the image; a background thread, started at construction, halves it level after
+    level (each a ``2 x 2`` reduction of the one before, :func:`_reduce`), and a tile of a level
+    not yet made waits for it: the server starts at once, and the coarsest level (the page's first
+    image) follows after about a third of a pass over the image more than one pass of reading it.
 
     Attributes:
-        height, width: level 0's size.
+        planes: level 0, ``(P, H, W)`` float32, in the order of the textures' planes.
         textures: ``(name, dtype, planes)`` of a tile's textures, in file order.
-        levels: per level, ``{texture: (h, w, 4) numpy array in its dtype}``.
     """
 
-    height: int
-    width: int
+    planes: torch.Tensor
     textures: tuple
-    levels: list
+    reduced: list = field(init=False, repr=False)
+    made: list = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.reduced = [self.planes] + [None] * (len(self.levels) - 1)
+        self.made = [threading.Event() for _ in self.levels]
+        self.made[0].set()
+        threading.Thread(target=self._reduce_all, name="torchspec-view-pyramid", daemon=True).start()
+
+    def _reduce_all(self) -> None:
+        names = tuple(name for _, _, names in self.textures for name in names)
+        for level in range(1, len(self.levels)):
+            self.reduced[level] = _reduce(self.reduced[level - 1], names, 2).contiguous()
+            self.made[level].set()
 
     @classmethod
     def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES) -> Pyramid:
         """The pyramid of ``planes`` (each ``(H, W)``) packed into ``textures``."""
-        height, width = next(iter(planes.values())).shape
-        levels = []
-        for level in range(levels_for(height, width)):
-            if level:
-                planes = _halve(planes)
-            levels.append(
-                {
-                    name: torch.stack([planes[p] for p in names], -1).numpy().astype(dtype)
-                    for name, dtype, names in textures
-                }
-            )
-        return cls(height, width, tuple(textures), levels)
+        names = [name for _, _, names in textures for name in names]
+        return cls(torch.stack([planes[name].float() for name in names]), tuple(textures))
 
     @classmethod
     def of_maps(cls, maps: Maps) -> Pyramid:
         """The pyramid of a fit's maps (:data:`TEXTURES`)."""
         return cls.build(_planes(maps))
 
+    @property
+    def height(self) -> int:
+        return self.planes.shape[1]
+
+    @property
+    def width(self) -> int:
+        return self.planes.shape[2]
+
+    @property
+    def levels(self) -> list[tuple[int, int]]:
+        """``(h, w)`` of every level, 0 first."""
+        count = levels_for(self.height, self.width)
+        return [(-(-self.height // 2**level), -(-self.width // 2**level)) for level in range(count)]
+
     def grid(self, level: int) -> tuple[int, int]:
         """``(rows, columns)`` of tiles at ``level``."""
-        h, w = self.levels[level][self.textures[0][0]].shape[:2]
+        h, w = self.levels[level]
         return -(-h // TILE), -(-w // TILE)
 
     def tile(self, level: int, row: int, column: int) -> bytes:
@@ -153,19 +174,22 @@ class Pyramid:
         rows, columns = self.grid(level)
         if not (0 <= row < rows and 0 <= column < columns):
             raise IndexError(f"no tile {row}, {column} at level {level}")
-        parts = []
-        for name, dtype, _ in self.textures:
-            block = self.levels[level][name][row * TILE : (row + 1) * TILE, column * TILE : (column + 1) * TILE]
+        self.made[level].wait()
+        block = self.reduced[level][:, row * TILE : (row + 1) * TILE, column * TILE : (column + 1) * TILE]
+        block = block.permute(1, 2, 0)
+        parts, first = [], 0
+        for _, dtype, planes in self.textures:
             padded = np.zeros((TILE, TILE, 4), dtype=np.dtype(dtype).newbyteorder("<"))
-            padded[: block.shape[0], : block.shape[1]] = block
+            padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
             parts.append(padded.tobytes())
+            first += len(planes)
         return b"".join(parts)
 
     def describe(self) -> dict:
         """The pyramid's part of the page's ``manifest.json``."""
         return {
             "tile": TILE,
-            "levels": [list(self.levels[level][self.textures[0][0]].shape[:2]) for level in range(len(self.levels))],
+            "levels": [list(size) for size in self.levels],
             "textures": [{"name": n, "dtype": d, "planes": list(p)} for n, d, p in self.textures],
         }
 

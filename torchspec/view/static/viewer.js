@@ -9,6 +9,8 @@ const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", 
 const PHOTO_LAYER = 9;
 const MAX_TILES = 160; // textures kept on the GPU (least recently used dropped)
 const MAX_FETCHES = 6;
+const INTERACTIVE_MS = 250; // input this recent: frames at a reduced scale
+const FRAME_MS = 40; // the frame time a reduced scale aims at
 
 const VERTEX = `#version 300 es
 uniform vec4 uRect;
@@ -118,6 +120,8 @@ class Viewer {
     this.compare = manifest.lights.length > 0;
     this.snap = manifest.lights.length > 0;
     this.complete = false;
+    this.lastInput = -Infinity;
+    this.scale = 1;
     this.fit();
   }
 
@@ -203,14 +207,14 @@ class Viewer {
   }
 
   // The tile at `url`, uploaded; null while it loads (its fetch queued).
-  tile(url, photo) {
+  tile(url) {
     const t = this.tiles.get(url);
     if (t) {
       t.used = performance.now();
       return t.state === "ready" ? t : null;
     }
     this.queue.add(url);
-    this.pump(photo);
+    this.pump();
     return null;
   }
 
@@ -269,12 +273,20 @@ class Viewer {
     if (!this.pending) this.pending = requestAnimationFrame(() => this.draw());
   }
 
+  // One frame. While the user drags or zooms (the last input under INTERACTIVE_MS ago), it is
+  // drawn at a reduced scale chosen to keep a frame near FRAME_MS, and scaled up; the full
+  // resolution follows when the input stops. Each panel draws the top level under the tiles of
+  // the level that matches the zoom only where one of those is still loading.
   draw() {
     this.pending = 0;
-    const start = performance.now();
+    const start = performance.now(), gl = this.gl;
     this.resize();
-    const gl = this.gl;
-    gl.viewport(0, 0, this.canvas.width, this.canvas.height);
+    const interactive = start - this.lastInput < INTERACTIVE_MS;
+    const scale = interactive ? this.scale : 1;
+    const width = this.canvas.width, height = this.canvas.height;
+    const w = Math.max(1, Math.round(width * scale)), h = Math.max(1, Math.round(height * scale));
+    gl.bindFramebuffer(gl.FRAMEBUFFER, scale < 1 ? this.target(w, h) : null);
+    gl.viewport(0, 0, w, h);
     gl.clearColor(0.125, 0.125, 0.125, 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
     gl.uniform3fv(this.u.uLight, this.light);
@@ -284,19 +296,52 @@ class Viewer {
     let complete = true;
     this.queue.clear(); // only what this frame wants is fetched
     for (const p of this.panels()) {
-      gl.viewport(p.x, 0, p.w, p.h);
+      gl.viewport(Math.round(p.x * scale), 0, Math.round((p.x + p.w) * scale) - Math.round(p.x * scale), h);
       this.setLayer(p.photo ? PHOTO_LAYER : this.layer);
-      for (const level of target === top ? [top] : [top, target]) {
-        for (const [r, c] of this.visible(level, p)) {
-          const t = this.tile(this.url(p.photo, level, r, c), p.photo);
-          if (t) this.drawTile(t, level, r, c, p);
-          else if (level === target) complete = false;
-        }
+      const at = (level) => this.visible(level, p).map(([r, c]) => [r, c, this.tile(this.url(p.photo, level, r, c))]);
+      const under = target === top ? [] : at(top); // asked for first: it shows first
+      const tiles = at(target);
+      if (tiles.some(([, , t]) => !t)) for (const [r, c, t] of under) if (t) this.drawTile(t, top, r, c, p);
+      for (const [r, c, t] of tiles) {
+        if (t) this.drawTile(t, target, r, c, p);
+        else complete = false;
       }
     }
-    this.complete = complete;
+    if (scale < 1) {
+      gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.fbo);
+      gl.bindFramebuffer(gl.DRAW_FRAMEBUFFER, null);
+      gl.blitFramebuffer(0, 0, w, h, 0, 0, width, height, gl.COLOR_BUFFER_BIT, gl.LINEAR);
+    }
+    if (interactive) {
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4)); // wait for the frame: its real time
+      const ms = performance.now() - start;
+      if (ms > FRAME_MS * 1.5 && this.scale > 1 / 8) this.scale /= Math.SQRT2;
+      else if (ms < FRAME_MS / 2.5 && this.scale < 1) this.scale = Math.min(1, this.scale * Math.SQRT2);
+      clearTimeout(this.idle);
+      this.idle = setTimeout(() => this.request(), INTERACTIVE_MS);
+    }
+    if (this.firstImage === undefined && this.drawn) {
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+      this.firstImage = performance.now(); // ms since the page's navigation: when it first showed the maps
+    }
+    this.complete = complete && scale === 1;
     this.frames++;
     this.drawMs = performance.now() - start;
+  }
+
+  target(w, h) {
+    const gl = this.gl;
+    if (!this.fbo || this.fboSize[0] !== w || this.fboSize[1] !== h) {
+      if (this.fbo) [gl.deleteFramebuffer(this.fbo), gl.deleteTexture(this.fboTexture)];
+      this.fboTexture = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, this.fboTexture);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, w, h);
+      this.fbo = gl.createFramebuffer();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.fboTexture, 0);
+      this.fboSize = [w, h];
+    }
+    return this.fbo;
   }
 
   setLayer(layer) {
@@ -309,6 +354,7 @@ class Viewer {
 
   drawTile(t, level, r, c, p) {
     const gl = this.gl, n = this.m.tile, span = n * 2 ** level;
+    this.drawn = true;
     const [h, w] = this.m.levels[level];
     t.textures.forEach((x, i) => {
       gl.activeTexture(gl.TEXTURE0 + (t.textures.length === 1 ? 6 : i));
@@ -409,7 +455,10 @@ function hemisphere(viewer) {
     const frame = viewer.frame >= 0 ? `, frame ${viewer.frame}` : "";
     document.getElementById("light").textContent = `light ${x.toFixed(3)} ${y.toFixed(3)} ${z.toFixed(3)} (elevation ${el.toFixed(1)} deg${frame})`;
   };
-  const move = (e) => viewer.setLight([(e.offsetX - C) / R, -(e.offsetY - C) / R]);
+  const move = (e) => {
+    viewer.lastInput = performance.now();
+    viewer.setLight([(e.offsetX - C) / R, -(e.offsetY - C) / R]);
+  };
   hemi.addEventListener("pointerdown", (e) => {
     hemi.setPointerCapture(e.pointerId);
     move(e);
@@ -462,6 +511,7 @@ function canvasEvents(viewer) {
     const dx = e.offsetX - down.x, dy = e.offsetY - down.y;
     down.moved = down.moved || Math.hypot(dx, dy) > 3;
     if (!down.moved) return;
+    viewer.lastInput = performance.now();
     if (down.pan) {
       const s = devicePixelRatio / viewer.zoom;
       viewer.centre = [down.centre[0] - dx * s, down.centre[1] - dy * s];
@@ -485,6 +535,7 @@ function canvasEvents(viewer) {
   canvas.addEventListener("wheel", (e) => {
     e.preventDefault();
     const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), f = Math.exp(-e.deltaY * 0.002);
+    viewer.lastInput = performance.now();
     viewer.zoom *= f;
     viewer.centre = [x - (x - viewer.centre[0]) / f, y - (y - viewer.centre[1]) / f];
     viewer.request();
@@ -523,6 +574,19 @@ window.torchspecView = {
     }
     v.request();
     return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light };
+  },
+  // Frames per second of `count` relit frames, the light circling at `zenith` radians: each
+  // frame drawn and finished (one pixel read back) before the next.
+  bench(count, zenith) {
+    const v = this.viewer, gl = v.gl, one = new Uint8Array(4), start = performance.now();
+    for (let i = 0; i < count; i++) {
+      const phi = (2 * Math.PI * i) / count;
+      v.setLight([Math.sin(zenith) * Math.cos(phi), Math.sin(zenith) * Math.sin(phi)]);
+      cancelAnimationFrame(v.pending);
+      v.draw();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, one);
+    }
+    return (count * 1000) / (performance.now() - start);
   },
   settle() {
     const v = this.viewer;
