@@ -141,7 +141,7 @@ def screenshots(settings: Settings, output: Path) -> dict:
             capture = None if fit.get("capture") is None else ROOT / fit["capture"]
             with page(browser, open_site(folder, capture, title=fit["name"])):
                 light = [-math.cos(elevation) * math.sqrt(0.5), math.cos(elevation) * math.sqrt(0.5)]
-                shown = browser.show(light=light, layer="relit")
+                shown = browser.show(light=light, layer="relit", snap=False)  # the photograph: the nearest frame
                 for layer in ("relit", "normal", "quality"):
                     browser.show(layer=layer)
                     path = output / f"view_{fit['name']}_{layer}.png"

@@ -61,16 +61,16 @@ def _planes(maps: Maps) -> dict[str, torch.Tensor]:
     """Every plane of :data:`TEXTURES` at level 0, ``(H, W)`` float32 (0 where the maps lack it)."""
     svbrdf, extra = maps.svbrdf, maps.extra
     height, width = svbrdf.shape
-    zero = torch.zeros(height, width)
+    zero = torch.zeros(1, 1).expand(height, width)
     planes = {}
     for axis, name in enumerate("xyz"):
         planes[f"normal_{name}"] = svbrdf.normal[..., axis]
     planes["rotation"] = zero if svbrdf.rotation is None else svbrdf.rotation
     planes["alpha_x"], planes["alpha_y"] = svbrdf.roughness[..., 0], svbrdf.roughness[..., 1]
-    second = svbrdf.roughness2 if svbrdf.roughness2 is not None else torch.zeros(height, width, 2)
+    second = svbrdf.roughness2 if svbrdf.roughness2 is not None else torch.zeros(1, 1, 2).expand(height, width, 2)
     planes["alpha2_x"], planes["alpha2_y"] = second[..., 0], second[..., 1]
     for prefix, value in (("kd", svbrdf.diffuse), ("ks", svbrdf.specular), ("ks2", svbrdf.specular2)):
-        value = torch.zeros(height, width, 3) if value is None else _rgb(value)
+        value = torch.zeros(1, 1, 3).expand(height, width, 3) if value is None else _rgb(value)
         for c, name in enumerate("rgb"):
             planes[f"{prefix}_{name}"] = value[..., c]
     for name in ("quality", "model", "flags", "std_normal_deg"):
@@ -80,25 +80,27 @@ def _planes(maps: Maps) -> dict[str, torch.Tensor]:
         planes[name] = zero if value is None else (value.mean(-1) if value.dim() == 3 else value)
     rough = extra.get("std_roughness")
     planes["std_roughness"] = zero if rough is None else (rough[..., 0] if rough.dim() == 3 else rough)
-    return {name: value.float().contiguous() for name, value in planes.items()}
+    return {name: value.float() for name, value in planes.items()}
 
 
-def _reduce(block: torch.Tensor, names: tuple[str, ...], factor: int) -> torch.Tensor:
-    """``block (P, h, w)`` reduced by ``factor``: ``factor x factor`` averages
-    (edges: the last row or column repeated), normals renormalised, :data:`NEAREST` planes from
-    the top-left texel."""
-    if factor == 1:
-        return block
-    height, width = block.shape[-2:]
-    padded = F.pad(block[None], (0, -width % factor, 0, -height % factor), mode="replicate")[0]
-    out = F.avg_pool2d(padded[None], factor)[0]
+def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
+    """The next level of ``planes`` (``(h, w)`` each, or ``(P, h, w)``), stacked ``(P, h', w')``:
+    ``2 x 2`` averages (odd sizes: the last row or column repeated), normals renormalised,
+    :data:`NEAREST` planes from the top-left texel. One plane at a time: no copy of the whole."""
+    out = []
+    for plane, name in zip(planes, names, strict=True):
+        if name in NEAREST:
+            out.append(plane[::2, ::2])
+            continue
+        height, width = plane.shape
+        if height % 2 or width % 2:
+            plane = F.pad(plane[None, None], (0, width % 2, 0, height % 2), mode="replicate")[0, 0]
+        out.append((plane[0::2, 0::2] + plane[1::2, 0::2] + plane[0::2, 1::2] + plane[1::2, 1::2]) * 0.25)
+    out = torch.stack(out)
     index = {name: i for i, name in enumerate(names)}
     if "normal_x" in index:
-        normal = out[[index[f"normal_{a}"] for a in "xyz"]]
-        out[[index[f"normal_{a}"] for a in "xyz"]] = normal / normal.norm(dim=0).clamp(min=1e-12)
-    for name in NEAREST:
-        if name in index:
-            out[index[name]] = padded[index[name], ::factor, ::factor]
+        rows = [index[f"normal_{a}"] for a in "xyz"]
+        out[rows] = out[rows] / out[rows].norm(dim=0).clamp(min=1e-12)
     return out
 
 
@@ -107,16 +109,17 @@ class Pyramid:
     """Tiled levels of an image with named planes; :meth:`tile` encodes one tile.
 
     Level 0 is the image; a background thread, started at construction, halves it level after
-    level (each a ``2 x 2`` reduction of the one before, :func:`_reduce`), and a tile of a level
+    level (each a ``2 x 2`` reduction of the one before), and a tile of a level
     not yet made waits for it: the server starts at once, and the coarsest level (the page's first
-    image) follows after about a third of a pass over the image more than one pass of reading it.
+    image) follows after one pass over the image and a third of one.
 
     Attributes:
-        planes: level 0, ``(P, H, W)`` float32, in the order of the textures' planes.
+        planes: level 0, ``P`` float32 planes ``(H, W)`` (views of the maps: not copied), in the
+            order of the textures' planes.
         textures: ``(name, dtype, planes)`` of a tile's textures, in file order.
     """
 
-    planes: torch.Tensor
+    planes: tuple
     textures: tuple
     reduced: list = field(init=False, repr=False)
     made: list = field(init=False, repr=False)
@@ -130,14 +133,14 @@ class Pyramid:
     def _reduce_all(self) -> None:
         names = tuple(name for _, _, names in self.textures for name in names)
         for level in range(1, len(self.levels)):
-            self.reduced[level] = _reduce(self.reduced[level - 1], names, 2).contiguous()
+            self.reduced[level] = _reduce(self.reduced[level - 1], names)
             self.made[level].set()
 
     @classmethod
     def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES) -> Pyramid:
         """The pyramid of ``planes`` (each ``(H, W)``) packed into ``textures``."""
         names = [name for _, _, names in textures for name in names]
-        return cls(torch.stack([planes[name].float() for name in names]), tuple(textures))
+        return cls(tuple(planes[name].float() for name in names), tuple(textures))
 
     @classmethod
     def of_maps(cls, maps: Maps) -> Pyramid:
@@ -146,11 +149,11 @@ class Pyramid:
 
     @property
     def height(self) -> int:
-        return self.planes.shape[1]
+        return self.planes[0].shape[0]
 
     @property
     def width(self) -> int:
-        return self.planes.shape[2]
+        return self.planes[0].shape[1]
 
     @property
     def levels(self) -> list[tuple[int, int]]:
@@ -175,12 +178,13 @@ class Pyramid:
         if not (0 <= row < rows and 0 <= column < columns):
             raise IndexError(f"no tile {row}, {column} at level {level}")
         self.made[level].wait()
-        block = self.reduced[level][:, row * TILE : (row + 1) * TILE, column * TILE : (column + 1) * TILE]
-        block = block.permute(1, 2, 0)
+        rows, columns = slice(row * TILE, (row + 1) * TILE), slice(column * TILE, (column + 1) * TILE)
+        block = torch.stack([plane[rows, columns] for plane in self.reduced[level]], -1)
         parts, first = [], 0
         for _, dtype, planes in self.textures:
             padded = np.zeros((TILE, TILE, 4), dtype=np.dtype(dtype).newbyteorder("<"))
-            padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
+            with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf (an undetermined deviation's)
+                padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
             parts.append(padded.tobytes())
             first += len(planes)
         return b"".join(parts)

@@ -566,7 +566,11 @@ window.torchspecView = {
   show(o) {
     const v = this.viewer;
     for (const key of ["exposure", "snap", "compare", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
-    if ("layer" in o) v.layer = o.layer === "photo" ? PHOTO_LAYER : LAYERS.indexOf(o.layer);
+    if ("layer" in o) {
+      v.layer = LAYERS.indexOf(o.layer);
+      [...document.getElementById("layers").children].forEach((b) => b.classList.toggle("on", b.textContent === o.layer));
+    }
+    for (const id of ["snap", "compare"]) document.getElementById(id).checked = v[id];
     if (o.light) v.setLight(o.light);
     if (o.origin) {
       v.zoom = 1;
