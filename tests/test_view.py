@@ -107,6 +107,21 @@ def _capture(folder, maps, exposure=2.0, irradiance=0.5):
     return write_capture(folder, capture, values.permute(2, 3, 0, 1).float())
 
 
+def test_a_web_export_with_its_capture_holds_every_photograph(tmp_path):
+    maps = model_maps("ward-iso", 8, 12)
+    capture = _capture(tmp_path / "c", maps, exposure=2.0, irradiance=0.5)
+    export(maps, tmp_path / "web", to="web", capture=tmp_path / "c")
+    manifest = json.loads((tmp_path / "web" / "manifest.json").read_text())
+    assert np.allclose(manifest["lights"], capture.directions().numpy())
+    data = (tmp_path / "web" / "photo" / "11" / "0" / "0_0.bin").read_bytes()
+    photo = np.frombuffer(data, dtype="<f2").reshape(TILE, TILE, 4)[:8, :12, :3].astype(np.float64)
+    light = capture.directions()[11:12]
+    one = torch.ones(1, 3, dtype=torch.float64)
+    unit = render_image(maps.svbrdf.to(torch.float64), Lights(light, Kernel("point"), one, one[0, :1]),
+                        torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))[:, :, 0]  # fmt: skip
+    assert np.allclose(photo, unit.numpy(), rtol=2e-3, atol=1e-6)  # the frame over exposure * irradiance
+
+
 def test_a_capture_of_another_size_is_refused(tmp_path):
     capture = _capture(tmp_path / "c", model_maps("diffuse", 8, 12))
     with pytest.raises(TorchspecError, match="12x8 but the maps are 13x8"):

@@ -11,6 +11,7 @@ const MAX_TILES = 160; // textures kept on the GPU (least recently used dropped)
 const MAX_FETCHES = 6;
 const INTERACTIVE_MS = 250; // input this recent: frames at a reduced scale
 const FRAME_MS = 40; // the frame time a reduced scale aims at
+const TILE_FRAME_MS = 300; // while tiles arrive, a frame at most this often
 
 const VERTEX = `#version 300 es
 uniform vec4 uRect;
@@ -235,7 +236,7 @@ class Viewer {
         .finally(() => {
           this.fetching--;
           this.pump();
-          this.request();
+          this.arrived();
         });
     }
   }
@@ -267,6 +268,13 @@ class Viewer {
       t.textures.forEach((x) => this.gl.deleteTexture(x));
       this.tiles.delete(url);
     }
+  }
+
+  // A tile arrived: draw when the last one is in, or every TILE_FRAME_MS while more come (each
+  // frame of a big canvas takes long without a GPU).
+  arrived() {
+    if (!this.drawn || (this.fetching === 0 && this.queue.size === 0)) return this.request();
+    if (!this.soon) this.soon = setTimeout(() => ((this.soon = 0), this.request()), TILE_FRAME_MS);
   }
 
   request() {
@@ -597,10 +605,7 @@ window.torchspecView = {
     return new Promise((resolve) => {
       const check = () => {
         if (v.complete && !v.pending && v.fetching === 0) resolve(v.frames);
-        else {
-          v.request();
-          setTimeout(check, 5);
-        }
+        else setTimeout(check, 5); // a tile's arrival asks for a frame
       };
       v.request();
       setTimeout(check, 0);
