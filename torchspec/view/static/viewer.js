@@ -561,7 +561,10 @@ window.torchspecView = {
       controls(viewer);
       hemisphere(viewer);
       canvasEvents(viewer);
-      if (m.lights.length) viewer.setLight([0, 0, 1]);
+      if (m.lights.length) {
+        viewer.setLight([0, 0, 1]);
+        viewer.fit(); // to the panel beside the photograph
+      }
       window.torchspecView.viewer = viewer;
       return viewer;
     })
