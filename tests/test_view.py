@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import contextlib
+import functools
+import http.server
 import json
 import subprocess
 import sys
@@ -174,6 +176,28 @@ def test_the_page_relights_as_render_does(browser, model):
             expected = reference_srgb(maps.svbrdf, tuple(light)).astype(int)
             assert np.abs(page - expected).max() <= 1, (model, light)
             assert expected.std() > 10  # not a blank image
+
+
+@needs_browser
+def test_the_static_export_works_from_a_plain_web_server(browser, tmp_path):
+    maps = model_maps("ward-aniso", 40, 300, seed=7)  # two tiles wide
+    export_web(maps, tmp_path / "web")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    handler = functools.partial(Quiet, directory=str(tmp_path / "web"))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        browser.open(f"http://127.0.0.1:{server.server_address[1]}/")
+        light = hemisphere_lights(5, 60.0)[3]
+        browser.show(origin=True, light=light.tolist(), layer="relit")
+        page = browser.read(0, 0, 300, 40)[..., :3].astype(int)
+        assert np.abs(page - reference_srgb(maps.svbrdf, tuple(light)).astype(int)).max() <= 1
+    finally:
+        server.shutdown()
 
 
 @needs_browser
