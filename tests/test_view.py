@@ -150,6 +150,8 @@ def browser():
     if CHROMIUM is None:
         pytest.skip(f"no headless Chromium: {WHY}")
     with Browser(640, 480) as opened:
+        if not opened.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
+            pytest.skip(f"{CHROMIUM} has no WebGL2 here (no GPU and no SwiftShader)")
         yield opened
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ..brdf import SVBRDF
+from ..errors import TorchspecError
 from ..flags import FLAGS, UNTRUSTED, bit
 from ..geometry import normal_from_angles
 from ..io import Maps
@@ -34,7 +35,7 @@ def model_maps(
     ``alpha`` (anisotropic: each axis, and a rotation), the dual model's second lobe
     (``alpha`` in ``[0.2, 0.5]``) broader than its first (``[0.05, 0.15]`` by default)."""
     if model not in MODEL_TYPES:
-        raise ValueError(f"model must be one of {MODEL_TYPES}; got {model!r}")
+        raise TorchspecError(f"model must be one of {MODEL_TYPES}; got {model!r}.")
     g = torch.Generator().manual_seed(seed)
 
     def uniform(low, high, *shape):
