@@ -24,6 +24,7 @@ The fits of the config are made by ``torchspec demo -o D`` (``D/maps``, ``D/capt
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from contextlib import contextmanager
@@ -187,6 +188,7 @@ def speed(settings: Settings) -> dict:
         browser.call("Input.dispatchMouseEvent", type="mouseReleased", x=cx, y=cy, button="left", buttons=0)
         frames = browser.evaluate("torchspecView.viewer.frames") - frames0
     return {
+        "load_average_1min": os.getloadavg()[0],  # the machine is shared: what else ran
         "pixels": big * big,
         "server_start_s": opened,
         "first_image_s": first,
