@@ -193,9 +193,9 @@ def _add_map_commands(commands) -> None:
     _add_overwrite(render)
 
     export = commands.add_parser("export", help="export SVBRDF maps: a Mitsuba 3 scene, a glTF 2.0 quad, 16-bit "
-                                 "PNG, OpenLIME's BRDF layer or an HSH .rti for RTIViewer")
+                                 "PNG, OpenLIME's BRDF layer, an HSH .rti for RTIViewer or a web page")
     export.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
-    export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16,openlime,rti}",
+    export.add_argument("--to", required=True, metavar="{mitsuba,gltf,png16,openlime,rti,web}",
                         help="the format (see docs/export.md)")
     export.add_argument("-o", "--output", type=Path, required=True, help="the folder to write")
     export.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
@@ -205,7 +205,15 @@ def _add_map_commands(commands) -> None:
                         help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1); "
                              "rti: the fitted lights' irradiance, one number (default: pi, a white Lambertian "
                              "surface facing the light shows 1)")
+    export.add_argument("--capture", type=Path, default=None,
+                        help="web: the capture the maps were fitted from (its photographs beside the relit fit)")
     _add_overwrite(export)
+
+    view = commands.add_parser("view", help="relight SVBRDF maps in the browser: a page served on 127.0.0.1")
+    view.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit)")
+    view.add_argument("--capture", type=Path, default=None,
+                      help="the capture the maps were fitted from: its photographs beside the relit fit")
+    view.add_argument("--port", type=int, default=8000, help="the port on 127.0.0.1 (default: 8000; 0: any free)")
 
 
 def _add_capture_commands(commands) -> None:
@@ -432,11 +440,26 @@ def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     _check_output(args)
     written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance,
-                     overwrite=args.overwrite)
+                     overwrite=args.overwrite, capture=args.capture)
     print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
     if args.to == "mitsuba" and args.light is None:
         print("  lit by a directional light at 45 deg elevation from the upper left (the default); "
               "choose another with --light X Y Z")
+    return 0
+
+
+def _view(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from .view import open_site, serve
+
+    site = open_site(args.svbrdf, args.capture, title=args.svbrdf.name)
+    server = serve(site, args.port)
+    print(f"torchspec view: http://127.0.0.1:{server.server_address[1]}/ (Ctrl-C to stop)", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
     return 0
 
 
@@ -501,6 +524,7 @@ COMMANDS = {
     "fit": _fit,
     "render": _render,
     "export": _export,
+    "view": _view,
     "info": _info,
     "calibrate": _calibrate,
     "dome-emulator": _dome_emulator,

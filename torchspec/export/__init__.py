@@ -17,6 +17,7 @@
   the layer's gloss exactly.
 - :func:`export_rti` (:mod:`torchspec.export.rti`): an HSH ``.rti`` that RTIViewer opens, fitted
   to the maps' renders over the hemisphere, described in ``rti.json``.
+- ``web``: the relighting page of :mod:`torchspec.view` as a static site (:func:`torchspec.view.export_web`).
 
 :mod:`torchspec.export.arrays` holds what they share: the checked maps as numpy arrays, the
 value encodings, :class:`ExportError` and :class:`ExportWarning`.
@@ -54,7 +55,7 @@ __all__ = [
     "export_rti",
 ]
 
-FORMATS = ("mitsuba", "gltf", "png16", "openlime", "rti")
+FORMATS = ("mitsuba", "gltf", "png16", "openlime", "rti", "web")
 DEFAULT_LIGHT = (-0.5, 0.5, 0.5**0.5)
 """The Mitsuba export's light when none is given: a directional light at 45 degrees elevation from
 the upper left (azimuth 135 degrees from the surface's +x towards +y), a painting's usual light,
@@ -69,8 +70,10 @@ def export(
     light: Sequence[float] | None = None,
     irradiance: float | Sequence[float] | None = None,
     overwrite: bool = False,
+    capture: str | Path | None = None,
 ) -> Path:
-    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``, ``"openlime"``, ``"rti"``).
+    """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``, ``"openlime"``, ``"rti"``,
+    ``"web"``).
 
     Args:
         maps: a folder of SVBRDF maps (read with :func:`~torchspec.io.read_svbrdf`), its
@@ -83,9 +86,12 @@ def export(
             takes one irradiance, its fitted lights' (default pi, :func:`export_rti`).
         overwrite: write into a folder that already holds files; refused otherwise
             (:func:`torchspec.outputs.check_output`).
+        capture: ``web`` only: the capture the maps were fitted from, whose photographs the page
+            shows beside the relit fit (:func:`torchspec.view.export_web`).
 
     Returns:
-        The export's manifest: ``scene.xml``, ``scene.gltf``, ``png16.json``, ``info.json`` or ``rti.json``.
+        The export's manifest: ``scene.xml``, ``scene.gltf``, ``png16.json``, ``info.json``, ``rti.json``
+        or (web) ``index.html``.
 
     Raises:
         ExportError: an unknown format, a light for a format other than ``mitsuba``, an
@@ -99,6 +105,12 @@ def export(
     """
     if to not in FORMATS:
         raise ExportError(f"the export format must be one of {', '.join(FORMATS)}; got {to!r}.")
+    if capture is not None and to != "web":
+        raise ExportError(f"a capture can only be given to a web export; got one for {to!r}. Drop it.")
+    if to == "web" and light is None and irradiance is None:
+        from ..view import export_web  # the viewer's page, tiled maps (torchspec.view)
+
+        return export_web(maps, output, capture=capture, overwrite=overwrite)
     if to == "mitsuba":
         light = DEFAULT_LIGHT if light is None else light
         irradiance = 1.0 if irradiance is None else irradiance

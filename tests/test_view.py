@@ -1,0 +1,262 @@
+"""torchspec view: the tiles, the site, the command, and the page itself in headless Chromium
+(skipped, with the reason, where no browser or websocket client is installed)."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import http.server
+import json
+import subprocess
+import sys
+import threading
+import urllib.request
+
+import numpy as np
+import pytest
+import torch
+
+from torchspec.errors import TorchspecError
+from torchspec.export import ExportError, export
+from torchspec.io import Capture, Frame, LightSpec, write_capture, write_svbrdf
+from torchspec.lights import Kernel, Lights
+from torchspec.outputs import OutputError
+from torchspec.rendering import render_image
+from torchspec.residual_term import encode
+from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
+from torchspec.view.browser import Browser, find_chromium
+from torchspec.view.check import MODEL_TYPES, hemisphere_lights, model_maps, reference_srgb
+from torchspec.view.tiles import levels_for
+
+CHROMIUM, WHY = find_chromium()
+needs_browser = pytest.mark.skipif(CHROMIUM is None, reason=f"no headless Chromium: {WHY}")
+
+
+def _decode(data: bytes) -> dict[str, np.ndarray]:
+    """A tile's planes, ``(TILE, TILE)`` float32 each, as the page reads them."""
+    planes, offset = {}, 0
+    for _, dtype, names in TEXTURES:
+        size = TILE * TILE * 4 * np.dtype(dtype).itemsize
+        values = np.frombuffer(data[offset : offset + size], dtype=np.dtype(dtype).newbyteorder("<"))
+        values = values.reshape(TILE, TILE, 4).astype(np.float32)
+        planes.update({name: values[..., j] for j, name in enumerate(names)})
+        offset += size
+    assert offset == len(data)
+    return planes
+
+
+def test_pyramid_tiles_hold_the_maps():
+    maps = model_maps("ward-dual", height=300, width=520, seed=1)
+    pyramid = Pyramid.of_maps(maps)
+    assert levels_for(300, 520) == len(pyramid.levels) == 3
+    assert pyramid.levels == [(300, 520), (150, 260), (75, 130)]
+    assert pyramid.grid(0) == (2, 3) and pyramid.grid(2) == (1, 1)
+    svbrdf = maps.svbrdf
+    tile = _decode(pyramid.tile(0, 1, 2))  # rows 256..299, columns 512..519
+    assert np.array_equal(tile["normal_z"][:44, :8], svbrdf.normal[256:, 512:, 2].numpy())  # float32: exact
+    assert np.array_equal(tile["alpha2_x"][:44, :8], svbrdf.roughness2[256:, 512:, 0].numpy())
+    assert np.allclose(tile["kd_g"][:44, :8], svbrdf.diffuse[256:, 512:, 1].numpy(), rtol=1e-3, atol=0)  # float16
+    assert np.allclose(tile["ks2_b"][:44, :8], svbrdf.specular2[256:, 512:, 0].numpy(), rtol=1e-3, atol=0)  # grey
+    assert not tile["normal_z"][44:].any() and not tile["normal_z"][:, 8:].any()  # padding
+    # Level 1: 2 x 2 averages, normals renormalised; codes from the top-left texel.
+    tile = _decode(pyramid.tile(1, 0, 0))
+    block = svbrdf.normal[:2, :2].double().mean((0, 1))
+    assert np.allclose(tile["normal_x"][0, 0], (block / block.norm())[0].item(), atol=1e-6)
+    assert tile["model"][0, 0] == maps.extra["model"][0, 0].item()
+    with pytest.raises(IndexError):
+        pyramid.tile(0, 2, 0)
+
+
+def test_site_routes_and_refuses_other_paths():
+    site = open_site(model_maps("ward-iso", 20, 30))
+    assert b"viewer.js" in site.file("/") and b"WebGL2" in site.file("/viewer.js")
+    manifest = json.loads(site.file("/manifest.json"))
+    assert (manifest["width"], manifest["height"], manifest["levels"]) == (30, 20, [[20, 30]])
+    assert "flags" in manifest["layers"] and manifest["lights"] == []
+    assert len(site.file("/tiles/0/0_0.bin")) == TILE * TILE * 64
+    for bad in (
+        "/tiles/1/0_0.bin",
+        "/tiles/0/0_1.bin",
+        "/../pyproject.toml",
+        "/static/viewer.js",
+        "/photo/0/0/0_0.bin",
+    ):
+        assert site.file(bad) is None, bad
+
+
+def test_export_web_writes_a_static_site(tmp_path):
+    maps = model_maps("diffuse", 40, 300)
+    index = export(maps.svbrdf, tmp_path / "web", to="web")
+    assert index == tmp_path / "web" / "index.html"
+    files = {p.relative_to(tmp_path / "web").as_posix() for p in (tmp_path / "web").rglob("*") if p.is_file()}
+    assert files == {"index.html", "viewer.js", "viewer.css", "manifest.json", "tiles/0/0_0.bin", "tiles/0/0_1.bin",
+                     "tiles/1/0_0.bin"}  # fmt: skip
+    with pytest.raises(OutputError, match="overwrite"):
+        export_web(maps, tmp_path / "web")
+    with pytest.raises(ExportError, match="web export"):
+        export(maps.svbrdf, tmp_path / "gltf", to="gltf", capture=tmp_path)
+
+
+def _capture(folder, maps, exposure=2.0, irradiance=0.5):
+    """A capture of ``maps`` rendered under 12 point lights (its photographs are the model's)."""
+    height, width = maps.svbrdf.shape
+    directions = torch.tensor(hemisphere_lights(12, 70.0))
+    frames = [Frame(f"f{k:02d}.exr", tuple(d.tolist()), irradiance, exposure) for k, d in enumerate(directions)]
+    capture = Capture(folder, width, height, ("R", "G", "B"), (0.0, 0.0, 1.0), LightSpec("point"), frames)
+    lights = Lights(directions, Kernel("point"), torch.full((12, 3), irradiance, dtype=torch.float64),
+                    torch.full((12,), exposure, dtype=torch.float64))  # fmt: skip
+    values = render_image(maps.svbrdf.to(torch.float64), lights, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    return write_capture(folder, capture, values.permute(2, 3, 0, 1).float())
+
+
+def test_a_web_export_with_its_capture_holds_every_photograph(tmp_path):
+    maps = model_maps("ward-iso", 8, 12)
+    capture = _capture(tmp_path / "c", maps, exposure=2.0, irradiance=0.5)
+    export(maps, tmp_path / "web", to="web", capture=tmp_path / "c")
+    manifest = json.loads((tmp_path / "web" / "manifest.json").read_text())
+    assert np.allclose(manifest["lights"], capture.directions().numpy())
+    data = (tmp_path / "web" / "photo" / "11" / "0" / "0_0.bin").read_bytes()
+    photo = np.frombuffer(data, dtype="<f2").reshape(TILE, TILE, 4)[:8, :12, :3].astype(np.float64)
+    light = capture.directions()[11:12]
+    one = torch.ones(1, 3, dtype=torch.float64)
+    unit = render_image(maps.svbrdf.to(torch.float64), Lights(light, Kernel("point"), one, one[0, :1]),
+                        torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))[:, :, 0]  # fmt: skip
+    assert np.allclose(photo, unit.numpy(), rtol=2e-3, atol=1e-6)  # the frame over exposure * irradiance
+
+
+def test_a_capture_of_another_size_is_refused(tmp_path):
+    capture = _capture(tmp_path / "c", model_maps("diffuse", 8, 12))
+    with pytest.raises(TorchspecError, match="12x8 but the maps are 13x8"):
+        open_site(model_maps("diffuse", 8, 13), capture)
+
+
+def test_the_view_command_serves_on_localhost(tmp_path):
+    write_svbrdf(tmp_path / "maps", model_maps("ward-iso", 16, 16))
+    command = [sys.executable, "-m", "torchspec", "view", str(tmp_path / "maps"), "--port", "0"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("torchspec view: http://127.0.0.1:"), line
+        url = line.split()[2]
+        with urllib.request.urlopen(url + "manifest.json", timeout=10) as answer:
+            assert json.load(answer)["title"] == "maps"
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if CHROMIUM is None:
+        pytest.skip(f"no headless Chromium: {WHY}")
+    with Browser(640, 480) as opened:
+        if not opened.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
+            pytest.skip(f"{CHROMIUM} has no WebGL2 here (no GPU and no SwiftShader)")
+        yield opened
+
+
+@contextlib.contextmanager
+def _page(browser, site):
+    """``site`` served on 127.0.0.1 and open in ``browser``."""
+    server = serve(site)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        browser.open(f"http://127.0.0.1:{server.server_address[1]}/")
+        yield browser
+    finally:
+        server.shutdown()
+
+
+@needs_browser
+@pytest.mark.parametrize("model", MODEL_TYPES)
+def test_the_page_relights_as_render_does(browser, model):
+    maps = model_maps(model, 48, 64, seed=3)
+    with _page(browser, open_site(maps)):
+        for light in hemisphere_lights(3, 75.0):
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light)).astype(int)
+            assert np.abs(page - expected).max() <= 1, (model, light)
+            assert expected.std() > 10  # not a blank image
+
+
+@needs_browser
+def test_the_static_export_works_from_a_plain_web_server(browser, tmp_path):
+    maps = model_maps("ward-aniso", 40, 300, seed=7)  # two tiles wide
+    export_web(maps, tmp_path / "web")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    handler = functools.partial(Quiet, directory=str(tmp_path / "web"))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        browser.open(f"http://127.0.0.1:{server.server_address[1]}/")
+        light = hemisphere_lights(5, 60.0)[3]
+        browser.show(origin=True, light=light.tolist(), layer="relit")
+        page = browser.read(0, 0, 300, 40)[..., :3].astype(int)
+        assert np.abs(page - reference_srgb(maps.svbrdf, tuple(light)).astype(int)).max() <= 1
+    finally:
+        server.shutdown()
+
+
+@needs_browser
+def test_layers_show_the_maps(browser):
+    maps = model_maps("ward-aniso", 32, 40, seed=4)
+    with _page(browser, open_site(maps)):
+        browser.show(origin=True, layer="normal")
+        page = browser.read(0, 0, 40, 32)[..., :3].astype(int)
+        expected = np.round((maps.svbrdf.normal.numpy() * 0.5 + 0.5) * 255)
+        assert np.abs(page - expected).max() <= 1
+        browser.show(layer="diffuse")
+        page = browser.read(0, 0, 40, 32)[..., :3].astype(int)
+        expected = torch.round(encode(maps.svbrdf.diffuse.double()) * 255).numpy()
+        assert np.abs(page - expected).max() <= 1
+        browser.show(layer="flags")
+        red = browser.read(0, 0, 40, 32)[..., 0] > 200
+        assert np.array_equal(red, maps.extra["flags"].numpy() > 0)  # model_maps flags only untrusted bits
+
+
+@needs_browser
+def test_with_a_capture_the_light_snaps_and_the_photograph_shows(browser, tmp_path):
+    maps = model_maps("ward-iso", 24, 32, seed=5)
+    capture = _capture(tmp_path / "c", maps)
+    with _page(browser, open_site(maps, capture)):
+        target = capture.directions()[7]
+        state = browser.show(origin=True, light=(target[:2] + 0.02).tolist(), layer="relit")
+        assert state["frame"] == 7 and np.allclose(state["light"], target.tolist())
+        relit = browser.read(0, 0, 32, 24)[..., :3].astype(int)
+        photo = browser.read(state["panels"][1]["x"], 0, 32, 24)[..., :3].astype(int)
+        assert np.abs(relit - reference_srgb(maps.svbrdf, tuple(target.tolist())).astype(int)).max() <= 1
+        assert np.abs(photo - relit).max() <= 1  # the photograph (float16, unit light) is the model's
+
+
+@needs_browser
+def test_dragging_on_the_hemisphere_moves_the_light_and_a_click_reads_a_pixel(browser):
+    maps = model_maps("ward-dual", 24, 32, seed=6)
+    with _page(browser, open_site(maps)):
+        browser.show(origin=True)
+        box = browser.evaluate("(() => { const r = document.getElementById('hemi').getBoundingClientRect(); "
+                               "return [r.left, r.top, r.width]; })()")  # fmt: skip
+        left, top, size = box
+        radius, centre = size / 2 - 6, (left + size / 2, top + size / 2)
+        for kind, x, y in (("mousePressed", 0.0, 0.0), ("mouseMoved", 0.3, 0.1), ("mouseReleased", 0.6, 0.2)):
+            browser.call("Input.dispatchMouseEvent", type=kind, x=centre[0] + x * radius, y=centre[1] - y * radius,
+                         button="left", buttons=0 if kind == "mouseReleased" else 1, clickCount=1)  # fmt: skip
+        light = browser.evaluate("torchspecView.viewer.light")
+        assert np.allclose(light[:2], [0.3, 0.1], atol=0.02)  # the last move; the release does not move it
+        canvas = browser.evaluate("(() => { const r = torchspecView.viewer.canvas.getBoundingClientRect(); "
+                                  "return [r.left, r.top]; })()")  # fmt: skip
+        for kind in ("mousePressed", "mouseReleased"):
+            browser.call("Input.dispatchMouseEvent", type=kind, x=canvas[0] + 5.5, y=canvas[1] + 9.5,
+                         button="left", buttons=1, clickCount=1)  # fmt: skip
+        rows = browser.evaluate(
+            "new Promise(r => setTimeout(() => r([...document.querySelectorAll('#info tr')]"
+            ".map(t => t.innerText)), 300))"
+        )
+        assert rows[0].split() == ["pixel", "5,", "9"]
+        k_s2 = maps.svbrdf.specular2[9, 5, 0].item()
+        shown = {row.split("\t")[0]: row.split("\t")[1] for row in rows}
+        assert np.allclose([float(v) for v in shown["k_s2"].split()], k_s2, rtol=1e-3), rows

@@ -1,0 +1,96 @@
+"""What the page's relit image should be: :func:`torchspec.render` of the same maps under the same
+point light, encoded as the page encodes it (sRGB, 8 bits); and small maps of each model type to
+compare on (the tests, ``experiments/view.py``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..brdf import SVBRDF
+from ..errors import TorchspecError
+from ..flags import FLAGS, UNTRUSTED, bit
+from ..geometry import normal_from_angles
+from ..io import Maps
+from ..lights import Kernel, Lights
+from ..pipeline.settings import MODEL_CODES
+from ..rendering import render_image
+from ..residual_term import encode
+
+__all__ = ["MODEL_TYPES", "model_maps", "reference_srgb", "hemisphere_lights"]
+
+MODEL_TYPES = ("diffuse", "ward-iso", "ward-aniso", "ward-dual")
+"""The model types the page shades (``ward-iso-colour`` is ``ward-iso`` with a coloured ``k_s``)."""
+
+
+def model_maps(
+    model: str, height: int = 48, width: int = 64, seed: int = 0, alpha: tuple[float, float] | None = None
+) -> Maps:
+    """Random maps of one model type, with the fit's extra maps (model, quality, flags, standard
+    deviations) and ``svbrdf.json`` keys: normals tilted up to 25 degrees, ``k_d`` in
+    ``[0.1, 0.9]``, ``k_s`` in ``[0.02, 0.5]``, ``alpha`` in ``[0.05, 0.45]`` or the range
+    ``alpha`` (anisotropic: each axis, and a rotation), the dual model's second lobe
+    (``alpha`` in ``[0.2, 0.5]``) broader than its first (``[0.05, 0.15]`` by default)."""
+    if model not in MODEL_TYPES:
+        raise TorchspecError(f"model must be one of {MODEL_TYPES}; got {model!r}.")
+    g = torch.Generator().manual_seed(seed)
+
+    def uniform(low, high, *shape):
+        return low + (high - low) * torch.rand(height, width, *shape, generator=g, dtype=torch.float64)
+
+    normal = normal_from_angles(uniform(-math.radians(25), math.radians(25), 2))
+    kd = uniform(0.1, 0.9, 3)
+    ks = uniform(0.02, 0.5, 3) * (model != "diffuse")
+    low, high = (0.05, 0.45) if alpha is None else alpha
+    rotation, ks2, alpha2 = None, None, None
+    if model == "ward-aniso":
+        alpha, rotation = uniform(low, high, 2), uniform(-math.pi, math.pi)
+    else:
+        low, high = (0.05, 0.15) if model == "ward-dual" and alpha is None else (low, high)
+        alpha = uniform(low, high, 1).expand(height, width, 2).clone()
+    if model == "ward-dual":
+        ks2, alpha2 = uniform(0.02, 0.3, 1), uniform(0.2, 0.5, 1).expand(height, width, 2).clone()
+    if model == "diffuse":
+        alpha = torch.zeros_like(alpha)
+    svbrdf = SVBRDF(normal, kd, ks, alpha, rotation, specular2=ks2, roughness2=alpha2).to(torch.float32)
+    flags = torch.where(torch.rand(height, width, generator=g) < 0.1, float(bit(UNTRUSTED[0])), 0.0)
+    extra = {
+        "model": torch.full((height, width), float(MODEL_CODES.index(model))),
+        "quality": torch.rand(height, width, generator=g),
+        "flags": flags,
+        "std_normal_deg": torch.rand(height, width, generator=g),
+        "std_diffuse": 0.01 * torch.rand(height, width, 3, generator=g),
+    }
+    meta = {
+        "model_codes": list(MODEL_CODES),
+        "flag_bits": {name: bit(name) for name in FLAGS},
+        "untrusted_flags": list(UNTRUSTED),
+    }
+    return Maps(svbrdf, meta, extra)
+
+
+def reference_srgb(
+    svbrdf: SVBRDF, light, view=(0.0, 0.0, 1.0), *, exposure: float = 1.0, dtype: torch.dtype = torch.float64
+) -> np.ndarray:
+    """``(H, W, 3)`` uint8: :func:`torchspec.rendering.render_image` of ``svbrdf`` under a point
+    light from ``light (3,)`` of unit irradiance, times ``exposure``, sRGB-encoded (clipped to
+    ``[0, 1]``) and rounded to 8 bits as the page shows it (grey replicated to 3 channels)."""
+    one = torch.ones(1, 1, dtype=dtype)
+    lights = Lights(torch.tensor([light], dtype=dtype), Kernel("point"), one, one[0])
+    value = render_image(svbrdf.to(dtype), lights, torch.tensor(view, dtype=dtype))
+    value = (value[:, :, 0] * exposure).clamp(0.0, 1.0)
+    value = value.expand(*value.shape[:2], 3) if value.shape[-1] == 1 else value[..., :3]
+    return torch.round(encode(value) * 255.0).to(torch.uint8).numpy()
+
+
+def hemisphere_lights(count: int = 20, max_zenith_deg: float = 80.0) -> np.ndarray:
+    """``(count, 3)`` unit directions spread over the hemisphere (a Fibonacci spiral in the
+    l-plane, out to ``max_zenith_deg`` from the zenith)."""
+    k = np.arange(count) + 0.5
+    radius = math.sin(math.radians(max_zenith_deg)) * np.sqrt(k / count)
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    x, y = radius * np.cos(phi), radius * np.sin(phi)
+    return np.stack([x, y, np.sqrt(1.0 - x * x - y * y)], -1)

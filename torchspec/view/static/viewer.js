@@ -1,0 +1,626 @@
+// torchspec view: relights SVBRDF maps with the fit's model (Lambert + Ward, one or two lobes,
+// isotropic or anisotropic) under a point light, per pixel, in WebGL2. Plain JavaScript, no
+// network beyond the site's own files (manifest.json, tiles/, photo/): see torchspec/view/site.py.
+// The shading repeats torchspec.rendering.render's point path (torchspec/lobe.py lobe_at,
+// torchspec/diffuse.py): value = k_d / pi <n, l>^+ + k_s W(l) + k_s2 W2(l), times the exposure.
+"use strict";
+
+const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", "quality", "flags", "std"];
+const PHOTO_LAYER = 9;
+const MAX_TILES = 160; // textures kept on the GPU (least recently used dropped)
+const MAX_FETCHES = 6;
+const INTERACTIVE_MS = 250; // input this recent: frames at a reduced scale
+const FRAME_MS = 40; // the frame time a reduced scale aims at
+const TILE_FRAME_MS = 300; // while tiles arrive, a frame at most this often
+
+const VERTEX = `#version 300 es
+uniform vec4 uRect;
+out vec2 vTex;
+uniform float uTile;
+void main() {
+  vec2 c = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1));
+  vTex = c * uTile;
+  gl_Position = vec4(mix(uRect.xy, uRect.zw, c), 0.0, 1.0);
+}`;
+
+const FRAGMENT = `#version 300 es
+precision highp float;
+precision highp int;
+precision highp sampler2D;
+uniform sampler2D tGeo, tRough, tKd, tKs, tKs2, tStd, tPhoto;
+uniform ivec2 uValid;
+uniform int uLayer, uStd, uUntrusted, uModels;
+uniform vec3 uLight, uView, uModelColours[8];
+uniform float uExposure, uGain;
+in vec2 vTex;
+out vec4 outColour;
+const float PI = 3.14159265358979;
+
+float ward(vec3 n, vec3 s, vec3 t, float ax, float ay, float ci, float co) {
+  if (ci <= 0.0 || co <= 0.0 || ax <= 0.0 || ay <= 0.0 || uLight.z <= 0.0) return 0.0;
+  vec3 h = uLight + uView;
+  float hn = dot(n, h);
+  float hs = dot(s, h) / ax, ht = dot(t, h) / ay;
+  return exp(-(hs * hs + ht * ht) / (hn * hn)) * sqrt(ci / co) * (1.0 / (4.0 * PI * ax * ay));
+}
+
+vec3 srgb(vec3 v) {
+  v = clamp(v, 0.0, 1.0);
+  return mix(12.92 * v, 1.055 * pow(v, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), v));
+}
+
+vec3 relit(ivec2 ij) {
+  vec4 g = texelFetch(tGeo, ij, 0), r = texelFetch(tRough, ij, 0);
+  vec3 n = g.xyz;
+  vec3 s = vec3(1.0, 0.0, 0.0) - n.x * n;
+  if (dot(s, s) < 1e-12) s = vec3(0.0, 1.0, 0.0) - n.y * n;
+  s = s * inversesqrt(dot(s, s));
+  vec3 t = cross(n, s);
+  float c = cos(g.w), si = sin(g.w);
+  vec3 s2 = c * s + si * t, t2 = c * t - si * s;
+  float ci = dot(n, uLight), co = dot(n, uView);
+  vec3 value = texelFetch(tKd, ij, 0).rgb / PI * max(ci, 0.0);
+  value += texelFetch(tKs, ij, 0).rgb * ward(n, s2, t2, r.x, r.y, ci, co);
+  value += texelFetch(tKs2, ij, 0).rgb * ward(n, s2, t2, r.z, r.w, ci, co);
+  return value * uExposure;
+}
+
+void main() {
+  ivec2 ij = ivec2(floor(vTex));
+  if (ij.x >= uValid.x || ij.y >= uValid.y) discard;
+  vec3 colour;
+  if (uLayer == 0) colour = srgb(relit(ij));
+  else if (uLayer == 1) colour = texelFetch(tGeo, ij, 0).xyz * 0.5 + 0.5;
+  else if (uLayer == 2) colour = srgb(texelFetch(tKd, ij, 0).rgb);
+  else if (uLayer == 3) colour = srgb(texelFetch(tKs, ij, 0).rgb * uGain);
+  else if (uLayer == 4) colour = texelFetch(tRough, ij, 0).xyz * uGain;
+  else if (uLayer == 5) {
+    int m = int(texelFetch(tKs, ij, 0).a + 0.5);
+    colour = m >= 0 && m < uModels ? uModelColours[m] : vec3(0.0);
+  } else if (uLayer == 6) {
+    float q = clamp(texelFetch(tKd, ij, 0).a, 0.0, 1.0);
+    colour = mix(vec3(0.27, 0.0, 0.33), vec3(0.99, 0.91, 0.14), q);
+  } else if (uLayer == 7) {
+    int f = int(texelFetch(tKs2, ij, 0).a + 0.5);
+    colour = (f & uUntrusted) != 0 ? vec3(0.9, 0.1, 0.1) : (f != 0 ? vec3(0.9, 0.7, 0.1) : vec3(0.15));
+  } else if (uLayer == 8) colour = vec3(clamp(texelFetch(tStd, ij, 0)[uStd] * uGain, 0.0, 1.0));
+  else colour = srgb(texelFetch(tPhoto, ij, 0).rgb * uExposure);
+  outColour = vec4(colour, 1.0);
+}`;
+
+function halfToFloat(h) {
+  const e = (h >> 10) & 31, f = h & 1023, s = h >> 15 ? -1 : 1;
+  if (e === 0) return s * f * 2 ** -24;
+  if (e === 31) return f ? NaN : s * Infinity;
+  return s * (1 + f / 1024) * 2 ** (e - 15);
+}
+
+function colourOf(hex) {
+  const v = parseInt(hex.slice(1), 16);
+  return [(v >> 16) / 255, ((v >> 8) & 255) / 255, (v & 255) / 255];
+}
+
+class Viewer {
+  constructor(manifest) {
+    this.m = manifest;
+    this.canvas = document.getElementById("view");
+    const gl = this.canvas.getContext("webgl2", { antialias: false, alpha: false, preserveDrawingBuffer: true });
+    if (!gl) throw new Error("this browser has no WebGL2");
+    this.gl = gl;
+    this.program = this.compile();
+    this.tiles = new Map(); // key -> {state, textures, used}
+    this.queue = new Set();
+    this.fetching = 0;
+    this.frames = 0;
+    this.drawMs = 0;
+    this.light = [0, 0, 1];
+    this.frame = -1; // the captured frame nearest the light
+    this.layer = 0;
+    this.exposure = 1;
+    this.std = 0;
+    this.compare = manifest.lights.length > 0;
+    this.snap = manifest.lights.length > 0;
+    this.complete = false;
+    this.lastInput = -Infinity;
+    this.scale = 1;
+    this.fit();
+  }
+
+  compile() {
+    const gl = this.gl;
+    const shader = (type, source) => {
+      const s = gl.createShader(type);
+      gl.shaderSource(s, source);
+      gl.compileShader(s);
+      if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+      return s;
+    };
+    const p = gl.createProgram();
+    gl.attachShader(p, shader(gl.VERTEX_SHADER, VERTEX));
+    gl.attachShader(p, shader(gl.FRAGMENT_SHADER, FRAGMENT));
+    gl.linkProgram(p);
+    if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
+    gl.useProgram(p);
+    this.u = {};
+    for (let i = 0; i < gl.getProgramParameter(p, gl.ACTIVE_UNIFORMS); i++) {
+      const name = gl.getActiveUniform(p, i).name.replace("[0]", "");
+      this.u[name] = gl.getUniformLocation(p, name);
+    }
+    ["tGeo", "tRough", "tKd", "tKs", "tKs2", "tStd", "tPhoto"].forEach((n, i) => gl.uniform1i(this.u[n], i));
+    gl.uniform1f(this.u.uTile, this.m.tile);
+    const colours = (this.m.model_colours || []).slice(0, 8);
+    gl.uniform1i(this.u.uModels, colours.length);
+    if (colours.length) gl.uniform3fv(this.u.uModelColours, colours.flatMap(colourOf));
+    let untrusted = 0;
+    for (const name of this.m.untrusted_flags) untrusted |= this.m.flag_bits[name] || 0;
+    gl.uniform1i(this.u.uUntrusted, untrusted);
+    gl.uniform3fv(this.u.uView, this.m.view);
+    return p;
+  }
+
+  // The view: zoom (screen pixels per level-0 pixel) and the image point at the centre of a panel.
+  panels() {
+    const w = this.canvas.width, h = this.canvas.height;
+    if (this.compare && this.frame >= 0) {
+      const half = Math.floor(w / 2);
+      return [{ x: 0, w: half, h, photo: false }, { x: half, w: w - half, h, photo: true }];
+    }
+    return [{ x: 0, w, h, photo: false }];
+  }
+
+  fit() {
+    this.resize();
+    const p = this.panels()[0];
+    this.zoom = Math.min(p.w / this.m.width, p.h / this.m.height);
+    this.centre = [this.m.width / 2, this.m.height / 2];
+    this.request();
+  }
+
+  resize() {
+    const r = this.canvas.getBoundingClientRect();
+    const w = Math.max(1, Math.round(r.width * devicePixelRatio)), h = Math.max(1, Math.round(r.height * devicePixelRatio));
+    if (this.canvas.width !== w || this.canvas.height !== h) [this.canvas.width, this.canvas.height] = [w, h];
+  }
+
+  level() {
+    const top = this.m.levels.length - 1;
+    return Math.max(0, Math.min(top, Math.floor(Math.log2(1 / this.zoom) + 1e-9)));
+  }
+
+  // Tiles of `level` that a panel shows: [row, column] pairs.
+  visible(level, p) {
+    const span = this.m.tile * 2 ** level, [rows, cols] = this.grid(level);
+    const x0 = this.centre[0] - p.w / 2 / this.zoom, x1 = this.centre[0] + p.w / 2 / this.zoom;
+    const y0 = this.centre[1] - p.h / 2 / this.zoom, y1 = this.centre[1] + p.h / 2 / this.zoom;
+    const out = [];
+    for (let r = Math.max(0, Math.floor(y0 / span)); r < Math.min(rows, Math.ceil(y1 / span)); r++)
+      for (let c = Math.max(0, Math.floor(x0 / span)); c < Math.min(cols, Math.ceil(x1 / span)); c++) out.push([r, c]);
+    return out;
+  }
+
+  grid(level) {
+    const [h, w] = this.m.levels[level];
+    return [Math.ceil(h / this.m.tile), Math.ceil(w / this.m.tile)];
+  }
+
+  url(photo, level, r, c) {
+    return photo ? `photo/${this.frame}/${level}/${r}_${c}.bin` : `tiles/${level}/${r}_${c}.bin`;
+  }
+
+  // The tile at `url`, uploaded; null while it loads (its fetch queued).
+  tile(url) {
+    const t = this.tiles.get(url);
+    if (t) {
+      t.used = performance.now();
+      return t.state === "ready" ? t : null;
+    }
+    this.queue.add(url);
+    this.pump();
+    return null;
+  }
+
+  pump() {
+    while (this.fetching < MAX_FETCHES && this.queue.size) {
+      const url = this.queue.values().next().value;
+      this.queue.delete(url);
+      const entry = { state: "loading", used: performance.now(), textures: [] };
+      this.tiles.set(url, entry);
+      this.fetching++;
+      fetch(url)
+        .then((r) => (r.ok ? r.arrayBuffer() : Promise.reject(new Error(`${url}: ${r.status}`))))
+        .then((buffer) => this.upload(entry, buffer, url.startsWith("photo")))
+        .catch((e) => {
+          entry.state = "error";
+          this.status(String(e));
+        })
+        .finally(() => {
+          this.fetching--;
+          this.pump();
+          this.arrived();
+        });
+    }
+  }
+
+  upload(entry, buffer, photo) {
+    const gl = this.gl, n = this.m.tile;
+    let offset = 0;
+    const textures = photo ? [{ dtype: "float16" }] : this.m.textures;
+    for (const spec of textures) {
+      const f32 = spec.dtype === "float32";
+      const data = f32 ? new Float32Array(buffer, offset, n * n * 4) : new Uint16Array(buffer, offset, n * n * 4);
+      offset += n * n * 4 * (f32 ? 4 : 2);
+      const tex = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+      gl.texImage2D(gl.TEXTURE_2D, 0, f32 ? gl.RGBA32F : gl.RGBA16F, n, n, 0, gl.RGBA, f32 ? gl.FLOAT : gl.HALF_FLOAT, data);
+      entry.textures.push(tex);
+    }
+    entry.state = "ready";
+    this.evict();
+  }
+
+  evict() {
+    if (this.tiles.size <= MAX_TILES) return;
+    const ready = [...this.tiles.entries()].filter(([, t]) => t.state === "ready").sort((a, b) => a[1].used - b[1].used);
+    for (const [url, t] of ready.slice(0, this.tiles.size - MAX_TILES)) {
+      t.textures.forEach((x) => this.gl.deleteTexture(x));
+      this.tiles.delete(url);
+    }
+  }
+
+  // A tile arrived: draw when the last one is in, or every TILE_FRAME_MS while more come (each
+  // frame of a big canvas takes long without a GPU).
+  arrived() {
+    if (!this.drawn || (this.fetching === 0 && this.queue.size === 0)) return this.request();
+    if (!this.soon) this.soon = setTimeout(() => ((this.soon = 0), this.request()), TILE_FRAME_MS);
+  }
+
+  request() {
+    if (!this.pending) this.pending = requestAnimationFrame(() => this.draw());
+  }
+
+  // One frame. While the user drags or zooms (the last input under INTERACTIVE_MS ago), it is
+  // drawn at a reduced scale chosen to keep a frame near FRAME_MS, and scaled up; the full
+  // resolution follows when the input stops. Each panel draws the top level under the tiles of
+  // the level that matches the zoom only where one of those is still loading.
+  draw() {
+    this.pending = 0;
+    const start = performance.now(), gl = this.gl;
+    this.resize();
+    const interactive = start - this.lastInput < INTERACTIVE_MS;
+    const scale = interactive ? this.scale : 1;
+    const width = this.canvas.width, height = this.canvas.height;
+    const w = Math.max(1, Math.round(width * scale)), h = Math.max(1, Math.round(height * scale));
+    gl.bindFramebuffer(gl.FRAMEBUFFER, scale < 1 ? this.target(w, h) : null);
+    gl.viewport(0, 0, w, h);
+    gl.clearColor(0.125, 0.125, 0.125, 1);
+    gl.clear(gl.COLOR_BUFFER_BIT);
+    gl.uniform3fv(this.u.uLight, this.light);
+    gl.uniform1f(this.u.uExposure, this.exposure);
+    gl.uniform1i(this.u.uStd, this.std);
+    const target = this.level(), top = this.m.levels.length - 1;
+    let complete = true;
+    this.queue.clear(); // only what this frame wants is fetched
+    for (const p of this.panels()) {
+      gl.viewport(Math.round(p.x * scale), 0, Math.round((p.x + p.w) * scale) - Math.round(p.x * scale), h);
+      this.setLayer(p.photo ? PHOTO_LAYER : this.layer);
+      const at = (level) => this.visible(level, p).map(([r, c]) => [r, c, this.tile(this.url(p.photo, level, r, c))]);
+      const under = target === top ? [] : at(top); // asked for first: it shows first
+      const tiles = at(target);
+      if (tiles.some(([, , t]) => !t)) for (const [r, c, t] of under) if (t) this.drawTile(t, top, r, c, p);
+      for (const [r, c, t] of tiles) {
+        if (t) this.drawTile(t, target, r, c, p);
+        else complete = false;
+      }
+    }
+    if (scale < 1) {
+      gl.bindFramebuffer(gl.READ_FRAMEBUFFER, this.fbo);
+      gl.bindFramebuffer(gl.DRAW_FRAMEBUFFER, null);
+      gl.blitFramebuffer(0, 0, w, h, 0, 0, width, height, gl.COLOR_BUFFER_BIT, gl.LINEAR);
+    }
+    if (interactive) {
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4)); // wait for the frame: its real time
+      const ms = performance.now() - start;
+      if (ms > FRAME_MS * 1.5 && this.scale > 1 / 8) this.scale /= Math.SQRT2;
+      else if (ms < FRAME_MS / 2.5 && this.scale < 1) this.scale = Math.min(1, this.scale * Math.SQRT2);
+      clearTimeout(this.idle);
+      this.idle = setTimeout(() => this.request(), INTERACTIVE_MS);
+    }
+    if (this.firstImage === undefined && this.drawn) {
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+      this.firstImage = performance.now(); // ms since the page's navigation: when it first showed the maps
+    }
+    this.complete = complete && scale === 1;
+    this.frames++;
+    this.drawMs = performance.now() - start;
+  }
+
+  target(w, h) {
+    const gl = this.gl;
+    if (!this.fbo || this.fboSize[0] !== w || this.fboSize[1] !== h) {
+      if (this.fbo) [gl.deleteFramebuffer(this.fbo), gl.deleteTexture(this.fboTexture)];
+      this.fboTexture = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, this.fboTexture);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, w, h);
+      this.fbo = gl.createFramebuffer();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.fboTexture, 0);
+      this.fboSize = [w, h];
+    }
+    return this.fbo;
+  }
+
+  setLayer(layer) {
+    const gl = this.gl, ranges = this.m.ranges;
+    gl.uniform1i(this.u.uLayer, layer);
+    const stds = ["std_normal_deg", "std_diffuse", "std_specular", "std_roughness"];
+    const gain = { 3: 1 / ranges.specular, 4: 1 / ranges.alpha, 8: 1 / (ranges[stds[this.std]] || 1) }[layer] || 1;
+    gl.uniform1f(this.u.uGain, gain);
+  }
+
+  drawTile(t, level, r, c, p) {
+    const gl = this.gl, n = this.m.tile, span = n * 2 ** level;
+    this.drawn = true;
+    const [h, w] = this.m.levels[level];
+    t.textures.forEach((x, i) => {
+      gl.activeTexture(gl.TEXTURE0 + (t.textures.length === 1 ? 6 : i));
+      gl.bindTexture(gl.TEXTURE_2D, x);
+    });
+    gl.uniform2i(this.u.uValid, Math.min(n, w - c * n), Math.min(n, h - r * n));
+    const sx = (x) => ((x - this.centre[0]) * this.zoom + p.w / 2) / p.w * 2 - 1;
+    const sy = (y) => 1 - ((y - this.centre[1]) * this.zoom + p.h / 2) / p.h * 2;
+    gl.uniform4f(this.u.uRect, sx(c * span), sy(r * span), sx((c + 1) * span), sy((r + 1) * span));
+    gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+  }
+
+  // The light from a direction, snapped to the nearest captured light when asked.
+  setLight(l) {
+    let [x, y] = l, r = Math.hypot(x, y);
+    if (r > 0.995) [x, y, r] = [(x * 0.995) / r, (y * 0.995) / r, 0.995];
+    let light = [x, y, Math.sqrt(Math.max(0, 1 - r * r))];
+    let best = -1, k = -1;
+    this.m.lights.forEach((d, i) => {
+      const c = d[0] * light[0] + d[1] * light[1] + d[2] * light[2];
+      if (c > best) [best, k] = [c, i];
+    });
+    this.frame = k;
+    this.light = this.snap && k >= 0 ? this.m.lights[k].slice() : light;
+    this.onLight();
+    this.request();
+  }
+
+  // Image point (level-0 pixel coordinates) under a canvas point (CSS pixels).
+  imagePoint(cx, cy) {
+    const x = cx * devicePixelRatio, y = cy * devicePixelRatio;
+    const p = this.panels().find((q) => x >= q.x && x < q.x + q.w) || this.panels()[0];
+    return [(x - p.x - p.w / 2) / this.zoom + this.centre[0], (y - p.h / 2) / this.zoom + this.centre[1]];
+  }
+
+  async pick(x, y) {
+    const px = Math.floor(x), py = Math.floor(y), n = this.m.tile;
+    if (px < 0 || py < 0 || px >= this.m.width || py >= this.m.height) return null;
+    const buffer = await (await fetch(this.url(false, 0, Math.floor(py / n), Math.floor(px / n)))).arrayBuffer();
+    const i = ((py % n) * n + (px % n)) * 4, out = { x: px, y: py };
+    let offset = 0;
+    for (const spec of this.m.textures) {
+      const f32 = spec.dtype === "float32";
+      const a = f32 ? new Float32Array(buffer, offset, n * n * 4) : new Uint16Array(buffer, offset, n * n * 4);
+      spec.planes.forEach((name, j) => (out[name] = f32 ? a[i + j] : halfToFloat(a[i + j])));
+      offset += n * n * 4 * (f32 ? 4 : 2);
+    }
+    return out;
+  }
+
+  status(text) {
+    document.getElementById("status").textContent = text;
+  }
+
+  onLight() {}
+}
+
+function describe(m, v) {
+  const f = (x) => (Math.abs(x) >= 1e-3 || x === 0 ? x.toFixed(4) : x.toExponential(2));
+  const rows = [["pixel", `${v.x}, ${v.y}`], ["normal", [v.normal_x, v.normal_y, v.normal_z].map(f).join(" ")]];
+  rows.push(["k_d", [v.kd_r, v.kd_g, v.kd_b].map(f).join(" ")], ["k_s", [v.ks_r, v.ks_g, v.ks_b].map(f).join(" ")]);
+  rows.push(["alpha", `${f(v.alpha_x)} ${f(v.alpha_y)}`], ["rotation", f(v.rotation)]);
+  if (v.ks2_r || v.ks2_g || v.ks2_b) rows.push(["k_s2", [v.ks2_r, v.ks2_g, v.ks2_b].map(f).join(" ")], ["alpha2", `${f(v.alpha2_x)} ${f(v.alpha2_y)}`]);
+  if (m.layers.includes("model")) rows.push(["model", m.model_codes[Math.round(v.model)] || String(v.model)]);
+  if (m.layers.includes("quality")) rows.push(["quality", f(v.quality)]);
+  if (m.layers.includes("flags")) {
+    const names = Object.entries(m.flag_bits).filter(([, b]) => Math.round(v.flags) & b).map(([n]) => n);
+    rows.push(["flags", names.join(", ") || "none"]);
+  }
+  if (m.layers.includes("std")) {
+    rows.push(["std normal", `${f(v.std_normal_deg)} deg`], ["std k_d", f(v.std_diffuse)]);
+    rows.push(["std k_s", f(v.std_specular)], ["std alpha", f(v.std_roughness)]);
+  }
+  return rows;
+}
+
+function hemisphere(viewer) {
+  const hemi = document.getElementById("hemi"), ctx = hemi.getContext("2d");
+  const R = hemi.width / 2 - 6, C = hemi.width / 2;
+  const drawHemi = () => {
+    ctx.clearRect(0, 0, hemi.width, hemi.height);
+    ctx.strokeStyle = "#777";
+    for (const e of [0, 30, 60]) {
+      ctx.beginPath();
+      ctx.arc(C, C, R * Math.cos((e * Math.PI) / 180), 0, 2 * Math.PI);
+      ctx.stroke();
+    }
+    ctx.fillStyle = "#5af";
+    viewer.m.lights.forEach((d, i) => {
+      ctx.fillStyle = i === viewer.frame ? "#fff" : "#5af";
+      ctx.fillRect(C + d[0] * R - 2, C - d[1] * R - 2, 4, 4);
+    });
+    ctx.fillStyle = "#fc3";
+    ctx.beginPath();
+    ctx.arc(C + viewer.light[0] * R, C - viewer.light[1] * R, 5, 0, 2 * Math.PI);
+    ctx.fill();
+    const [x, y, z] = viewer.light, el = (Math.asin(Math.min(1, z)) * 180) / Math.PI;
+    const frame = viewer.frame >= 0 ? `, frame ${viewer.frame}` : "";
+    document.getElementById("light").textContent = `light ${x.toFixed(3)} ${y.toFixed(3)} ${z.toFixed(3)} (elevation ${el.toFixed(1)} deg${frame})`;
+  };
+  const move = (e) => {
+    viewer.lastInput = performance.now();
+    viewer.setLight([(e.offsetX - C) / R, -(e.offsetY - C) / R]);
+  };
+  hemi.addEventListener("pointerdown", (e) => {
+    hemi.setPointerCapture(e.pointerId);
+    move(e);
+  });
+  hemi.addEventListener("pointermove", (e) => e.buttons && move(e));
+  viewer.onLight = drawHemi;
+  drawHemi();
+}
+
+function controls(viewer) {
+  const m = viewer.m, bar = document.getElementById("layers");
+  for (const name of m.layers) {
+    const b = document.createElement("button");
+    b.textContent = name;
+    b.onclick = () => {
+      viewer.layer = LAYERS.indexOf(name);
+      [...bar.children].forEach((x) => x.classList.toggle("on", x === b));
+      viewer.request();
+    };
+    bar.appendChild(b);
+  }
+  bar.firstChild.classList.add("on");
+  const exposure = document.getElementById("exposure");
+  exposure.oninput = () => {
+    viewer.exposure = 2 ** Number(exposure.value);
+    document.getElementById("exposure-value").textContent = viewer.exposure.toPrecision(3);
+    viewer.request();
+  };
+  document.getElementById("std").onchange = (e) => ((viewer.std = Number(e.target.value)), viewer.request());
+  document.getElementById("fit").onclick = () => viewer.fit();
+  document.getElementById("one").onclick = () => ((viewer.zoom = 1 / devicePixelRatio), viewer.request());
+  for (const id of ["snap", "compare"]) {
+    document.getElementById(`${id}-label`).hidden = m.lights.length === 0;
+    document.getElementById(id).onchange = (e) => ((viewer[id] = e.target.checked), viewer.setLight(viewer.light));
+  }
+  document.getElementById("title").textContent = `torchspec: ${m.title} (${m.width} x ${m.height})`;
+}
+
+function canvasEvents(viewer) {
+  const canvas = viewer.canvas, drag = document.getElementById("drag");
+  let down = null;
+  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
+    down = { x: e.offsetX, y: e.offsetY, moved: false, centre: viewer.centre.slice() };
+    down.pan = e.shiftKey || e.button !== 0 || drag.value === "pan";
+  });
+  canvas.addEventListener("pointermove", (e) => {
+    if (!down) return;
+    const dx = e.offsetX - down.x, dy = e.offsetY - down.y;
+    down.moved = down.moved || Math.hypot(dx, dy) > 3;
+    if (!down.moved) return;
+    viewer.lastInput = performance.now();
+    if (down.pan) {
+      const s = devicePixelRatio / viewer.zoom;
+      viewer.centre = [down.centre[0] - dx * s, down.centre[1] - dy * s];
+      viewer.request();
+    } else {
+      const r = canvas.getBoundingClientRect(), p = viewer.panels(), w = p[0].w / devicePixelRatio;
+      const x = e.offsetX % w, size = Math.min(w, r.height) / 2;
+      viewer.setLight([(x - w / 2) / size, -(e.offsetY - r.height / 2) / size]);
+    }
+  });
+  canvas.addEventListener("pointerup", async (e) => {
+    const click = down && !down.moved;
+    down = null;
+    if (!click) return;
+    const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), v = await viewer.pick(x, y);
+    const table = document.getElementById("info");
+    table.innerHTML = "";
+    if (!v) return;
+    for (const [k, val] of describe(viewer.m, v)) table.insertRow().append(...[k, val].map((t) => Object.assign(document.createElement("td"), { textContent: t })));
+  });
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), f = Math.exp(-e.deltaY * 0.002);
+    viewer.lastInput = performance.now();
+    viewer.zoom *= f;
+    viewer.centre = [x - (x - viewer.centre[0]) / f, y - (y - viewer.centre[1]) / f];
+    viewer.request();
+  }, { passive: false });
+  new ResizeObserver(() => viewer.request()).observe(canvas);
+}
+
+// For tests and scripts (torchspec/view/browser.py): the viewer, a promise of its settling (every
+// tile the view wants drawn), and the canvas's pixels read back (RGBA, rows top to bottom, base64).
+window.torchspecView = {
+  ready: fetch("manifest.json")
+    .then((r) => r.json())
+    .then((m) => {
+      const viewer = new Viewer(m);
+      controls(viewer);
+      hemisphere(viewer);
+      canvasEvents(viewer);
+      if (m.lights.length) {
+        viewer.setLight([0, 0, 1]);
+        viewer.fit(); // to the panel beside the photograph
+      }
+      window.torchspecView.viewer = viewer;
+      return viewer;
+    })
+    .catch((e) => {
+      document.getElementById("status").textContent = `cannot show the maps: ${e.message}`;
+      throw e;
+    }),
+  // Set the view: {light: [x, y(, z)], layer, exposure, snap, compare, zoom, centre, origin}
+  // (origin: 1:1, the image's top-left pixel at the canvas's); returns the state it shows.
+  show(o) {
+    const v = this.viewer;
+    for (const key of ["exposure", "snap", "compare", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
+    if ("layer" in o) {
+      v.layer = LAYERS.indexOf(o.layer);
+      [...document.getElementById("layers").children].forEach((b) => b.classList.toggle("on", b.textContent === o.layer));
+    }
+    for (const id of ["snap", "compare"]) document.getElementById(id).checked = v[id];
+    if (o.light) v.setLight(o.light);
+    if (o.origin) {
+      v.zoom = 1;
+      v.centre = [v.panels()[0].w / 2, v.canvas.height / 2];
+    }
+    v.request();
+    return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light };
+  },
+  // Frames per second of `count` relit frames, the light circling at `zenith` radians: each
+  // frame drawn and finished (one pixel read back) before the next.
+  bench(count, zenith) {
+    const v = this.viewer, gl = v.gl, one = new Uint8Array(4), start = performance.now();
+    for (let i = 0; i < count; i++) {
+      const phi = (2 * Math.PI * i) / count;
+      v.setLight([Math.sin(zenith) * Math.cos(phi), Math.sin(zenith) * Math.sin(phi)]);
+      cancelAnimationFrame(v.pending);
+      v.draw();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, one);
+    }
+    return (count * 1000) / (performance.now() - start);
+  },
+  settle() {
+    const v = this.viewer;
+    return new Promise((resolve) => {
+      const check = () => {
+        if (v.complete && !v.pending && v.fetching === 0) resolve(v.frames);
+        else setTimeout(check, 5); // a tile's arrival asks for a frame
+      };
+      v.request();
+      setTimeout(check, 0);
+    });
+  },
+  read(x, y, w, h) {
+    const gl = this.viewer.gl, out = new Uint8Array(w * h * 4);
+    gl.readPixels(x, gl.drawingBufferHeight - y - h, w, h, gl.RGBA, gl.UNSIGNED_BYTE, out);
+    const flipped = new Uint8Array(w * h * 4);
+    for (let r = 0; r < h; r++) flipped.set(out.subarray((h - 1 - r) * w * 4, (h - r) * w * 4), r * w * 4);
+    let s = "";
+    for (let i = 0; i < flipped.length; i += 32768) s += String.fromCharCode(...flipped.subarray(i, i + 32768));
+    return btoa(s);
+  },
+};

@@ -1,0 +1,209 @@
+"""The viewer's data: SVBRDF maps (and a capture's photographs) as a pyramid of square binary
+tiles that the page (``torchspec/view/static/viewer.js``) uploads as WebGL2 textures.
+
+A tile is ``TILE x TILE`` texels of level ``l`` (level 0 the maps themselves, level ``l + 1``
+half of level ``l``, down to a level that fits in one tile; edge tiles padded with zeros).
+Its file is the textures of :data:`TEXTURES`, one after the other, each ``TILE * TILE * 4``
+values (RGBA interleaved, rows top to bottom) little-endian in the texture's dtype: float32 for
+what a highlight is sensitive to (the normal, the rotation, the roughness), float16 for the rest
+(relative error 2^-11, below an 8-bit display's step). Level ``l`` averages ``2^l x 2^l`` texels
+of level 0 (normals renormalised); the model code, the flags and the rotation take the top-left
+texel. The coarser levels are made in the background (:class:`Pyramid`).
+
+A photograph's tile is one float16 RGBA texture: the frame divided by its exposure and irradiance
+(the value under a unit light, comparable with the relit maps at the same exposure).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..io import Maps
+
+__all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid"]
+
+TILE = 256
+"""Texels on a tile's side."""
+
+TEXTURES = (
+    ("geometry", "float32", ("normal_x", "normal_y", "normal_z", "rotation")),
+    ("roughness", "float32", ("alpha_x", "alpha_y", "alpha2_x", "alpha2_y")),
+    ("diffuse", "float16", ("kd_r", "kd_g", "kd_b", "quality")),
+    ("specular", "float16", ("ks_r", "ks_g", "ks_b", "model")),
+    ("specular2", "float16", ("ks2_r", "ks2_g", "ks2_b", "flags")),
+    ("std", "float16", ("std_normal_deg", "std_diffuse", "std_specular", "std_roughness")),
+)
+"""The textures of a map tile: name, dtype, the four planes (RGBA)."""
+
+NEAREST = ("rotation", "model", "flags")
+"""Planes a coarser level takes from the top-left texel instead of the average."""
+
+
+def levels_for(height: int, width: int) -> int:
+    """How many levels a ``height x width`` image takes: down to one that fits in one tile."""
+    return 1 + max(0, math.ceil(math.log2(max(height, width, 1) / TILE)))
+
+
+def _rgb(value: torch.Tensor) -> torch.Tensor:
+    """``(H, W, C)`` as three planes ``(H, W, 3)``: grey replicated, more than 3 channels cut to 3."""
+    if value.shape[-1] == 1:
+        return value.expand(*value.shape[:-1], 3)
+    return value[..., :3]
+
+
+def _planes(maps: Maps) -> dict[str, torch.Tensor]:
+    """Every plane of :data:`TEXTURES` at level 0, ``(H, W)`` float32 (0 where the maps lack it)."""
+    svbrdf, extra = maps.svbrdf, maps.extra
+    height, width = svbrdf.shape
+    zero = torch.zeros(1, 1).expand(height, width)
+    planes = {}
+    for axis, name in enumerate("xyz"):
+        planes[f"normal_{name}"] = svbrdf.normal[..., axis]
+    planes["rotation"] = zero if svbrdf.rotation is None else svbrdf.rotation
+    planes["alpha_x"], planes["alpha_y"] = svbrdf.roughness[..., 0], svbrdf.roughness[..., 1]
+    second = svbrdf.roughness2 if svbrdf.roughness2 is not None else torch.zeros(1, 1, 2).expand(height, width, 2)
+    planes["alpha2_x"], planes["alpha2_y"] = second[..., 0], second[..., 1]
+    for prefix, value in (("kd", svbrdf.diffuse), ("ks", svbrdf.specular), ("ks2", svbrdf.specular2)):
+        value = torch.zeros(1, 1, 3).expand(height, width, 3) if value is None else _rgb(value)
+        for c, name in enumerate("rgb"):
+            planes[f"{prefix}_{name}"] = value[..., c]
+    for name in ("quality", "model", "flags", "std_normal_deg"):
+        planes[name] = extra.get(name, zero)
+    for name in ("std_diffuse", "std_specular"):
+        value = extra.get(name)
+        planes[name] = zero if value is None else (value.mean(-1) if value.dim() == 3 else value)
+    rough = extra.get("std_roughness")
+    planes["std_roughness"] = zero if rough is None else (rough[..., 0] if rough.dim() == 3 else rough)
+    return {name: value.float() for name, value in planes.items()}
+
+
+def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
+    """The next level of ``planes`` (``(h, w)`` each, or ``(P, h, w)``), stacked ``(P, h', w')``:
+    ``2 x 2`` averages (odd sizes: the last row or column repeated), normals renormalised,
+    :data:`NEAREST` planes from the top-left texel. One plane at a time: no copy of the whole."""
+    out = []
+    for plane, name in zip(planes, names, strict=True):
+        if name in NEAREST:
+            out.append(plane[::2, ::2])
+            continue
+        height, width = plane.shape
+        if height % 2 or width % 2:
+            plane = F.pad(plane[None, None], (0, width % 2, 0, height % 2), mode="replicate")[0, 0]
+        out.append((plane[0::2, 0::2] + plane[1::2, 0::2] + plane[0::2, 1::2] + plane[1::2, 1::2]) * 0.25)
+    out = torch.stack(out)
+    index = {name: i for i, name in enumerate(names)}
+    if "normal_x" in index:
+        rows = [index[f"normal_{a}"] for a in "xyz"]
+        out[rows] = out[rows] / out[rows].norm(dim=0).clamp(min=1e-12)
+    return out
+
+
+@dataclass
+class Pyramid:
+    """Tiled levels of an image with named planes; :meth:`tile` encodes one tile.
+
+    Level 0 is the image; a background thread, started at construction, halves it level after
+    level (each a ``2 x 2`` reduction of the one before), and a tile of a level
+    not yet made waits for it: the server starts at once, and the coarsest level (the page's first
+    image) follows after one pass over the image and a third of one.
+
+    Attributes:
+        planes: level 0, ``P`` float32 planes ``(H, W)`` (views of the maps: not copied), in the
+            order of the textures' planes.
+        textures: ``(name, dtype, planes)`` of a tile's textures, in file order.
+    """
+
+    planes: tuple
+    textures: tuple
+    reduced: list = field(init=False, repr=False)
+    made: list = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.reduced = [self.planes] + [None] * (len(self.levels) - 1)
+        self.made = [threading.Event() for _ in self.levels]
+        self.made[0].set()
+        threading.Thread(target=self._reduce_all, name="torchspec-view-pyramid", daemon=True).start()
+
+    def _reduce_all(self) -> None:
+        names = tuple(name for _, _, names in self.textures for name in names)
+        for level in range(1, len(self.levels)):
+            self.reduced[level] = _reduce(self.reduced[level - 1], names)
+            self.made[level].set()
+
+    @classmethod
+    def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES) -> Pyramid:
+        """The pyramid of ``planes`` (each ``(H, W)``) packed into ``textures``."""
+        names = [name for _, _, names in textures for name in names]
+        return cls(tuple(planes[name].float() for name in names), tuple(textures))
+
+    @classmethod
+    def of_maps(cls, maps: Maps) -> Pyramid:
+        """The pyramid of a fit's maps (:data:`TEXTURES`)."""
+        return cls.build(_planes(maps))
+
+    @property
+    def height(self) -> int:
+        return self.planes[0].shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.planes[0].shape[1]
+
+    @property
+    def levels(self) -> list[tuple[int, int]]:
+        """``(h, w)`` of every level, 0 first."""
+        count = levels_for(self.height, self.width)
+        return [(-(-self.height // 2**level), -(-self.width // 2**level)) for level in range(count)]
+
+    def grid(self, level: int) -> tuple[int, int]:
+        """``(rows, columns)`` of tiles at ``level``."""
+        h, w = self.levels[level]
+        return -(-h // TILE), -(-w // TILE)
+
+    def tile(self, level: int, row: int, column: int) -> bytes:
+        """The file of a tile: each texture's ``TILE x TILE x 4`` values, padded with zeros.
+
+        Raises:
+            IndexError: no such level or tile.
+        """
+        if not 0 <= level < len(self.levels):
+            raise IndexError(f"no level {level}")
+        rows, columns = self.grid(level)
+        if not (0 <= row < rows and 0 <= column < columns):
+            raise IndexError(f"no tile {row}, {column} at level {level}")
+        self.made[level].wait()
+        rows, columns = slice(row * TILE, (row + 1) * TILE), slice(column * TILE, (column + 1) * TILE)
+        block = torch.stack([plane[rows, columns] for plane in self.reduced[level]], -1)
+        parts, first = [], 0
+        for _, dtype, planes in self.textures:
+            padded = np.zeros((TILE, TILE, 4), dtype=np.dtype(dtype).newbyteorder("<"))
+            with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf (an undetermined deviation's)
+                padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
+            parts.append(padded.tobytes())
+            first += len(planes)
+        return b"".join(parts)
+
+    def describe(self) -> dict:
+        """The pyramid's part of the page's ``manifest.json``."""
+        return {
+            "tile": TILE,
+            "levels": [list(size) for size in self.levels],
+            "textures": [{"name": n, "dtype": d, "planes": list(p)} for n, d, p in self.textures],
+        }
+
+
+PHOTO_TEXTURES = (("photo", "float16", ("r", "g", "b", "a")),)
+
+
+def photo_pyramid(frame: torch.Tensor, scale: torch.Tensor) -> Pyramid:
+    """The pyramid of a photograph ``frame (C, H, W)`` divided by ``scale (C,)`` (its exposure
+    times irradiance, per channel)."""
+    value = _rgb((frame / scale.to(frame)[:, None, None]).permute(1, 2, 0)).float()
+    planes = {"r": value[..., 0], "g": value[..., 1], "b": value[..., 2], "a": torch.ones_like(value[..., 0])}
+    return Pyramid.build(planes, PHOTO_TEXTURES)
