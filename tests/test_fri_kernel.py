@@ -119,6 +119,10 @@ def test_estimate_kernel_2d_layout_and_edge_cases():
     assert torch.equal(ts.fri.estimate_kernel(torch.zeros(0, 9, dtype=F64), period=1.0), torch.zeros(5, dtype=F64))
     nan = torch.full((3, 9), math.nan, dtype=F64)
     assert torch.equal(ts.fri.estimate_kernel(nan, period=1.0), torch.zeros(5, dtype=F64))
+    for empty in (torch.zeros(0, 9, dtype=F64), nan, torch.ones(3, 9, dtype=F64)):  # nothing to pool
+        pooled, alone = ts.fri.locate(empty, period=1.0, kernel="pooled"), ts.fri.locate(empty, period=1.0)
+        assert torch.equal(pooled.position, alone.position) or bool(pooled.position.isnan().all())
+        assert torch.equal(pooled.quality, alone.quality)
     mixed = torch.cat(
         [nan, pulses.sample(pulses.spectrum("gaussian", torch.tensor(0.1, dtype=F64), 4), x[:8, :1], num_samples=9)]
     )

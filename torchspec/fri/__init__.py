@@ -159,7 +159,8 @@ def locate(
             noisy coefficients. Laid out as :func:`pulses.spectrum` (1D, ``(K + 1,)``: ``a_0..a_K``)
             or :func:`pulses.outer` (2D, ``(2 K1 + 1, 2 K2 + 1)`` centred) with ``K >= M``
             per axis; any scale; ``a_0`` is not used. ``"pooled"`` estimates it first from all
-            the problems with :func:`estimate_kernel` (a tile whose pixels share one kernel).
+            the problems with :func:`estimate_kernel` (a tile whose pixels share one kernel);
+            where that finds nothing (no finite, non-flat problem) each problem is on its own.
 
     Returns:
         :class:`Location` with ``position``, ``quality`` and ``std``.
@@ -181,6 +182,8 @@ def locate(
     """
     if isinstance(kernel, str) and kernel == "pooled":
         kernel = estimate_kernel(samples, period=period, num_coefficients=num_coefficients, positions=positions)
+        if not bool((kernel != 0).any()):  # nothing to pool (no finite problem, or flat ones)
+            kernel = None
     call = _parse(samples, period, method, num_coefficients, positions, num_pulses, kernel)
     samples, dims = call.samples, len(call.periods)
     out_tail = () if (dims == 1 and num_pulses == 1) else ((dims,) if num_pulses == 1 else (num_pulses,))
