@@ -29,13 +29,14 @@ def test_fig2_runs(tmp_path):
         "fig2_crb",
         tmp_path,
         "period: 1.0\nkernels: [{label: caption, sigma: 0.05}]\nbands: [2]\nsnr_db: [0, 30]\nrepetitions: 300\n"
-        "methods: [coherent, ls]\noutlier: 0.1\nseed: 0\ntwo_d: {grid: [5, 5], snr_db: [30]}\n"
+        "methods: [coherent, pooled, ls]\noutlier: 0.1\nseed: 0\ntwo_d: {grid: [5, 5], snr_db: [30]}\n"
         "timing: {samples: 16, locations: 2000, slow_locations: 500, repeats: 1}\n",
     )
     saved = json.loads((tmp_path / "tiny.json").read_text())
     assert saved["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"] == pytest.approx(
         result["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"])
-    assert 0.7 < saved["one_d"][0]["points"][1]["methods"]["coherent"]["mse_over_crb"] < 1.4
+    for method in ("coherent", "pooled"):
+        assert 0.7 < saved["one_d"][0]["points"][1]["methods"][method]["mse_over_crb"] < 1.4
     assert (tmp_path / "tiny.png").stat().st_size > 10000
 
 
@@ -51,9 +52,9 @@ def test_bench_runs(tmp_path):
         "bench_fri",
         tmp_path,
         "samples: 16\nkernel_sigma: 0.05\nsnr_db: 20.0\nlocations: 4000\nslow_locations: 500\n"
-        "scipy_locations: 20\nrepeats: 1\nseed: 0\nrows: [[coherent, float32], [ls, float64]]\n",
+        "scipy_locations: 20\nrepeats: 1\nseed: 0\nrows: [[coherent, float32], [pooled, float32], [ls, float64]]\n",
     )
-    assert [r["method"] for r in rows] == ["coherent", "ls", "argmax + parabola", "scipy least_squares"]
+    assert [r["method"] for r in rows] == ["coherent", "pooled", "ls", "argmax + parabola", "scipy least_squares"]
     assert all(r["locations_per_second"] > 0 and r["mse_over_crb"] > 0.5 for r in rows)
     assert (tmp_path / "bench_fri.png").exists()
 

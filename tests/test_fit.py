@@ -66,10 +66,10 @@ def test_tiles_are_independent(painting):
         assert err < 1e-4, f"{name}: max difference {err:.3g}"
 
 
-@pytest.mark.parametrize("init", ["naive", "grid"])
-def test_other_starts_reach_the_same_fit(painting, init):
+@pytest.mark.parametrize("start", [dict(init="naive"), dict(init="grid"), dict(fri_kernel="pooled")])
+def test_other_starts_reach_the_same_fit(painting, start):
     truth = read_svbrdf(painting / "truth")
-    result = fit(painting, frames="::2", config=FitConfig(init=init))
+    result = fit(painting, frames="::2", config=FitConfig(**start))
     e = _errors(result, truth.svbrdf, truth.extra["regions"])
     assert e["normal"].median() < 0.1, f"median normal error {e['normal'].median():.3g} deg"
     assert e["alpha"].median() < 0.05, f"median alpha error {e['alpha'].median():.3g}"
@@ -129,6 +129,10 @@ def test_select_frames():
 def test_config_is_checked():
     with pytest.raises(ValueError, match="init must be one of"):
         FitConfig(init="magic")
+    with pytest.raises(ValueError, match="fri_kernel must be one of"):
+        FitConfig(fri_kernel="true")
+    with pytest.raises(ValueError, match="fri_kernel 'pooled' weighs the 'coherent' method"):
+        FitConfig(fri_kernel="pooled", fri_method="ls")
     with pytest.raises(ValueError, match="select_z must be >= 0"):
         FitConfig(model="auto", select_z=-1.0)
     with pytest.raises(ValueError, match="model must be one of"):
@@ -283,9 +287,7 @@ def test_standard_deviations_are_finite_for_the_models_parameters_only(gilded):
 def dual(tmp_path_factory):
     """A 24 x 24 painting with a box of two-lobed gloss (a sharp varnish over a broad lobe), shot noise."""
     path = tmp_path_factory.mktemp("fit") / "dual"
-    return write_painting(
-        path, size=24, seed=5, dual=True, grid=10, extent=0.8, radius=0.8, photons=1e5, sensor_seed=3
-    )
+    return write_painting(path, size=24, seed=5, dual=True, grid=10, extent=0.8, radius=0.8, photons=1e5, sensor_seed=3)
 
 
 def test_auto_gives_two_lobes_only_where_the_gloss_has_two(dual, tmp_path):
@@ -402,4 +404,3 @@ def test_smoothing_takes_lobes_only_where_the_neighbours_outweigh_them(dual, tmp
     torch.testing.assert_close(s.normal[kept], plain.svbrdf.normal[kept], rtol=1e-4, atol=1e-4)
     write_fit(tmp_path / "smooth", smooth)
     assert read_svbrdf(tmp_path / "smooth").extra["model"][dropped].eq(0).all()
-

@@ -62,12 +62,13 @@ def test_layout_of_grid_and_line():
         layout_of(torch.zeros(2, 2))
 
 
-def test_fri_start_recovers_the_lobe_from_the_exact_residual():
+@pytest.mark.parametrize("kernel", [None, "pooled"])
+def test_fri_start_recovers_the_lobe_from_the_exact_residual(kernel):
     truth, lights, samples = _scene(LayoutConfig(kind="grid", nx=12, ny=12, extent=0.8, radius=0.8))
     d = diffuse_directions(lights)
     residual = specular_residual(samples, truth.normal, truth.diffuse, d)
     lay = layout_of(lights.directions[:, :2])
-    start = locate_peak(residual, lay, VIEW, prior_normal=truth.normal, kernel_variance=0.08**2)
+    start = locate_peak(residual, lay, VIEW, prior_normal=truth.normal, kernel_variance=0.08**2, kernel=kernel)
     error = torch.rad2deg(angle(start.normal.double(), truth.normal.double()))
     assert error.max() < 0.5 and error.median() < 0.15, (
         f"normal error median {error.median():.3g}, max {error.max():.3g} deg"
@@ -82,13 +83,14 @@ def test_fri_start_recovers_the_lobe_from_the_exact_residual():
     assert torch.allclose(mirror, start.peak, atol=1e-9)
 
 
-def test_fri_start_on_a_line_takes_the_other_coordinate_from_the_prior():
+@pytest.mark.parametrize("kernel", [None, "pooled"])
+def test_fri_start_on_a_line_takes_the_other_coordinate_from_the_prior(kernel):
     config = LayoutConfig(kind="line", n=50, azimuth_deg=38.0, theta_min_deg=-30.0, theta_max_deg=30.0)
     truth, lights, samples = _scene(config, sigma=0.03)
     d = diffuse_directions(lights)
     residual = specular_residual(samples, truth.normal, truth.diffuse, d)
     lay = layout_of(lights.directions[:, :2])
-    start = locate_peak(residual, lay, VIEW, prior_normal=truth.normal, kernel_variance=0.03**2)
+    start = locate_peak(residual, lay, VIEW, prior_normal=truth.normal, kernel_variance=0.03**2, kernel=kernel)
     error = torch.rad2deg(angle(start.normal.double(), truth.normal.double()))
     assert error.max() < 0.3, f"max normal error {error.max():.3g} deg"
 

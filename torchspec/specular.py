@@ -107,6 +107,7 @@ def locate_peak(
     kernel_variance: float,
     method: str | None = None,
     num_coefficients: int | None = None,
+    kernel: str | None = None,
 ) -> LobeStart:
     """FRI location of the specular peak and the start it gives.
 
@@ -117,7 +118,8 @@ def locate_peak(
         prior_normal: ``(N, 3)`` the photometric-stereo normal, for the coordinate a line of
             lights cannot see.
         kernel_variance: the light kernel's variance per axis in the l-plane.
-        method, num_coefficients: for :func:`torchspec.fri.locate`.
+        method, num_coefficients, kernel: for :func:`torchspec.fri.locate` (``kernel="pooled"``:
+            one lobe spectrum pooled over the ``N`` pixels).
 
     Returns:
         :class:`LobeStart`.
@@ -131,7 +133,9 @@ def locate_peak(
         row, col, ny, nx = layout.grid
         image = residual.new_zeros((residual.shape[0], ny, nx))
         image[:, row, col] = residual
-        found = fri.locate(image, period=layout.period[::-1], method=method, num_coefficients=num_coefficients)
+        found = fri.locate(
+            image, period=layout.period[::-1], method=method, num_coefficients=num_coefficients, kernel=kernel
+        )
         position = found.position.flip(-1)  # (y, x) -> (x, y)
         spacing = torch.tensor([p / n for p, n in zip(layout.period, (nx, ny), strict=True)], dtype=residual.dtype)
         period = torch.tensor(layout.period, dtype=residual.dtype)
@@ -146,7 +150,12 @@ def locate_peak(
             per_axis = max(1, round(math.sqrt(layout.l.shape[0])))
             num_coefficients = max(1, min((per_axis - 1) // 2 - 1, 4))
         found = fri.locate(
-            residual, period=period, method=method, num_coefficients=num_coefficients, positions=positions
+            residual,
+            period=period,
+            method=method,
+            num_coefficients=num_coefficients,
+            positions=positions,
+            kernel=kernel,
         )
         if layout.dims == 2:
             peak = found.position + start

@@ -12,7 +12,8 @@ the kernel, because each solves a stationarity condition that ``I = 0`` satisfie
   than noise explains), blended back towards the raw ``R`` where that departs
   from the envelope by more than the noise. With ``b`` equal to the true spectrum this is the
   known-kernel maximum likelihood, which meets the Cramer-Rao bound; estimating ``b`` adds
-  error at low SNR only.
+  error at low SNR only. A ``kernel`` given (or pooled over many problems, :func:`pool_kernel`)
+  replaces ``b``, and weighs the start's grid search too.
 - ``ml`` is the kernel-free likelihood: Gauss-Newton on ``sum_p I_p(theta)^2``, which leaves
   every ``a_p`` free. Efficient at high SNR, but it pays for M nuisance amplitudes at low SNR.
 - ``ls``, ``esprit``, ``cadzow``: the phase of the root of a length-2 annihilating filter on
@@ -41,7 +42,7 @@ from torch import Tensor
 from ._coefficients import axis_rows, frequencies
 from ._hankel import cadzow, hankel, rows_for, signal_subspace
 
-__all__ = ["locate_single"]
+__all__ = ["locate_single", "pool_kernel"]
 
 ITERATIONS = 3  # Newton steps of coherent / ml; convergence is quadratic from the grid start
 CADZOW_ITERATIONS = 10
@@ -182,15 +183,16 @@ def _newton_step(w: Tensor, curvature: Tensor, fallback: Tensor, i: Tensor, freq
     return -torch.stack([x0, x1], -1)
 
 
-def _grid_start(yr: Tensor, yi: Tensor, band: int) -> Tensor:
-    """1D start ``(B, 1)``: the maximum of ``sum_m |Y_m| / m Re(Y_m e^{i m theta})``, m = 1..band,
+def _grid_start(yr: Tensor, yi: Tensor, band: int, kernel: Tensor | None = None) -> Tensor:
+    """1D start ``(B, 1)``: the maximum of ``sum_m w_m Re(Y_m e^{i m theta})``, m = 1..band,
     over a grid, refined by a parabola through the best three points.
 
-    Weighting each coefficient by its magnitude makes this the matched filter of the data's own
-    spectrum, which peaks at the pulse and not at its trough; dividing by ``m`` keeps bins that
-    hold only noise (a wide kernel) from pulling the start off the peak. The grid is anchored
-    at the phase of ``Y_1``, so that shifting or mirroring the samples shifts or mirrors the
-    whole estimate exactly.
+    Without a kernel ``w_m = |Y_m| / m``: weighting each coefficient by its magnitude makes this
+    the matched filter of the data's own spectrum, which peaks at the pulse and not at its
+    trough; dividing by ``m`` keeps bins that hold only noise (a wide kernel) from pulling the
+    start off the peak. With a known ``kernel (band,)`` spectrum, ``w = kernel``: the matched
+    filter itself. The grid is anchored at the phase of ``Y_1``, so that shifting or mirroring
+    the samples shifts or mirrors the whole estimate exactly.
     """
     size = max(GRID_PER_COEFFICIENT * band, 16)
     m = torch.arange(1, band + 1, dtype=yr.dtype, device=yr.device)
@@ -199,7 +201,7 @@ def _grid_start(yr: Tensor, yi: Tensor, band: int) -> Tensor:
     phi = torch.arange(size, dtype=yr.dtype, device=yr.device) * (2.0 * math.pi / size)
     phi = torch.where(phi > math.pi, phi - 2.0 * math.pi, phi)  # symmetric about the anchor
     arg = m[:, None] * phi[None, :]
-    weight = torch.hypot(yr, yi) / m
+    weight = torch.hypot(yr, yi) / m if kernel is None else kernel.expand_as(yr)
     h = torch.cat([weight * yr, weight * yi], -1) @ torch.cat([torch.cos(arg), -torch.sin(arg)], 0)
     k = h.argmax(-1, keepdim=True)
     hm, h0, hp = h.gather(-1, torch.remainder(k + _NEIGHBOURS.to(k.device), size)).unbind(-1)
@@ -208,12 +210,14 @@ def _grid_start(yr: Tensor, yi: Tensor, band: int) -> Tensor:
     return anchor + (phi[k[:, 0]] + offset * (2.0 * math.pi / size))[:, None]
 
 
-def _start(yr: Tensor, yi: Tensor, bands: tuple[int, ...]) -> Tensor:
-    """Start ``(B, D)``: per axis, the grid start on that axis's marginal spectrum."""
+def _start(yr: Tensor, yi: Tensor, bands: tuple[int, ...], kernel: Tensor | None = None) -> Tensor:
+    """Start ``(B, D)``: per axis, the grid start on that axis's marginal spectrum (weighted by
+    the ``kernel (P,)`` there, if given)."""
     columns = []
     for axis, band in enumerate(bands):
         index = [e - 1 for e in axis_rows(bands, axis, all_rows=False)[0][1:]]  # m = 1..M, unconjugated
-        columns.append(_grid_start(yr[:, index], yi[:, index], band))
+        weight = None if kernel is None else kernel[index]
+        columns.append(_grid_start(yr[:, index], yi[:, index], band, weight))
     return torch.cat(columns, -1)
 
 
@@ -305,11 +309,13 @@ def _aliasing(r: Tensor, i: Tensor, b: Tensor, w: Tensor, noise: Tensor, size: i
     return (s * s * gain * gain)[:, None], beyond * (b * b * m * m).sum(-1)  # variance x information
 
 
-def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None) -> tuple[Tensor, Tensor, Tensor]:
+def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None, kernel=None) -> tuple[Tensor, Tensor, Tensor]:
     yr, yi = y.real, y.imag
     dims = len(bands)
-    start = _start(yr, yi, bands) if method in ("coherent", "ml") else None
-    if method == "coherent":
+    start = _start(yr, yi, bands, kernel) if method in ("coherent", "ml") else None
+    if kernel is not None:  # the known-kernel maximum likelihood; the spectrum is its LS multiple
+        theta, _ = _iterate(yr, yi, freq, bands, start, lambda r, i: kernel.expand_as(r), (0,))
+    elif method == "coherent":
         # One envelope, fitted at the start: refitting it later changed nothing measurable.
         theta, b = _iterate(yr, yi, freq, bands, start, lambda r, i: _envelope(r, _noise(i, dims), dictionary), (0,))
     elif method == "ml":
@@ -319,7 +325,9 @@ def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None) -> tuple[Te
         theta = _pick_peak(yr, yi, freq, _root(y, dc, bands, method))
     r, i = _rotate(yr, yi, freq, theta)
     noise = _noise(i, dims)
-    if method != "coherent":
+    if kernel is not None:
+        b = (r @ kernel / (kernel @ kernel)).clamp(min=0.0)[:, None] * kernel
+    elif method != "coherent":
         b = _envelope(r, noise, dictionary)
     info = (b * b) @ (freq[:, :, None] * freq[:, None, :]).reshape(-1, dims * dims)  # Fisher x noise
     if dims == 1:
@@ -338,7 +346,7 @@ def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None) -> tuple[Te
 
 
 def locate_single(
-    y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str, size: int | None = None
+    y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str, size: int | None = None, kernel: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Locate one pulse.
 
@@ -350,6 +358,9 @@ def locate_single(
         size: ``N``, the uniform samples per period of a 1D problem: the variance and the SNR
             then include what aliasing explains (:func:`_aliasing`); ``None`` (2D, scattered)
             checks no aliasing.
+        kernel: ``(P,)`` the kernel's spectrum at the coefficients (any scale, not all zero),
+            shared by every problem: ``coherent`` then weighs the coefficients by it (the
+            known-kernel maximum likelihood) instead of by an envelope fitted per problem.
 
     Returns:
         ``theta (B, D)`` in radians (not wrapped); its variance ``(B, D)`` predicted from the
@@ -367,5 +378,22 @@ def locate_single(
         return empty, empty, empty[:, 0]
     # Chunks keep the per-problem intermediates (P x atoms) in cache and bound memory.
     chunks = zip(y.split(CHUNK), dc.split(CHUNK), strict=True)
-    parts = [_locate_chunk(yc, dcc, freq, bands, dictionary, method, size) for yc, dcc in chunks]
+    parts = [_locate_chunk(yc, dcc, freq, bands, dictionary, method, size, kernel) for yc, dcc in chunks]
     return tuple(torch.cat(column) for column in zip(*parts, strict=True))
+
+
+def pool_kernel(y: Tensor, theta: Tensor, bands: tuple[int, ...], weight: Tensor) -> Tensor:
+    """The spectrum shared by every problem: ``(P,)``, unit norm (zeros if nothing is left).
+
+    Each problem's coefficients rotated back by its ``theta (B, D)`` leave its spectrum in the
+    real parts ``R (B, P)``, noise aside; their quality-``weight``ed (``(B,)``, >= 0) mean is a
+    first estimate ``s``, and one power-iteration step (each problem weighed again by its
+    amplitude along ``s``) lets the strong problems lead, so that problems holding only noise
+    (whose ``R`` leans towards whatever envelope located them) barely count.
+    """
+    r = _rotate(y.real, y.imag, frequencies(bands, y.real), theta)[0]
+    s = weight @ r
+    amplitude = (r @ s).clamp(min=0.0) * weight
+    s = amplitude @ r
+    norm = s.norm()
+    return torch.where(norm > 0, s / torch.where(norm > 0, norm, torch.ones_like(norm)), torch.zeros_like(s))

@@ -20,6 +20,7 @@ from ..residual_term import TERMS
 __all__ = [
     "AUTO",
     "COMPILE_PIXELS",
+    "FRI_KERNELS",
     "INITS",
     "LADDER",
     "MODEL_CODES",
@@ -29,6 +30,8 @@ __all__ = [
 
 INITS = ("fri", "naive", "grid")
 """The specular starts of ``FitConfig.init``."""
+FRI_KERNELS = ("pixel", "pooled")
+"""The lobe spectra of ``FitConfig.fri_kernel``."""
 AUTO = "auto"
 """``FitConfig.model`` that picks each pixel's model."""
 LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
@@ -141,6 +144,11 @@ class FitConfig:
         shadow: samples below this fraction of the pixel's median are shadows.
         trim, cut: of the robust photometric stereo.
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
+        fri_kernel: the lobe's spectrum the peak location weighs coefficients by: ``pixel``
+            (fitted to each pixel, the default) or ``pooled`` (one spectrum pooled over the
+            tile's pixels, :func:`torchspec.fri.estimate_kernel`: nearer the Cramer-Rao bound
+            for broad lobes at low SNR when the tile's lobes share a width; needs the
+            ``coherent`` method).
         path: the quadrature path of the model (:func:`torchspec.rendering.render`).
         quadrature: ``fit`` (the default): 3 x 3 nodes per frame for the lobe (8 radii where
             the reference rule takes over) and the clamp's fast rule
@@ -195,6 +203,7 @@ class FitConfig:
     cut: float = 3.0
     fri_method: str | None = None
     fri_coefficients: int | None = None
+    fri_kernel: str = "pixel"
     path: str = "auto"
     quadrature: str = "fit"
     compile: bool | None = None
@@ -255,6 +264,12 @@ class FitConfig:
             )
         if self.init not in INITS:
             raise ConfigError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
+        if self.fri_kernel not in FRI_KERNELS:
+            raise ConfigError(f"FitConfig.fri_kernel must be one of {FRI_KERNELS}; got {self.fri_kernel!r}.")
+        if self.fri_kernel == "pooled" and self.fri_method not in (None, "coherent"):
+            raise ConfigError(
+                f"FitConfig.fri_kernel 'pooled' weighs the 'coherent' method; got fri_method={self.fri_method!r}."
+            )
         if self.quadrature not in QUADRATURES:
             raise ConfigError(f"FitConfig.quadrature must be one of {sorted(QUADRATURES)}; got {self.quadrature!r}.")
         if self.dtype not in ("float32", "float64"):

@@ -107,7 +107,13 @@ def starting_point(
     init = "naive" if config.model == "diffuse" else config.init
     if init == "fri":
         found = locate_peak(
-            residual, ctx.layout, view, method=config.fri_method, num_coefficients=config.fri_coefficients, **prior
+            residual,
+            ctx.layout,
+            view,
+            method=config.fri_method,
+            num_coefficients=config.fri_coefficients,
+            kernel="pooled" if config.fri_kernel == "pooled" else None,
+            **prior,
         )
     elif init == "grid":
         found = grid_search(residual, ctx.layout, view, **prior)
