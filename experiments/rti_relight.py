@@ -61,6 +61,9 @@ class Settings:
     compile: bool = False  # FitConfig.compile
     left_out: int = 2  # frames i % 5 == left_out are predicted
     residual_term: int = 3  # FitConfig.residual_term: rows with and without the term, of one fit
+    normals_calibrate: str = (
+        "dome"  # SynthRTI normals also from a fit of Dome/ with this FitConfig.calibrate ("": none)
+    )
 
 
 # --- data ---------------------------------------------------------------------------------------
@@ -246,6 +249,17 @@ def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: li
         out["normals"] = normal_errors(
             fit.svbrdf.normal, folder / "Dome" / "normals.png", linear, capture.directions(), settings.downsample
         )
+        if settings.normals_calibrate:  # the lights calibrated otherwise (a dome's radius): normals only
+            config = torchspec.FitConfig(compile=settings.compile, calibrate=settings.normals_calibrate)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                other = torchspec.fit(capture, config=config)
+            truth = folder / "Dome" / "normals.png"
+            errors = normal_errors(other.svbrdf.normal, truth, linear, capture.directions(), settings.downsample)
+            out["normals"][f"torchspec_{settings.normals_calibrate}_deg"] = errors["torchspec_deg"]
+            out["normals"][f"lights_{settings.normals_calibrate}"] = {
+                key: other.stats["lights"].get(key) for key in ("calibrated", "radius", "radius_misfit")
+            }
     return out
 
 
@@ -265,8 +279,14 @@ def _print(result: dict) -> None:
             )
     if "normals" in result:
         n = result["normals"]
+        extra = "".join(
+            f", calibrate {key[10:-4]} {value:.2f} deg (radius {n['lights_' + key[10:-4]]['radius']})"
+            for key, value in n.items()
+            if key.startswith("torchspec_") and key != "torchspec_deg"
+        )
         print(
-            f"  normals: torchspec {n['torchspec_deg']:.2f} deg, least-squares PS {n['least_squares_ps_deg']:.2f} deg"
+            f"  normals: torchspec {n['torchspec_deg']:.2f} deg{extra}, least-squares PS "
+            f"{n['least_squares_ps_deg']:.2f} deg"
         )
 
 

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.errors import TorchspecError
-from torchspec.lightcal import calibrate_lights, lambert_fit
+from torchspec.lightcal import DOME_MARGIN, RADII, calibrate_lights, lambert_fit
 from torchspec.near_lights import image_points, near_light
 
 F64 = torch.float64
@@ -165,3 +165,22 @@ def test_dtype_follows_input():
 def test_bad_input(frames, directions, message):
     with pytest.raises(TorchspecError, match=message):
         calibrate_lights(frames, directions)
+
+
+@pytest.mark.parametrize("radius", [3.0, None])
+def test_dome_radius_found_or_distant_kept(radius):
+    """``dome``: lights on a dome of radius 3 widths (one of the radii tried) are found at it, with
+    their gains; distant lights stay distant (no radius explains them better)."""
+    frames, gains, positions, _ = make_capture(near=radius is not None, radius=radius or 3.0, noise=0.005)
+    unit = positions / positions.norm(dim=-1, keepdim=True)
+    result = calibrate_lights(frames, unit, dome=True)
+    assert result.radius == radius
+    assert set(result.radius_misfit) == {"distant", *(str(r) for r in RADII)}
+    if radius is None:
+        assert result.positions is None
+    else:
+        torch.testing.assert_close(result.positions, positions)
+        assert result.position_std is None  # held, not estimated
+        best = min(result.radius_misfit.values())
+        assert result.radius_misfit[str(radius)] == best < (1 - DOME_MARGIN) * result.radius_misfit["distant"]
+    assert float(((result.gains - gains) / gains).abs().max()) < 0.01

@@ -153,7 +153,7 @@ def _add_fit_command(commands) -> None:
                      choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
                      help="auto (default): each pixel's model by what it predicts of frames left out of its fit; "
                           "or one forced on every pixel")
-    fit.add_argument("--calibrate", default=None, choices=["auto", "none", "gains", "positions"],
+    fit.add_argument("--calibrate", default=None, choices=["auto", "none", "gains", "positions", "dome"],
                      help="estimate the lights from the photographs with the maps: auto (default: what the capture's "
                           "manifest lists as unknown, e.g. an imported capture's irradiance), none, gains (one per "
                           "frame and channel) or positions (near lights' positions, and gains)")

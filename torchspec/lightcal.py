@@ -58,6 +58,8 @@ __all__ = [
     "LambertFit",
     "calibrate_lights",
     "lambert_fit",
+    "dome_radius",
+    "DOME_MARGIN",
 ]
 
 CHUNK = 512
@@ -66,6 +68,9 @@ SOLVE_CHUNK = 8192
 """Pixels a photometric-stereo pass handles at once."""
 RADII = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 12.0, 25.0)
 """Dome radii (image widths) tried for the starting point of near lights when no radius is given."""
+DOME_MARGIN = 0.1
+"""``dome`` takes near lights only where they lower the median pixel misfit by this fraction of
+the distant lights' (:func:`dome_radius`)."""
 DARK = 0.05
 """Before the first solve, samples below this fraction of the pixel's median are shadows."""
 RIDGE = 1e-30
@@ -94,6 +99,9 @@ class LightCalibration:
         rms: ``(K,)`` relative RMS misfit per frame, ``sqrt(sum r^2 / sum I^2)`` over the lit, valid
             samples of the explained pixels (highlights included).
         iterations: the iterations run.
+        radius: the dome radius chosen (``dome``; image widths), ``None`` for distant lights or
+            without ``dome``; ``radius_misfit``: the median relative pixel misfit of each radius
+            tried (``"distant"`` and each of :data:`RADII`), ``None`` without ``dome``.
     """
 
     gains: Tensor
@@ -104,6 +112,8 @@ class LightCalibration:
     explained: Tensor
     rms: Tensor
     iterations: int
+    radius: float | None = None
+    radius_misfit: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -351,7 +361,7 @@ def _update(values, weight, b, points, directions, positions, gains, near: bool,
     if near:
         frozen = torch.cat([frozen, frozen.any(1, keepdim=True).expand(k, 3)], 1)
     old = torch.cat([gains, positions], 1) if near else gains
-    gauge = _gauge(gains, positions)
+    gauge = _gauge(gains, positions if near else None)  # held positions (dome) have no gauge
     for _ in range(8):
         delta, covariance = _step(jtj, jtr, gauge, sigma2, damping, frozen.reshape(-1))
         delta = delta.reshape(old.shape)
@@ -402,6 +412,18 @@ def _start_radius(values, ok, points, directions, gains, options) -> float:
     return RADII[min(range(len(RADII)), key=scores.__getitem__)]
 
 
+def dome_radius(values, ok, points, directions, gains, options) -> tuple[float | None, dict]:
+    """The dome radius of :data:`RADII` (all lights at it along their ``directions``, gains refitted
+    by :func:`_ratio_gains`) whose median pixel misfit is the least, or ``None`` (distant lights)
+    unless that misfit is below ``1 - DOME_MARGIN`` of the distant lights': ``(radius, misfit of
+    each candidate)``."""
+    misfit = {"distant": float(_ratio_gains(values, ok, points, directions, None, gains, options, 3)[1])}
+    for r in RADII:
+        misfit[str(r)] = float(_ratio_gains(values, ok, points, directions, r * directions, gains, options, 3)[1])
+    best = min(RADII, key=lambda r: misfit[str(r)])
+    return (best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None), misfit
+
+
 def _normalised(gains: Tensor) -> Tensor:
     gains = gains.clamp_min(1e-6 * gains.abs().amax().clamp_min(1e-300))
     return gains / gains.log().mean(0, keepdim=True).exp()
@@ -413,6 +435,7 @@ def calibrate_lights(
     *,
     valid: Tensor | None = None,
     near: bool = False,
+    dome: bool = False,
     iterations: int = 10,
     radius: float | None = None,
     sample: int = 16384,
@@ -431,6 +454,9 @@ def calibrate_lights(
         valid: ``(K, C, H, W)`` bool, the usable samples (e.g. not saturated); non-finite values
             are never used.
         near: estimate each light's position (a dome) besides its gains.
+        dome: one radius for every light instead (:func:`dome_radius`: the lights at that distance
+            along ``directions``, or distant where no radius explains the photographs better by
+            :data:`DOME_MARGIN`), held while the gains are estimated; ignored with ``near``.
         iterations: alternations of maps and lights at most (stops earlier when the largest
             relative change of a parameter is below ``tolerance``).
         radius: the starting dome radius for ``near`` (image widths); ``None`` tries :data:`RADII`.
@@ -460,9 +486,12 @@ def calibrate_lights(
     points = image_points(height, width, dtype=work, device=device)[index]
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     gains = torch.ones(k, c, dtype=work, device=device)
-    positions = None
+    positions, chosen, misfit = None, None, None
     if near:
         positions = (radius if radius is not None else _start_radius(values, ok, points, dirs, gains, options)) * dirs
+    elif dome:
+        chosen, misfit = dome_radius(values, ok, points, dirs, gains, options)
+        positions = None if chosen is None else chosen * dirs
     gains = _ratio_gains(values, ok, points, dirs, positions, gains, options, 8)[0]
     done, covariance, level, strict = 0, None, None, False
     for done in range(1, max(iterations, 1) + 1):
@@ -485,11 +514,13 @@ def calibrate_lights(
         gains=gains.to(**out),
         gain_std=gain_std.to(**out),
         positions=None if positions is None else positions.to(**out),
-        position_std=None if positions is None else std[:, c:].to(**out),
+        position_std=None if positions is None or not near else std[:, c:].to(**out),
         directions=centre.to(**out),
         explained=final.explained,
         rms=final.rms.to(**out),
         iterations=done,
+        radius=chosen,
+        radius_misfit=misfit,
     )
 
 

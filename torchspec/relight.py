@@ -1,7 +1,8 @@
 """Relighting: predict every frame of a capture from SVBRDF maps (``torchspec render``).
 
 Reads the maps (a fit, or a capture's ``truth/``) and the capture's light list, renders each frame
-with :func:`torchspec.rendering.render_image` (memory is bounded by a chunk of rows), and
+with :func:`torchspec.rendering.render_image` (memory is bounded by a chunk of rows; near lights,
+frames with a ``position``, block by block as the fit sees them: :func:`render_near`), and
 writes the predicted frames under the manifest's file names with a copy of the manifest, so the
 output is itself a capture. Against the capture's own frames it reports the PSNR (peak: the
 capture's maximum) and the relative RMS error.
@@ -14,13 +15,51 @@ from pathlib import Path
 
 import torch
 
+from .brdf import SVBRDF
 from .io import CaptureError, read_capture, read_svbrdf, write_capture
+from .lights import Lights
+from .near_lights import lights_at
 from .outputs import check_output
+from .pipeline.tiling import tiling_of
 from .quadrature import Quadrature
-from .rendering import render_image
+from .rendering import TILE_PIXELS, render, render_image
 from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["render_capture", "psnr"]
+__all__ = ["render_capture", "render_near", "psnr"]
+
+
+def render_near(
+    svbrdf: SVBRDF,
+    lights: Lights,
+    positions: torch.Tensor,
+    view: torch.Tensor,
+    *,
+    quadrature: Quadrature = Quadrature(),
+    lobe: str = "ward",
+    term: ResidualTerm | None = None,
+) -> torch.Tensor:
+    """``(H, W, K, C)``: maps of leading dims ``(H, W)`` under near lights at ``positions (K, 3)``
+    (:mod:`torchspec.near_lights`), in the square blocks a fit of them uses
+    (:func:`torchspec.pipeline.tiling.tiling_of`), each under the lights as seen from its centre,
+    with the fit's residual ``term`` (leading dims ``(H, W)``) applied under the same lights."""
+    height, width = svbrdf.shape
+    positions = positions.to(svbrdf.normal)
+    tiling = tiling_of(height, width, TILE_PIXELS, positions)
+    flat = svbrdf.flatten()
+    coefficients = term.coefficients.reshape(height * width, *term.coefficients.shape[-2:]) if term else None
+    out = None
+    for first, stop in tiling.ranges:
+        index = tiling.order[first:stop].to(svbrdf.normal.device)
+        centre = tiling.points[tiling.order[first:stop].to(tiling.points.device)].mean(0)
+        near = lights_at(lights, positions, centre)
+        values = render(flat[index], near, view, quadrature=quadrature, lobe=lobe)
+        if term is not None:
+            weight = None if term.weight is None else term.weight.reshape(-1)[index]
+            part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight)
+            values = part.apply(values, near)
+        out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
+        out[index] = values
+    return out.reshape(height, width, *out.shape[1:])
 
 
 def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:
@@ -76,9 +115,13 @@ def render_capture(
     if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
         source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
         found = ResidualTerm.from_map(maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(WEIGHT_MAP))
-    values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
-    if found is not None:
-        values = found.apply(values, lights)
+    positions = capture.positions()
+    if positions is not None:  # near lights: block by block, as the fit saw them
+        values = render_near(svbrdf.to(dtype), lights, positions, view, quadrature=quadrature, lobe=lobe, term=found)
+    else:
+        values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
+        if found is not None:
+            values = found.apply(values, lights)
     predicted = values.permute(2, 3, 0, 1).contiguous()  # (K, C, H, W)
     if output_dir is not None:
         write_capture(Path(output_dir), capture, predicted.float(), overwrite=overwrite)

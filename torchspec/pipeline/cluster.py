@@ -183,7 +183,7 @@ def _distant(begun):
     calibrate = begun.config.calibrate
     if (
         begun.positions is not None
-        or calibrate in ("gains", "positions")
+        or calibrate in ("gains", "positions", "dome")
         or (calibrate == "auto" and begun.capture.unknown)
     ):
         what = (

@@ -164,7 +164,9 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
 
     ``calibrate``: ``auto`` calibrates what the capture's manifest lists under ``unknown``
     (``irradiance``: a gain per frame and channel; ``position``: near lights' positions), ``gains``
-    and ``positions`` force them (``positions`` with gains), ``none`` takes the lights as written.
+    and ``positions`` force them (``positions`` with gains), ``dome`` estimates gains and one dome
+    radius for lights written as directions (:func:`torchspec.lightcal.dome_radius`; distant where
+    no radius explains the photographs better), ``none`` takes the lights as written.
     ``auto`` keeps the estimate only where the photographs determine it (:data:`CALIBRATION_RMS`,
     :data:`CALIBRATION_EXPLAINED`; else a :class:`FitWarning` and the lights as written).
     Gains multiply the frames' irradiance (normalised to a geometric mean of 1 per channel: the
@@ -173,8 +175,9 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     """
     wanted = job.config.calibrate
     unknown = job.capture.unknown
-    gains = wanted in ("gains", "positions") or (wanted == "auto" and bool(unknown))
+    gains = wanted in ("gains", "positions", "dome") or (wanted == "auto" and bool(unknown))
     near = wanted == "positions" or (wanted == "auto" and "position" in unknown)
+    dome = wanted == "dome" and job.positions is None
     if not gains:
         return job, None
     from ..lightcal import calibrate_lights  # the stage that estimates lights from photographs
@@ -184,7 +187,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     start = job.positions / job.positions.norm(dim=-1, keepdim=True) if job.positions is not None else None
     directions = lights.directions if start is None else start
     valid = usable[:, None].expand_as(stack) & stack.isfinite()
-    found = calibrate_lights(stack / scale[:, :, None, None], directions.to(stack), valid=valid, near=near)
+    found = calibrate_lights(stack / scale[:, :, None, None], directions.to(stack), valid=valid, near=near, dome=dome)
     explained, misfit = float(found.explained.double().mean()), float(found.rms.double().median())
     if explained < CALIBRATION_EXPLAINED or misfit > CALIBRATION_RMS:
         message = (
@@ -202,9 +205,11 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         )
     irradiance = lights.irradiance.to(stack) * found.gains
     calibrated_lights = Lights(found.directions.to(stack), lights.kernel, irradiance, lights.exposure.to(stack))
-    positions = found.positions.to(stack) if near and found.positions is not None else job.positions
+    positions = found.positions.to(stack) if (near or dome) and found.positions is not None else job.positions
     record = {
-        "calibrated": ["irradiance", "position"] if near else ["irradiance"],
+        "calibrated": ["irradiance", "position"] if near else ["irradiance", "radius"] if dome else ["irradiance"],
+        "radius": found.radius,
+        "radius_misfit": found.radius_misfit,
         "gains": found.gains.tolist(),
         "gain_std": found.gain_std.tolist(),
         "positions": None if found.positions is None else found.positions.tolist(),

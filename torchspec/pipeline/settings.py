@@ -36,7 +36,7 @@ AUTO = "auto"
 """``FitConfig.model`` that picks each pixel's model."""
 LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
 """The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
-CALIBRATE = ("auto", "none", "gains", "positions")
+CALIBRATE = ("auto", "none", "gains", "positions", "dome")
 """The values of ``FitConfig.calibrate``."""
 MODEL_CODES = tuple(MODELS)
 """``model.exr``'s codes: the index of each pixel's model in this tuple."""
@@ -105,7 +105,9 @@ class FitConfig:
         calibrate: the lights estimated from the photographs with the maps
             (:func:`torchspec.pipeline.plan.calibrated`): ``auto`` (what the capture's manifest
             lists as ``unknown``: its irradiance, a gain per frame and channel; its lights'
-            positions), ``gains``, ``positions`` (near lights' positions and gains) or ``none``.
+            positions), ``gains``, ``positions`` (near lights' positions and gains), ``dome`` (gains
+            and one dome radius for every light, or distant lights where none explains the
+            photographs better: :func:`torchspec.lightcal.dome_radius`) or ``none``.
         lobe_resolution: with point lights, no lobe narrower than ``lobe_resolution`` times the
             half vectors' spacing (:func:`torchspec.layout.resolvable_roughness`): a narrower one
             falls between the frames, fits one frame's sample and predicts nothing between them
