@@ -44,6 +44,7 @@ from torchspec.io import write_capture
 from torchspec.io.images import Transfer, read_photo
 from torchspec.io.rti import import_rti
 from torchspec.lights import Lights
+from torchspec.relight import render_near
 from torchspec.rendering import render_image
 from torchspec.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
 
@@ -61,9 +62,7 @@ class Settings:
     compile: bool = False  # FitConfig.compile
     left_out: int = 2  # frames i % 5 == left_out are predicted
     residual_term: int = 3  # FitConfig.residual_term: rows with and without the term, of one fit
-    normals_calibrate: str = (
-        "dome"  # SynthRTI normals also from a fit of Dome/ with this FitConfig.calibrate ("": none)
-    )
+    calibrations: tuple[str, ...] = ("auto",)  # FitConfig.calibrate of the torchspec rows (each model, each)
 
 
 # --- data ---------------------------------------------------------------------------------------
@@ -130,17 +129,28 @@ def polynomial(basis, train_d, train_codes, test_d):
 # --- torchspec ------------------------------------------------------------------------------------
 
 
-def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, settings: Settings):
-    """Fit ``capture`` on the ``fitted`` frames with ``model``; render under ``lights``: ``(linear
+def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, calibrate: str, settings: Settings):
+    """Fit ``capture`` on the ``fitted`` frames with ``model`` and ``calibrate``; render under
+    ``lights`` as ``torchspec render`` does (under a dome the fit found, the lights at its radius
+    along their directions, block by block: :func:`torchspec.relight.render_near`): ``(linear
     (K, C, H, W) of the physical maps, the same with the fit's residual term (``None`` without
     one), seconds, fit)``."""
-    config = torchspec.FitConfig(model=model, compile=settings.compile, residual_term=settings.residual_term)
+    config = torchspec.FitConfig(
+        model=model, compile=settings.compile, residual_term=settings.residual_term, calibrate=calibrate
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fit = torchspec.fit(capture, config=config, frames=fitted)
     seconds = fit.stats["seconds"]["total"]
     view = torch.tensor(capture.view, dtype=torch.float64)
-    values = render_image(fit.svbrdf.to(torch.float64), lights, view)  # (H, W, K, C)
+    radius = (fit.stats.get("lights") or {}).get("radius")
+    svbrdf = fit.svbrdf.to(torch.float64)
+    if radius is not None:
+        positions = radius * lights.directions
+        values = render_near(svbrdf, lights, positions, view)
+        termed = None if fit.term is None else render_near(svbrdf, lights, positions, view, term=fit.term)
+        return values.permute(2, 3, 0, 1), None if termed is None else termed.permute(2, 3, 0, 1), seconds, fit
+    values = render_image(svbrdf, lights, view)  # (H, W, K, C)
     termed = None
     if fit.term is not None:  # as torchspec render does: the maps rendered, then the term applied
         termed = fit.term.apply(values, lights).permute(2, 3, 0, 1)
@@ -206,11 +216,14 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
         shown[name] = _quantise(values)
         rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth)})
         rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]  # the frame's index in the target
-    for model in settings.models:
+    fits = {}
+    for model, calibrate in [(m, c) for m in settings.models for c in settings.calibrations]:
         values, termed, seconds, fit = torchspec_predict(
-            capture, fitted, _lights(target_capture, predicted), model, settings
+            capture, fitted, _lights(target_capture, predicted), model, calibrate, settings
         )
-        for name, prediction in ((f"torchspec {model}", values), (f"torchspec {model} + term", termed)):
+        label = model if calibrate == "auto" else f"{model} ({calibrate})"
+        fits[label] = fit
+        for name, prediction in ((f"torchspec {label}", values), (f"torchspec {label} + term", termed)):
             if prediction is None:
                 continue
             shown[name] = _quantise(SRGB.encode(prediction.clamp(0, 1)))
@@ -219,9 +232,10 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
             row["lobe_share"] = float(fit.lobe.double().mean())
             row["term_share"] = None if fit.term is None else float(fit.term.chosen.double().mean())
             row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
+            row["dome_radius"] = (fit.stats.get("lights") or {}).get("radius")
             rows.append(row)
     shown["elevation"] = test_d[:, 2]
-    return rows, fit, shown
+    return rows, fits, shown
 
 
 def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: list) -> dict:
@@ -244,22 +258,16 @@ def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: li
     if synth:
         target = _load(folder / "Test", scratch, settings.downsample)
         every = list(range(count))
-        dome_rows, fit, _ = relight(capture, linear, codes, every, list(range(len(target[0].frames))), settings, target)
+        tested = list(range(len(target[0].frames)))
+        dome_rows, fits, _ = relight(capture, linear, codes, every, tested, settings, target)
         out["dome_to_test"] = dome_rows
-        out["normals"] = normal_errors(
-            fit.svbrdf.normal, folder / "Dome" / "normals.png", linear, capture.directions(), settings.downsample
-        )
-        if settings.normals_calibrate:  # the lights calibrated otherwise (a dome's radius): normals only
-            config = torchspec.FitConfig(compile=settings.compile, calibrate=settings.normals_calibrate)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                other = torchspec.fit(capture, config=config)
-            truth = folder / "Dome" / "normals.png"
-            errors = normal_errors(other.svbrdf.normal, truth, linear, capture.directions(), settings.downsample)
-            out["normals"][f"torchspec_{settings.normals_calibrate}_deg"] = errors["torchspec_deg"]
-            out["normals"][f"lights_{settings.normals_calibrate}"] = {
-                key: other.stats["lights"].get(key) for key in ("calibrated", "radius", "radius_misfit")
-            }
+        truth = folder / "Dome" / "normals.png"
+        for label, fit in fits.items():  # the first model's first: "torchspec_deg"
+            errors = normal_errors(fit.svbrdf.normal, truth, linear, capture.directions(), settings.downsample)
+            if "normals" not in out:
+                out["normals"] = errors
+            else:
+                out["normals"][f"torchspec {label}_deg"] = errors["torchspec_deg"]
     return out
 
 
@@ -279,11 +287,7 @@ def _print(result: dict) -> None:
             )
     if "normals" in result:
         n = result["normals"]
-        extra = "".join(
-            f", calibrate {key[10:-4]} {value:.2f} deg (radius {n['lights_' + key[10:-4]]['radius']})"
-            for key, value in n.items()
-            if key.startswith("torchspec_") and key != "torchspec_deg"
-        )
+        extra = "".join(f", {key[:-4]} {value:.2f} deg" for key, value in n.items() if key.startswith("torchspec "))
         print(
             f"  normals: torchspec {n['torchspec_deg']:.2f} deg{extra}, least-squares PS "
             f"{n['least_squares_ps_deg']:.2f} deg"

@@ -238,7 +238,8 @@ def test_rti_relight_runs(tmp_path):
     result = _main(
         "rti_relight",
         tmp_path,
-        f"data: {tmp_path / 'data'}\ncaptures: [real, synth]\ndownsample: 1\nmodels: [auto, diffuse]\nthreads: 1\n",
+        f"data: {tmp_path / 'data'}\ncaptures: [real, synth]\ndownsample: 1\nmodels: [auto, diffuse]\nthreads: 1\n"
+        "calibrations: [auto, dome]\n",
     )
     real, synth = result["captures"]
     assert real["left_out"] == [2, 7] and real["size"] == [8, 8]
@@ -248,9 +249,16 @@ def test_rti_relight_runs(tmp_path):
         "HSH",
         "torchspec auto",
         "torchspec auto + term",
+        "torchspec auto (dome)",
+        "torchspec auto (dome) + term",
         "torchspec diffuse",
         "torchspec diffuse + term",
+        "torchspec diffuse (dome)",
+        "torchspec diffuse (dome) + term",
     ]
+    # distant lights: a dome of no radius explains them better, they stay distant
+    assert methods["torchspec diffuse (dome)"]["dome_radius"] is None
+    assert synth["normals"]["torchspec auto (dome)_deg"] < 3
     # a Lambertian capture: the physical model predicts it, and the term (kept only where it
     # predicts left-out frames better) costs it little
     assert methods["torchspec diffuse + term"]["psnr_db"] > methods["torchspec diffuse"]["psnr_db"] - 1.0
