@@ -209,3 +209,11 @@ def test_render_of_a_near_light_capture_follows_each_block_lights(tmp_path):
         float((distant.permute(2, 3, 0, 1) - frames).pow(2).mean()) / float(frames.max()) ** 2
     )
     assert near["psnr_db"] > 35 and near["psnr_db"] > distant_psnr + 10  # measured: 39.9 dB, 21.7 distant
+
+
+def test_a_near_light_fit_carries_its_residual_term_across_blocks(tmp_path):
+    """The residual term of each block joins into one image-wide term (its weight too)."""
+    capture, _ = _lambertian_near_capture(tmp_path / "near", radius=3.0, size=16)
+    result = fit(capture, config=FitConfig(model="diffuse", residual_term=2, compile=False))
+    assert result.term.coefficients.shape == (16, 16, 4, 1) and result.term.weight.shape == (16, 16)
+    assert bool(((result.term.weight >= 0) & (result.term.weight <= 1)).all())

@@ -191,7 +191,8 @@ def residual_term(
     order = config.residual_term
     with_model = fit_term(values, kept, model, lights, folds, order=order, z=config.term_z, held_out=predicted)
     alone = fit_term(values, kept, torch.zeros_like(model), lights, folds, order=order, z=config.term_z)
-    return blend(with_model, alone, config.term_z)
+    blended = blend(with_model, alone, config.term_z)
+    return ResidualTerm(coefficients=blended.coefficients, chosen=blended.chosen, weight=blended.weight)
 
 
 def held_out_values(
