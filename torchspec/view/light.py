@@ -18,12 +18,13 @@ whitened extent (each cell's mass at its centre of mass: mass and mean kept).
 
 Under a Gaussian kernel the page does better than a fixed rule, as ``torchspec.render``'s fast path
 does: a lobe narrower than the nodes' spacing would fall between them, so for a ``projected``
-Gaussian each lobe takes the same Gauss-Hermite points placed on its own product with the kernel
-(the lobe linearised in the l-plane about its mirror point, then about that product's mean:
-:func:`torchspec.nodes.fast_rule`); and the diffuse term is ``<n, d>`` with the kernel's effective
-direction ``d`` (:func:`torchspec.lights.diffuse_directions`, exact at the horizon, where fixed
-nodes are cut) interpolated in a table over the centre's distance from the zenith, plus the nodes'
-share behind the normal's horizon (or the share in front where that is the smaller,
+Gaussian each lobe takes render's own fast rule (``FAST_ORDER x FAST_ORDER`` Gauss-Hermite points)
+placed on its own product with the kernel (the lobe linearised in the l-plane about its mirror
+point, then about that product's mean: :func:`torchspec.nodes.fast_rule`). A Gaussian's diffuse
+term is ``<n, d>`` with the kernel's effective direction ``d``
+(:func:`torchspec.lights.diffuse_directions`, exact at the horizon, where fixed nodes are cut)
+interpolated in a table over the centre's distance from the zenith, plus the nodes' share behind
+the normal's horizon (or the share in front where that is the smaller,
 :func:`torchspec.diffuse.diffuse_integral`'s rule). Other kernels are summed on the fixed nodes for
 both terms: their lobes narrower than :attr:`LightQuadrature.spacing` are not resolved.
 """
@@ -38,7 +39,7 @@ import torch
 
 from ..errors import TorchspecError
 from ..lights import Kernel, Lights, diffuse_directions, nodes
-from ..quadrature import Quadrature, hermite
+from ..quadrature import FAST_ORDER, Quadrature, hermite
 
 __all__ = ["MAX_NODES", "DIFFUSE_ROWS", "DIFFUSE_REACH", "LightQuadrature", "light_quadrature"]
 
@@ -63,8 +64,10 @@ class LightQuadrature:
             hold 99 % of the mass (l units or radians): a lobe narrower than this falls between
             nodes.
         label: what the page says of its light.
-        sigma: a projected Gaussian kernel's std (else 0): the page then places these
-            Gauss-Hermite points on each lobe's product with the kernel.
+        sigma: a projected Gaussian kernel's std (else 0): the page then places the points of
+            ``lobe_rule`` on each lobe's product with the kernel.
+        lobe_rule: ``(Q, 3)``: ``torchspec.render``'s fast rule (standard normal Gauss-Hermite
+            points, ``FAST_ORDER`` an axis, and weights) for a projected Gaussian, else none.
         diffuse: ``(DIFFUSE_ROWS, 2)`` for a Gaussian kernel (else none): its effective diffuse
             direction (:func:`torchspec.lights.diffuse_directions`) ``(a c_xy / |c_xy|, b)`` for
             centres ``c`` at ``|c_xy|`` evenly spaced on ``[0, DIFFUSE_REACH]``; the page
@@ -79,6 +82,7 @@ class LightQuadrature:
     label: str
     sigma: float = 0.0
     diffuse: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    lobe_rule: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def describe(self) -> dict:
         """The manifest's keys: ``kernel``, ``kernel_label``, ``kernel_angular``, ``kernel_spacing``
@@ -91,6 +95,7 @@ class LightQuadrature:
             "kernel_spacing": self.spacing,
             "kernel_nodes": rows.tolist(),
             "kernel_sigma": self.sigma,
+            "kernel_lobe_rule": self.lobe_rule.tolist(),
             "kernel_diffuse": self.diffuse.tolist(),
             "kernel_diffuse_reach": DIFFUSE_REACH,
         }
@@ -172,6 +177,7 @@ def light_quadrature(kernel: Kernel | None, order: int = 8) -> LightQuadrature:
         size = f"{'sigma' if kernel.kind == 'gaussian' else 'radius'} {kernel.sigma:g}"
     label = f"the capture's {kernel.kind} kernel ({size}, {kernel.domain}), {len(weights)} nodes"
     gaussian = kernel.kind == "gaussian" and kernel.domain == "projected"
+    points, weight = hermite(FAST_ORDER, torch.zeros((), dtype=torch.float64))
     return LightQuadrature(
         kernel.kind,
         kernel.domain == "angular",
@@ -181,4 +187,5 @@ def light_quadrature(kernel: Kernel | None, order: int = 8) -> LightQuadrature:
         label,
         kernel.sigma if gaussian else 0.0,
         _diffuse_table(kernel) if kernel.kind == "gaussian" else np.zeros((0, 2)),
+        torch.cat([points, weight[:, None]], 1).numpy() if gaussian else np.zeros((0, 3)),
     )

@@ -34,7 +34,9 @@ uniform ivec2 uValid;
 uniform int uLayer, uStd, uUntrusted, uModels;
 uniform int uNodes, uAngular; // the extended light's nodes (0: a point light); angular offsets
 uniform vec3 uNode[64]; // each node's offset from the centre (x, y) and weight
-uniform float uSigma; // > 0: a projected Gaussian kernel's std, its nodes sigma times Gauss-Hermite points
+uniform float uSigma; // > 0: a projected Gaussian kernel's std: its lobes on the rule uLobeRule
+uniform int uLobeNodes;
+uniform vec3 uLobeRule[16]; // standard normal Gauss-Hermite points (x, y) and weights
 uniform int uDiffuseRows; // > 0: the kernel's effective diffuse direction, tabulated over |l_xy| of the centre
 uniform float uDiffuseReach;
 uniform vec4 uDiffuse[64]; // rows 2i and 2i + 1: (a, b) of d = (a l_xy / |l_xy|, b)
@@ -61,7 +63,7 @@ vec2 product(vec2 b, mat2 B, out mat2 cov) {
   return uLight.xy + gain * (b - uLight.xy);
 }
 
-// A lobe under a projected Gaussian kernel, on the kernel's Gauss-Hermite points placed on the
+// A lobe under a projected Gaussian kernel, on render's Gauss-Hermite points placed on the
 // product of the kernel and the lobe in the l-plane, as torchspec/nodes.py's fast rule places
 // them (_pairs): the lobe linearised about its mirror point (torchspec/lobe.py lobe_moments),
 // then again about that product's mean (slope_at), where the integrand's mass is. A narrow lobe
@@ -92,16 +94,16 @@ float lobeUnderKernel(vec3 n, vec3 s, vec3 t, float ax, float ay, float co) {
   float l21 = l11 > 0.0 ? cov[0][1] / l11 : 0.0;
   float l22 = sqrt(max(cov[1][1] - l21 * l21, 0.0));
   float area = l11 * l22 / s2, sum = 0.0;
-  for (int q = 0; q < 64; q++) {
-    if (q >= uNodes) break;
-    vec2 xi = uNode[q].xy / uSigma;
+  for (int q = 0; q < 16; q++) {
+    if (q >= uLobeNodes) break;
+    vec2 xi = uLobeRule[q].xy;
     vec2 p = mean + vec2(l11 * xi.x, l21 * xi.x + l22 * xi.y);
     float r2 = dot(p, p);
     if (r2 >= 1.0) continue; // at or beyond the horizon: no light
     vec3 l = vec3(p, sqrt(1.0 - r2));
     vec2 d = (p - uLight.xy) / uSigma;
     // weight / the standard normal density at xi, times the kernel's density at p and det L
-    sum += uNode[q].z * area * exp(0.5 * (dot(xi, xi) - dot(d, d))) * ward(l, n, s, t, ax, ay, dot(n, l), co);
+    sum += uLobeRule[q].z * area * exp(0.5 * (dot(xi, xi) - dot(d, d))) * ward(l, n, s, t, ax, ay, dot(n, l), co);
   }
   return sum;
 }
@@ -139,8 +141,12 @@ vec3 relit(ivec2 ij) {
   vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1);
   vec3 value = vec3(0.0);
   float front = 0.0, behind = 0.0; // the nodes' cosine in front of the normal's horizon and behind it
+  // With the table and render's rule for the lobes, the nodes matter only where the normal's
+  // horizon passes within HORIZON_MARGIN kernel widths of the centre (torchspec/diffuse.py).
+  vec2 slope = n.xy - n.z * uLight.xy / uLight.z; // the gradient of <n, w(l)> at the centre
+  bool clear = uDiffuseRows > 0 && uSigma > 0.0 && dot(n, uLight) > 5.5 * uSigma * length(slope);
   for (int q = 0; q < 64; q++) {
-    if (q >= uNodes) break;
+    if (q >= uNodes || clear) break;
     vec3 node = uNode[q];
     vec3 l;
     if (uAngular != 0) {
@@ -262,6 +268,9 @@ class Viewer {
     if (nodes.length) gl.uniform3fv(this.u.uNode, nodes.flat());
     gl.uniform1i(this.u.uAngular, this.m.kernel_angular ? 1 : 0);
     gl.uniform1f(this.u.uSigma, this.m.kernel_sigma || 0);
+    const rule = this.m.kernel_lobe_rule || [];
+    gl.uniform1i(this.u.uLobeNodes, rule.length);
+    if (rule.length) gl.uniform3fv(this.u.uLobeRule, rule.flat());
     const table = this.m.kernel_diffuse || [];
     gl.uniform1i(this.u.uDiffuseRows, table.length);
     gl.uniform1f(this.u.uDiffuseReach, this.m.kernel_diffuse_reach || 1);
