@@ -99,15 +99,16 @@ def test_export_web_writes_a_static_site(tmp_path):
 
 
 def _capture(folder, maps, exposure=2.0, irradiance=0.5, sigma=None):
-    """A capture of ``maps`` rendered under 12 point lights, or Gaussian ones of std ``sigma`` in
-    the l-plane (its photographs are the model's)."""
+    """A capture of ``maps`` rendered under 12 point lights (its photographs are the model's); with
+    ``sigma``, its manifest's light is a Gaussian of that std in the l-plane (the photographs stay
+    the point lights': rendering them under the kernel takes seconds, and the tests that give one
+    look at the page's relit side only)."""
     height, width = maps.svbrdf.shape
     directions = torch.tensor(hemisphere_lights(12, 70.0))
     frames = [Frame(f"f{k:02d}.exr", tuple(d.tolist()), irradiance, exposure) for k, d in enumerate(directions)]
     spec = LightSpec("point") if sigma is None else LightSpec("gaussian", "projected", sigma)
     capture = Capture(folder, width, height, ("R", "G", "B"), (0.0, 0.0, 1.0), spec, frames)
-    kernel = Kernel("point") if sigma is None else Kernel("gaussian", "projected", sigma)
-    lights = Lights(directions, kernel, torch.full((12, 3), irradiance, dtype=torch.float64),
+    lights = Lights(directions, Kernel("point"), torch.full((12, 3), irradiance, dtype=torch.float64),
                     torch.full((12,), exposure, dtype=torch.float64))  # fmt: skip
     values = render_image(maps.svbrdf.to(torch.float64), lights, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     return write_capture(folder, capture, values.permute(2, 3, 0, 1).float())
@@ -315,3 +316,27 @@ def test_the_page_relights_under_the_captures_kernel_as_render_does(browser, tmp
         page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
         assert np.abs(page - point).max() <= 1
         assert browser.evaluate("document.getElementById('kernel').textContent") == "point light"
+
+
+def _table_kernel() -> Kernel:
+    """A tabulated kernel whose mass sits off its centre (8 x 8 over +-0.2: render's reference
+    rule takes two radii a pixel, a larger table costs seconds)."""
+    y, x = torch.meshgrid(*[torch.linspace(-1, 1, 8, dtype=torch.float64)] * 2, indexing="ij")
+    return Kernel("tabulated", table=torch.exp(-((x - 0.2) ** 2 + y**2) / 0.3), extent=0.2)
+
+
+@needs_browser
+@pytest.mark.parametrize("kernel", [Kernel("gaussian", "angular", 0.1), _table_kernel()], ids=["angular", "tabulated"])
+def test_the_page_sums_other_kernels_on_their_fixed_nodes(browser, kernel):
+    maps = model_maps("ward-iso", 16, 24, seed=9, alpha=(0.2, 0.45))  # lobes broader than the nodes' spacing
+    site = open_site(maps)
+    rule = light_quadrature(kernel)
+    site.manifest.update(rule.describe())  # as a capture with this kernel gives it
+    assert rule.lobe_rule.size == 0 and (lobe_width(maps.svbrdf) / 2 > rule.spacing).all()
+    with _page(browser, site):
+        for light in hemisphere_lights(2, 60.0):  # render of a tabulated kernel takes a second
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            assert np.abs(reference_srgb(maps.svbrdf, tuple(light)).astype(int) - expected).max() > 5

@@ -32,7 +32,8 @@ precision highp sampler2D;
 uniform sampler2D tGeo, tRough, tKd, tKs, tKs2, tStd, tPhoto;
 uniform ivec2 uValid;
 uniform int uLayer, uStd, uUntrusted, uModels;
-uniform int uNodes, uAngular; // the extended light's nodes (0: a point light); angular offsets
+#if EXTENDED // the program of an extended light (the point light's compiles without it)
+uniform int uNodes, uAngular; // the extended light's nodes; angular offsets
 uniform vec3 uNode[64]; // each node's offset from the centre (x, y) and weight
 uniform float uSigma; // > 0: a projected Gaussian kernel's std: its lobes on the rule uLobeRule
 uniform int uLobeNodes;
@@ -40,6 +41,7 @@ uniform vec3 uLobeRule[16]; // standard normal Gauss-Hermite points (x, y) and w
 uniform int uDiffuseRows; // > 0: the kernel's effective diffuse direction, tabulated over |l_xy| of the centre
 uniform float uDiffuseReach;
 uniform vec4 uDiffuse[64]; // rows 2i and 2i + 1: (a, b) of d = (a l_xy / |l_xy|, b)
+#endif
 uniform vec3 uLight, uView, uModelColours[8];
 uniform float uExposure, uGain;
 in vec2 vTex;
@@ -54,6 +56,7 @@ float ward(vec3 l, vec3 n, vec3 s, vec3 t, float ax, float ay, float ci, float c
   return exp(-(hs * hs + ht * ht) / (hn * hn)) * sqrt(ci / co) * (1.0 / (4.0 * PI * ax * ay));
 }
 
+#if EXTENDED
 // The product of the kernel N(uLight.xy, uSigma^2) and a Gaussian N(b, B) in the l-plane: its mean
 // (returned) and covariance (cov).
 vec2 product(vec2 b, mat2 B, out mat2 cov) {
@@ -117,6 +120,7 @@ vec3 effective() {
   vec2 d = mix(lo, hi, f - float(i));
   return vec3(rho > 0.0 ? d.x * uLight.xy / rho : vec2(0.0), d.y);
 }
+#endif
 
 vec3 srgb(vec3 v) {
   v = clamp(v, 0.0, 1.0);
@@ -134,10 +138,10 @@ vec3 relit(ivec2 ij) {
   vec3 s2 = c * s + si * t, t2 = c * t - si * s;
   float co = dot(n, uView);
   vec3 kd = texelFetch(tKd, ij, 0).rgb / PI, ks = texelFetch(tKs, ij, 0).rgb, ks2 = texelFetch(tKs2, ij, 0).rgb;
-  if (uNodes == 0) {
-    float ci = dot(n, uLight);
-    return (kd * max(ci, 0.0) + ks * ward(uLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(uLight, n, s2, t2, r.z, r.w, ci, co)) * uExposure;
-  }
+#if !EXTENDED
+  float ci = dot(n, uLight);
+  return (kd * max(ci, 0.0) + ks * ward(uLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(uLight, n, s2, t2, r.z, r.w, ci, co)) * uExposure;
+#else
   vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1);
   vec3 value = vec3(0.0);
   float front = 0.0, behind = 0.0; // the nodes' cosine in front of the normal's horizon and behind it
@@ -170,6 +174,7 @@ vec3 relit(ivec2 ij) {
   float linear = uDiffuseRows > 0 ? dot(n, effective()) : -1.0;
   value += kd * (linear >= 0.0 ? linear + behind : front);
   return value * uExposure;
+#endif
 }
 
 void main() {
@@ -214,7 +219,9 @@ class Viewer {
     const gl = this.canvas.getContext("webgl2", { antialias: false, alpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl;
-    this.program = this.compile();
+    this.programs = [this.compile(false)]; // the point light's, and an extended light's
+    if ((manifest.kernel_nodes || []).length) this.programs.push(this.compile(true));
+    this.use(false);
     this.tiles = new Map(); // key -> {state, textures, used}
     this.queue = new Set();
     this.fetching = 0;
@@ -235,7 +242,8 @@ class Viewer {
     this.fit();
   }
 
-  compile() {
+  // The shader program of a point light or (extended) the capture's kernel: {p, u} (uniforms by name).
+  compile(extended) {
     const gl = this.gl;
     const shader = (type, source) => {
       const s = gl.createShader(type);
@@ -246,14 +254,15 @@ class Viewer {
     };
     const p = gl.createProgram();
     gl.attachShader(p, shader(gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(p, shader(gl.FRAGMENT_SHADER, FRAGMENT));
+    const source = FRAGMENT.replace("\n", `\n#define EXTENDED ${extended ? 1 : 0}\n`); // after #version
+    gl.attachShader(p, shader(gl.FRAGMENT_SHADER, source));
     gl.linkProgram(p);
     if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
     gl.useProgram(p);
-    this.u = {};
+    const u = (this.u = {});
     for (let i = 0; i < gl.getProgramParameter(p, gl.ACTIVE_UNIFORMS); i++) {
       const name = gl.getActiveUniform(p, i).name.replace("[0]", "");
-      this.u[name] = gl.getUniformLocation(p, name);
+      u[name] = gl.getUniformLocation(p, name);
     }
     ["tGeo", "tRough", "tKd", "tKs", "tKs2", "tStd", "tPhoto"].forEach((n, i) => gl.uniform1i(this.u[n], i));
     gl.uniform1f(this.u.uTile, this.m.tile);
@@ -275,7 +284,15 @@ class Viewer {
     gl.uniform1i(this.u.uDiffuseRows, table.length);
     gl.uniform1f(this.u.uDiffuseReach, this.m.kernel_diffuse_reach || 1);
     if (table.length) gl.uniform4fv(this.u.uDiffuse, table.flat());
-    return p;
+    gl.uniform1i(this.u.uNodes, nodes.length);
+    return { p, u };
+  }
+
+  use(extended) {
+    const program = this.programs[extended && this.programs.length > 1 ? 1 : 0];
+    if (this.current !== program) this.gl.useProgram(program.p);
+    this.current = program;
+    this.u = program.u;
   }
 
   // The view: zoom (screen pixels per level-0 pixel) and the image point at the centre of a panel.
@@ -417,9 +434,9 @@ class Viewer {
     gl.viewport(0, 0, w, h);
     gl.clearColor(0.125, 0.125, 0.125, 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
+    this.use(this.extended);
     gl.uniform3fv(this.u.uLight, this.light);
     gl.uniform1f(this.u.uExposure, this.exposure);
-    gl.uniform1i(this.u.uNodes, this.extended ? this.nodes.length : 0);
     gl.uniform1i(this.u.uStd, this.std);
     const target = this.level(), top = this.m.levels.length - 1;
     let complete = true;
