@@ -6,14 +6,19 @@
    in 8-bit steps, over all pixels and apart on the pixels whose lobe is narrower than a pixel's
    footprint (the mirror direction moves by more than the lobe's width, ``2 * angle(n, n') >
    min(alpha)``, to a neighbouring pixel), and the pixels where torch's own float32 render differs
-   from float64 by more than a step (ill-conditioned in the page's float32).
+   from float64 by more than a step (ill-conditioned in the page's float32). A fit whose capture
+   has an extended kernel is also compared under that kernel (the page's default then) with
+   render under the same kernel and centre (row ``NAME kernel``): the share of pixel-lights beyond
+   one step, and apart the pixels whose lobe's half width at half maximum is below the fixed
+   nodes' spacing (``torchspec.view.light``).
 2. Screenshots of the page on each fit: relit at a grazing light, the normal layer, the quality
    layer (PNG in the output folder).
 3. Speed on synthetic ``big x big`` maps: the server's start, the time from loading the page to
    its first image (the coarsest level), to the whole image fitted to the window (every tile of
    the level that matches the zoom), then to every tile drawn at full resolution (1:1), and the frame
    rate while the light moves: real mouse drags sent through the DevTools protocol (frames drawn
-   per second) and the page's own loop (each frame finished before the next).
+   per second) and the page's own loop (each frame finished before the next), the loop also
+   under a projected Gaussian kernel of std ``speed_kernel_sigma`` (its 64 nodes a pixel).
 
     python experiments/view.py [--config experiments/configs/view.yaml] [--output experiments/results]
 
@@ -38,9 +43,11 @@ from _common import ROOT, parse_args
 from torchspec.atomic import write_json
 from torchspec.config import load_config
 from torchspec.io import read_svbrdf
+from torchspec.lights import Kernel
 from torchspec.view import open_site, serve
 from torchspec.view.browser import Browser
-from torchspec.view.check import MODEL_TYPES, hemisphere_lights, model_maps, reference_srgb
+from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb
+from torchspec.view.light import light_quadrature
 
 
 @dataclass(frozen=True)
@@ -55,6 +62,8 @@ class Settings:
     big: int
     drag_moves: int
     bench_frames: int
+    speed_kernel_sigma: float
+    speed_kernel_frames: int
 
 
 @contextmanager
@@ -81,22 +90,37 @@ def narrow_lobes(svbrdf) -> np.ndarray:
     return (lobe & (2 * step > alpha)).numpy()
 
 
-def compare(browser: Browser, svbrdf, view, lights) -> dict:
-    """The page against render on every light: largest differences and pixel counts."""
+def compare(browser: Browser, svbrdf, view, lights, kernel=None, spacing: float = 0.0) -> dict:
+    """The page against render on every light (a point, or ``kernel`` about the same centre):
+    largest differences and pixel counts; under a kernel also apart on the pixels whose lobe's half
+    width at half maximum is below the fixed nodes' ``spacing``."""
     height, width = svbrdf.shape
     narrow = narrow_lobes(svbrdf)
-    worst, worst_narrow, worst_rest, above, ill = 0, 0, 0, 0, 0
+    between = lobe_width(svbrdf, tuple(view)) / 2 < spacing
+    worst, worst_narrow, worst_rest, worst_between, above, ill = 0, 0, 0, 0, 0, 0
     for light in lights:
-        browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False, exposure=1)
+        browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False, exposure=1,
+                     extended=kernel is not None)  # fmt: skip
         shown = browser.read(0, 0, width, height)[..., :3].astype(int)
-        expected = reference_srgb(svbrdf, tuple(light), tuple(view)).astype(int)
-        single = reference_srgb(svbrdf, tuple(light), tuple(view), dtype=torch.float32).astype(int)
+        expected = reference_srgb(svbrdf, tuple(light), tuple(view), kernel=kernel).astype(int)
+        single = reference_srgb(svbrdf, tuple(light), tuple(view), dtype=torch.float32, kernel=kernel).astype(int)
         diff = np.abs(shown - expected).max(-1)
         worst = max(worst, int(diff.max()))
         worst_narrow = max(worst_narrow, int(diff[narrow].max(initial=0)))
         worst_rest = max(worst_rest, int(diff[~narrow].max(initial=0)))
+        worst_between = max(worst_between, int(diff[between].max(initial=0)))
         above += int((diff > 1).sum())
         ill += int((np.abs(single - expected).max(-1) > 1).sum())
+    extended = {}
+    if kernel is not None:
+        extended = {
+            "kernel": kernel.kind,
+            "sigma": kernel.sigma,
+            "node_spacing": spacing,
+            "lobe_between_nodes_pixels": int(between.sum()),
+            "max_diff_8bit_lobe_between_nodes": worst_between,
+            "share_pixel_lights_above_1": above / (height * width * len(lights)),
+        }
     return {
         "pixels": height * width,
         "lights": len(lights),
@@ -106,6 +130,7 @@ def compare(browser: Browser, svbrdf, view, lights) -> dict:
         "narrow_lobe_pixels": int(narrow.sum()),
         "pixel_lights_above_1": above,
         "pixel_lights_float32_ill_conditioned": ill,
+        **extended,
     }
 
 
@@ -128,6 +153,10 @@ def accuracy(settings: Settings, browser: Browser) -> dict:
         site = open_site(maps, None if fit.get("capture") is None else ROOT / fit["capture"])
         with page(browser, site):
             rows[fit["name"]] = compare(browser, maps.svbrdf, site.manifest["view"], lights)
+            if site.manifest["kernel_nodes"]:  # the capture's extended kernel, as the page shows it by default
+                kernel, spacing = site.capture.lights().kernel, site.manifest["kernel_spacing"]
+                rows[f"{fit['name']} kernel"] = compare(browser, maps.svbrdf, site.manifest["view"], lights, kernel,
+                                                        spacing)  # fmt: skip
     return rows
 
 
@@ -158,8 +187,10 @@ def speed(settings: Settings) -> dict:
     start = time.perf_counter()
     site = open_site(maps)
     opened = time.perf_counter() - start
+    site.manifest.update(light_quadrature(Kernel("gaussian", sigma=settings.speed_kernel_sigma)).describe())
     del maps
     with Browser(*settings.viewport) as browser, page(browser, site) as loaded:
+        browser.show(extended=False)  # a point light but for the kernel's loop
         start = time.perf_counter()
         browser.evaluate("torchspecView.settle()")
         settled = loaded + time.perf_counter() - start
@@ -171,6 +202,9 @@ def speed(settings: Settings) -> dict:
         full = time.perf_counter() - start
         shown = state["width"] * state["height"]
         bench = browser.evaluate(f"torchspecView.bench({settings.bench_frames}, 1.0)")
+        browser.show(extended=True)
+        bench_kernel = browser.evaluate(f"torchspecView.bench({settings.speed_kernel_frames}, 1.0)")
+        browser.show(extended=False)
         box = browser.evaluate("(() => { const r = torchspecView.viewer.canvas.getBoundingClientRect(); "
                                "return [r.left, r.top, r.width, r.height]; })()")  # fmt: skip
         cx, cy, radius = box[0] + box[2] / 2, box[1] + box[3] / 2, min(box[2], box[3]) * 0.4
@@ -200,6 +234,7 @@ def speed(settings: Settings) -> dict:
         "drag_seconds": elapsed,
         "drag_frames_per_s": frames / elapsed,
         "loop_frames_per_s": bench,
+        "loop_frames_per_s_kernel": bench_kernel,
     }
 
 
@@ -218,12 +253,18 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{name:>18s} {r['pixels']:7d} {r['max_diff_8bit']:4d} {r['narrow_lobe_pixels']:7d} "
               f"{r['max_diff_8bit_narrow_lobe']:10d} {r['max_diff_8bit_other']:8d} {r['pixel_lights_above_1']:5d} "
               f"{r['pixel_lights_float32_ill_conditioned']:6d}")  # fmt: skip
+        if "kernel" in r:
+            print(f"{'':>18s} under the capture's {r['kernel']} kernel (sigma {r['sigma']:g}): "
+                  f"{r['share_pixel_lights_above_1']:.2e} of pixel-lights beyond 1 step; "
+                  f"{r['lobe_between_nodes_pixels']} pixels whose lobe's half width is below the fixed nodes' spacing "
+                  f"{r['node_spacing']:.3f}: max {r['max_diff_8bit_lobe_between_nodes']}")  # fmt: skip
     shots = screenshots(settings, args.output)
     timing = speed(settings)
     print(f"{settings.big}x{settings.big} maps: server start {timing['server_start_s']:.1f} s, first image "
           f"{timing['first_image_s']:.2f} s, the whole image {timing['fit_view_settled_s']:.2f} s, full resolution "
           f"(1:1) {timing['full_resolution_s']:.2f} s more; dragging "
           f"{timing['drag_frames_per_s']:.1f} frames/s, page loop {timing['loop_frames_per_s']:.1f} frames/s "
+          f"({timing['loop_frames_per_s_kernel']:.2f} under a Gaussian kernel) "
           f"({timing['canvas_pixels']} canvas pixels)")  # fmt: skip
     with Browser(64, 64) as browser:
         version = browser.call("Browser.getVersion")["product"]

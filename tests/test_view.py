@@ -25,7 +25,8 @@ from torchspec.rendering import render_image
 from torchspec.residual_term import encode
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
 from torchspec.view.browser import Browser, find_chromium
-from torchspec.view.check import MODEL_TYPES, hemisphere_lights, model_maps, reference_srgb
+from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb
+from torchspec.view.light import MAX_NODES, light_quadrature
 from torchspec.view.tiles import levels_for
 
 CHROMIUM, WHY = find_chromium()
@@ -97,12 +98,16 @@ def test_export_web_writes_a_static_site(tmp_path):
         export(maps.svbrdf, tmp_path / "gltf", to="gltf", capture=tmp_path)
 
 
-def _capture(folder, maps, exposure=2.0, irradiance=0.5):
-    """A capture of ``maps`` rendered under 12 point lights (its photographs are the model's)."""
+def _capture(folder, maps, exposure=2.0, irradiance=0.5, sigma=None):
+    """A capture of ``maps`` rendered under 12 point lights (its photographs are the model's); with
+    ``sigma``, its manifest's light is a Gaussian of that std in the l-plane (the photographs stay
+    the point lights': rendering them under the kernel takes seconds, and the tests that give one
+    look at the page's relit side only)."""
     height, width = maps.svbrdf.shape
     directions = torch.tensor(hemisphere_lights(12, 70.0))
     frames = [Frame(f"f{k:02d}.exr", tuple(d.tolist()), irradiance, exposure) for k, d in enumerate(directions)]
-    capture = Capture(folder, width, height, ("R", "G", "B"), (0.0, 0.0, 1.0), LightSpec("point"), frames)
+    spec = LightSpec("point") if sigma is None else LightSpec("gaussian", "projected", sigma)
+    capture = Capture(folder, width, height, ("R", "G", "B"), (0.0, 0.0, 1.0), spec, frames)
     lights = Lights(directions, Kernel("point"), torch.full((12, 3), irradiance, dtype=torch.float64),
                     torch.full((12,), exposure, dtype=torch.float64))  # fmt: skip
     values = render_image(maps.svbrdf.to(torch.float64), lights, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
@@ -260,3 +265,78 @@ def test_dragging_on_the_hemisphere_moves_the_light_and_a_click_reads_a_pixel(br
         k_s2 = maps.svbrdf.specular2[9, 5, 0].item()
         shown = {row.split("\t")[0]: row.split("\t")[1] for row in rows}
         assert np.allclose([float(v) for v in shown["k_s2"].split()], k_s2, rtol=1e-3), rows
+
+
+def test_a_captures_kernel_becomes_the_pages_nodes(tmp_path):
+    maps = model_maps("ward-iso", 8, 12)
+    manifest = open_site(maps, _capture(tmp_path / "c", maps, sigma=0.08)).manifest
+    nodes = np.array(manifest["kernel_nodes"])
+    assert manifest["kernel"] == "gaussian" and nodes.shape == (64, 3) and not manifest["kernel_angular"]
+    assert np.isclose(nodes[:, 2].sum(), 1.0) and np.allclose(nodes[:, 2] @ nodes[:, :2], 0.0, atol=1e-15)
+    variance = nodes[:, 2] @ (nodes[:, :2] ** 2)  # Gauss-Hermite: the kernel's moments exactly
+    assert np.allclose(variance, 0.08**2, rtol=1e-12)
+    assert "gaussian kernel (sigma 0.08, projected), 64 nodes" in manifest["kernel_label"]
+    assert open_site(maps).manifest["kernel_nodes"] == [] and open_site(maps).manifest["kernel"] == "point"
+    for kernel in (Kernel("gaussian", "angular", 0.1), Kernel("supergaussian", "angular", 0.1, power=6.0),
+                   Kernel("tabulated", table=torch.rand(16, 16, generator=torch.Generator().manual_seed(0)),
+                          extent=0.2)):  # fmt: skip
+        rule = light_quadrature(kernel)
+        assert len(rule.weights) <= MAX_NODES and np.isclose(rule.weights.sum(), 1.0, atol=2e-4), kernel.kind
+        mean = rule.weights @ rule.offsets
+        assert np.allclose(mean, kernel.offset(torch.zeros(3, dtype=torch.float64)).numpy(), atol=1e-3), kernel.kind
+
+
+DEMO_SIGMA = 0.08  # torchspec demo's light: a projected Gaussian kernel
+
+
+@needs_browser
+def test_the_page_relights_under_the_captures_kernel_as_render_does(browser, tmp_path):
+    maps = model_maps("ward-iso", 48, 64, seed=9, alpha=(0.03, 0.2))  # the demo's range of alpha
+    capture = _capture(tmp_path / "c", maps, sigma=DEMO_SIGMA)
+    kernel = capture.lights().kernel
+    site = open_site(maps, capture)
+    # Pixels whose lobe's half width at half maximum is below the fixed nodes' spacing (23 % of
+    # them): fixed nodes would fall on either side of its peak; the page places them on each
+    # lobe's product with the kernel, so these match too.
+    narrow = lobe_width(maps.svbrdf) / 2 < site.manifest["kernel_spacing"]
+    assert narrow.mean() > 0.2
+    with _page(browser, site):
+        for light in hemisphere_lights(4, 60.0):
+            state = browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False)
+            assert state["extended"]
+            page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int)
+            difference = np.abs(page - expected).max(-1)
+            assert difference[~narrow].max() <= 1 and difference[narrow].max() <= 1, light
+            assert expected.std() > 10
+            point = reference_srgb(maps.svbrdf, tuple(light)).astype(int)
+            assert np.abs(point - expected).max() > 10  # the kernel matters here
+        assert "gaussian kernel" in browser.evaluate("document.getElementById('kernel').textContent")
+        browser.show(extended=False)  # the point light, on request
+        page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+        assert np.abs(page - point).max() <= 1
+        assert browser.evaluate("document.getElementById('kernel').textContent") == "point light"
+
+
+def _table_kernel() -> Kernel:
+    """A tabulated kernel whose mass sits off its centre (8 x 8 over +-0.2: render's reference
+    rule takes two radii a pixel, a larger table costs seconds)."""
+    y, x = torch.meshgrid(*[torch.linspace(-1, 1, 8, dtype=torch.float64)] * 2, indexing="ij")
+    return Kernel("tabulated", table=torch.exp(-((x - 0.2) ** 2 + y**2) / 0.3), extent=0.2)
+
+
+@needs_browser
+@pytest.mark.parametrize("kernel", [Kernel("gaussian", "angular", 0.1), _table_kernel()], ids=["angular", "tabulated"])
+def test_the_page_sums_other_kernels_on_their_fixed_nodes(browser, kernel):
+    maps = model_maps("ward-iso", 16, 24, seed=9, alpha=(0.2, 0.45))  # lobes broader than the nodes' spacing
+    site = open_site(maps)
+    rule = light_quadrature(kernel)
+    site.manifest.update(rule.describe())  # as a capture with this kernel gives it
+    assert rule.lobe_rule.size == 0 and (lobe_width(maps.svbrdf) / 2 > rule.spacing).all()
+    with _page(browser, site):
+        for light in hemisphere_lights(2, 60.0):  # render of a tabulated kernel takes a second
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            assert np.abs(reference_srgb(maps.svbrdf, tuple(light)).astype(int) - expected).max() > 5

@@ -1,6 +1,7 @@
 """What the page's relit image should be: :func:`torchspec.render` of the same maps under the same
-point light, encoded as the page encodes it (sRGB, 8 bits); and small maps of each model type to
-compare on (the tests, ``experiments/view.py``).
+light (a point or an extended kernel about the same centre), encoded as the page encodes it (sRGB,
+8 bits); the width of each pixel's lobe, to tell where an extended light's fixed nodes fall too far
+apart; and small maps of each model type to compare on (the tests, ``experiments/view.py``).
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ from ..flags import FLAGS, UNTRUSTED, bit
 from ..geometry import normal_from_angles
 from ..io import Maps
 from ..lights import Kernel, Lights
+from ..lobe import lobe_frame, lobe_moments
 from ..pipeline.settings import MODEL_CODES
 from ..rendering import render_image
 from ..residual_term import encode
 
-__all__ = ["MODEL_TYPES", "model_maps", "reference_srgb", "hemisphere_lights"]
+__all__ = ["MODEL_TYPES", "model_maps", "reference_srgb", "hemisphere_lights", "lobe_width"]
 
 MODEL_TYPES = ("diffuse", "ward-iso", "ward-aniso", "ward-dual")
 """The model types the page shades (``ward-iso-colour`` is ``ward-iso`` with a coloured ``k_s``)."""
@@ -73,13 +75,20 @@ def model_maps(
 
 
 def reference_srgb(
-    svbrdf: SVBRDF, light, view=(0.0, 0.0, 1.0), *, exposure: float = 1.0, dtype: torch.dtype = torch.float64
+    svbrdf: SVBRDF,
+    light,
+    view=(0.0, 0.0, 1.0),
+    *,
+    exposure: float = 1.0,
+    dtype: torch.dtype = torch.float64,
+    kernel: Kernel | None = None,
 ) -> np.ndarray:
-    """``(H, W, 3)`` uint8: :func:`torchspec.rendering.render_image` of ``svbrdf`` under a point
-    light from ``light (3,)`` of unit irradiance, times ``exposure``, sRGB-encoded (clipped to
-    ``[0, 1]``) and rounded to 8 bits as the page shows it (grey replicated to 3 channels)."""
+    """``(H, W, 3)`` uint8: :func:`torchspec.rendering.render_image` of ``svbrdf`` under a light
+    centred at ``light (3,)`` of unit irradiance (a point, or ``kernel``), times ``exposure``,
+    sRGB-encoded (clipped to ``[0, 1]``) and rounded to 8 bits as the page shows it (grey
+    replicated to 3 channels)."""
     one = torch.ones(1, 1, dtype=dtype)
-    lights = Lights(torch.tensor([light], dtype=dtype), Kernel("point"), one, one[0])
+    lights = Lights(torch.tensor([light], dtype=dtype), kernel or Kernel("point"), one, one[0])
     value = render_image(svbrdf.to(dtype), lights, torch.tensor(view, dtype=dtype))
     value = (value[:, :, 0] * exposure).clamp(0.0, 1.0)
     value = value.expand(*value.shape[:2], 3) if value.shape[-1] == 1 else value[..., :3]
@@ -94,3 +103,21 @@ def hemisphere_lights(count: int = 20, max_zenith_deg: float = 80.0) -> np.ndarr
     phi = k * math.pi * (3.0 - math.sqrt(5.0))
     x, y = radius * np.cos(phi), radius * np.sin(phi)
     return np.stack([x, y, np.sqrt(1.0 - x * x - y * y)], -1)
+
+
+def lobe_width(svbrdf: SVBRDF, view=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """``(H, W)``: the full width at half maximum, in the l-plane and along its narrowest axis, of
+    the narrower of each pixel's lobes (Ward's, linearised about the mirror direction:
+    :func:`torchspec.lobe.lobe_moments`); ``inf`` where a pixel has no lobe."""
+    flat = svbrdf.to(torch.float64).flatten()
+    view = torch.tensor(view, dtype=torch.float64)
+    width = torch.full(flat.shape, math.inf, dtype=torch.float64)
+    for lobe in (flat, flat.second()):
+        if lobe is None:
+            continue
+        _, (xx, xy, yy) = lobe_moments(lobe_frame(lobe, view))
+        smallest = 0.5 * (xx + yy) - torch.sqrt(0.25 * (xx - yy) ** 2 + xy * xy)
+        fwhm = math.sqrt(8.0 * math.log(2.0)) * smallest.clamp(min=0.0).sqrt().reshape(-1)
+        has = (lobe.specular.amax(-1) > 0) & (lobe.roughness.amin(-1) > 0)
+        width = torch.where(has, torch.minimum(width, fwhm), width)
+    return width.reshape(svbrdf.shape).numpy()

@@ -3,7 +3,8 @@
 web server can host (``torchspec export --to web``). Both lay the site out the same way:
 
     index.html, viewer.js, viewer.css   the page (package data: torchspec/view/static/)
-    manifest.json                       size, channels, view, levels, textures, layers, lights
+    manifest.json                       size, channels, view, levels, textures, layers, lights,
+                                        the light kernel's nodes (:mod:`torchspec.view.light`)
     tiles/L/R_C.bin                     the maps' tile at level L, row R, column C
     photo/K/L/R_C.bin                   with a capture: frame K's photograph, the same tiling
 """
@@ -27,8 +28,10 @@ from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
+from ..lights import Kernel
 from ..outputs import check_output
 from ..report import MODEL_COLOURS
+from .light import light_quadrature
 from .tiles import Pyramid, photo_pyramid
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
@@ -48,6 +51,13 @@ def _quantile(value: np.ndarray, q: float = 0.99, samples: int = 1 << 18) -> flo
     value = value.reshape(-1)[:: max(1, value.size // samples)]
     finite = value[np.isfinite(value) & (value > 0)]
     return float(np.quantile(finite, q)) if finite.size else 1.0
+
+
+def _kernel(capture: Capture | None) -> Kernel | None:
+    """The capture's light kernel (``None`` without a capture); an ``unknown`` one as such."""
+    if capture is None:
+        return None
+    return Kernel("unknown") if capture.light.kernel == "unknown" else capture.lights().kernel
 
 
 @dataclass
@@ -143,7 +153,7 @@ def open_site(
             **{n: _quantile(extra[n].numpy()) for n in extra if n.startswith("std_")},
         },
         "lights": [] if capture is None else capture.directions().tolist(),
-        "kernel": "point",
+        **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
     }
     return Site(pyramid, manifest, capture)

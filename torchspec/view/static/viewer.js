@@ -3,6 +3,8 @@
 // network beyond the site's own files (manifest.json, tiles/, photo/): see torchspec/view/site.py.
 // The shading repeats torchspec.rendering.render's point path (torchspec/lobe.py lobe_at,
 // torchspec/diffuse.py): value = k_d / pi <n, l>^+ + k_s W(l) + k_s2 W2(l), times the exposure.
+// Under a capture's extended light kernel, the weighted sum of that value over the kernel's fixed
+// quadrature nodes about the light's centre (manifest kernel_nodes: torchspec/view/light.py).
 "use strict";
 
 const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", "quality", "flags", "std"];
@@ -30,19 +32,95 @@ precision highp sampler2D;
 uniform sampler2D tGeo, tRough, tKd, tKs, tKs2, tStd, tPhoto;
 uniform ivec2 uValid;
 uniform int uLayer, uStd, uUntrusted, uModels;
+#if EXTENDED // the program of an extended light (the point light's compiles without it)
+uniform int uNodes, uAngular; // the extended light's nodes; angular offsets
+uniform vec3 uNode[64]; // each node's offset from the centre (x, y) and weight
+uniform float uSigma; // > 0: a projected Gaussian kernel's std: its lobes on the rule uLobeRule
+uniform int uLobeNodes;
+uniform vec3 uLobeRule[16]; // standard normal Gauss-Hermite points (x, y) and weights
+uniform int uDiffuseRows; // > 0: the kernel's effective diffuse direction, tabulated over |l_xy| of the centre
+uniform float uDiffuseReach;
+uniform vec4 uDiffuse[64]; // rows 2i and 2i + 1: (a, b) of d = (a l_xy / |l_xy|, b)
+#endif
 uniform vec3 uLight, uView, uModelColours[8];
 uniform float uExposure, uGain;
 in vec2 vTex;
 out vec4 outColour;
 const float PI = 3.14159265358979;
 
-float ward(vec3 n, vec3 s, vec3 t, float ax, float ay, float ci, float co) {
-  if (ci <= 0.0 || co <= 0.0 || ax <= 0.0 || ay <= 0.0 || uLight.z <= 0.0) return 0.0;
-  vec3 h = uLight + uView;
+float ward(vec3 l, vec3 n, vec3 s, vec3 t, float ax, float ay, float ci, float co) {
+  if (ci <= 0.0 || co <= 0.0 || ax <= 0.0 || ay <= 0.0 || l.z <= 0.0) return 0.0;
+  vec3 h = l + uView;
   float hn = dot(n, h);
   float hs = dot(s, h) / ax, ht = dot(t, h) / ay;
   return exp(-(hs * hs + ht * ht) / (hn * hn)) * sqrt(ci / co) * (1.0 / (4.0 * PI * ax * ay));
 }
+
+#if EXTENDED
+// The product of the kernel N(uLight.xy, uSigma^2) and a Gaussian N(b, B) in the l-plane: its mean
+// (returned) and covariance (cov).
+vec2 product(vec2 b, mat2 B, out mat2 cov) {
+  float s2 = uSigma * uSigma;
+  mat2 gain = s2 * inverse(mat2(s2) + B);
+  cov = gain * B;
+  return uLight.xy + gain * (b - uLight.xy);
+}
+
+// A lobe under a projected Gaussian kernel, on render's Gauss-Hermite points placed on the
+// product of the kernel and the lobe in the l-plane, as torchspec/nodes.py's fast rule places
+// them (_pairs): the lobe linearised about its mirror point (torchspec/lobe.py lobe_moments),
+// then again about that product's mean (slope_at), where the integrand's mass is. A narrow lobe
+// falls between fixed nodes, never between these.
+float lobeUnderKernel(vec3 n, vec3 s, vec3 t, float ax, float ay, float co) {
+  if (ax <= 0.0 || ay <= 0.0 || co <= 0.0) return 0.0;
+  float vs = dot(uView, s), vt = dot(uView, t), s2 = uSigma * uSigma;
+  vec2 ds = 2.0 * (vs * n.xy + co * s.xy), dt = 2.0 * (vt * n.xy + co * t.xy);
+  mat2 lobe = outerProduct(ds, ds) * (0.5 * ax * ax) + outerProduct(dt, dt) * (0.5 * ay * ay), cov;
+  vec2 mean = product(2.0 * co * n.xy - uView.xy, lobe, cov);
+  // The half vector's slopes (u, v) at the first mean l0 (pulled inside radius 0.98) and their
+  // Jacobian J: the lobe about l0 is N(l0 - J^-1 (u, v), J^-1 diag(ax^2, ay^2) / 2 J^-T).
+  vec2 l0 = mean * min(1.0, 0.98 / max(length(mean), 1e-30));
+  float lz = sqrt(max(1.0 - dot(l0, l0), 1e-12));
+  vec3 h = vec3(l0, lz) + uView;
+  float hn = dot(n, h);
+  if (hn > 0.05 * length(h)) {
+    float u = dot(s, h) / hn, v = dot(t, h) / hn;
+    vec2 gr = l0 / lz;
+    vec2 du = (s.xy - u * n.xy - (s.z - u * n.z) * gr) / hn, dv = (t.xy - v * n.xy - (t.z - v * n.z) * gr) / hn;
+    mat2 J = mat2(du.x, dv.x, du.y, dv.y); // rows du, dv
+    if (abs(determinant(J)) > 0.0) {
+      mat2 inv = inverse(J);
+      mean = product(l0 - inv * vec2(u, v), inv * mat2(0.5 * ax * ax, 0.0, 0.0, 0.5 * ay * ay) * transpose(inv), cov);
+    }
+  }
+  float l11 = sqrt(max(cov[0][0], 0.0));
+  float l21 = l11 > 0.0 ? cov[0][1] / l11 : 0.0;
+  float l22 = sqrt(max(cov[1][1] - l21 * l21, 0.0));
+  float area = l11 * l22 / s2, sum = 0.0;
+  for (int q = 0; q < 16; q++) {
+    if (q >= uLobeNodes) break;
+    vec2 xi = uLobeRule[q].xy;
+    vec2 p = mean + vec2(l11 * xi.x, l21 * xi.x + l22 * xi.y);
+    float r2 = dot(p, p);
+    if (r2 >= 1.0) continue; // at or beyond the horizon: no light
+    vec3 l = vec3(p, sqrt(1.0 - r2));
+    vec2 d = (p - uLight.xy) / uSigma;
+    // weight / the standard normal density at xi, times the kernel's density at p and det L
+    sum += uLobeRule[q].z * area * exp(0.5 * (dot(xi, xi) - dot(d, d))) * ward(l, n, s, t, ax, ay, dot(n, l), co);
+  }
+  return sum;
+}
+
+// The kernel's effective diffuse direction at the light's centre, interpolated in its table.
+vec3 effective() {
+  float rho = length(uLight.xy), f = clamp(rho / uDiffuseReach, 0.0, 1.0) * float(uDiffuseRows - 1);
+  int i = min(int(f), uDiffuseRows - 2);
+  vec4 a = uDiffuse[i / 2], b = uDiffuse[(i + 1) / 2];
+  vec2 lo = i % 2 == 0 ? a.xy : a.zw, hi = i % 2 == 0 ? b.zw : b.xy;
+  vec2 d = mix(lo, hi, f - float(i));
+  return vec3(rho > 0.0 ? d.x * uLight.xy / rho : vec2(0.0), d.y);
+}
+#endif
 
 vec3 srgb(vec3 v) {
   v = clamp(v, 0.0, 1.0);
@@ -58,11 +136,45 @@ vec3 relit(ivec2 ij) {
   vec3 t = cross(n, s);
   float c = cos(g.w), si = sin(g.w);
   vec3 s2 = c * s + si * t, t2 = c * t - si * s;
-  float ci = dot(n, uLight), co = dot(n, uView);
-  vec3 value = texelFetch(tKd, ij, 0).rgb / PI * max(ci, 0.0);
-  value += texelFetch(tKs, ij, 0).rgb * ward(n, s2, t2, r.x, r.y, ci, co);
-  value += texelFetch(tKs2, ij, 0).rgb * ward(n, s2, t2, r.z, r.w, ci, co);
+  float co = dot(n, uView);
+  vec3 kd = texelFetch(tKd, ij, 0).rgb / PI, ks = texelFetch(tKs, ij, 0).rgb, ks2 = texelFetch(tKs2, ij, 0).rgb;
+#if !EXTENDED
+  float ci = dot(n, uLight);
+  return (kd * max(ci, 0.0) + ks * ward(uLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(uLight, n, s2, t2, r.z, r.w, ci, co)) * uExposure;
+#else
+  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1);
+  vec3 value = vec3(0.0);
+  float front = 0.0, behind = 0.0; // the nodes' cosine in front of the normal's horizon and behind it
+  // With the table and render's rule for the lobes, the nodes matter only where the normal's
+  // horizon passes within HORIZON_MARGIN kernel widths of the centre (torchspec/diffuse.py).
+  vec2 slope = n.xy - n.z * uLight.xy / uLight.z; // the gradient of <n, w(l)> at the centre
+  bool clear = uDiffuseRows > 0 && uSigma > 0.0 && dot(n, uLight) > 5.5 * uSigma * length(slope);
+  for (int q = 0; q < 64; q++) {
+    if (q >= uNodes || clear) break;
+    vec3 node = uNode[q];
+    vec3 l;
+    if (uAngular != 0) {
+      float g = length(node.xy);
+      l = g > 0.0 ? cos(g) * uLight + (sin(g) / g) * (node.x * e1 + node.y * e2) : uLight;
+    } else {
+      vec2 p = uLight.xy + node.xy;
+      float r2 = dot(p, p);
+      l = vec3(p, r2 < 1.0 ? sqrt(1.0 - r2) : 0.0);
+    }
+    if (l.z <= 0.0) continue; // at or beyond the horizon: no light
+    float ci = dot(n, l);
+    front += node.z * max(ci, 0.0);
+    behind += node.z * max(-ci, 0.0);
+    if (uSigma <= 0.0) value += node.z * (ks * ward(l, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(l, n, s2, t2, r.z, r.w, ci, co));
+  }
+  if (uSigma > 0.0) value += ks * lobeUnderKernel(n, s2, t2, r.x, r.y, co) + ks2 * lobeUnderKernel(n, s2, t2, r.z, r.w, co);
+  // The diffuse term: with the table, torchspec/diffuse.py's rule: the effective direction's
+  // cosine plus the part behind the normal's horizon where most of the kernel is in front, else
+  // the part in front (the smaller integral on the nodes).
+  float linear = uDiffuseRows > 0 ? dot(n, effective()) : -1.0;
+  value += kd * (linear >= 0.0 ? linear + behind : front);
   return value * uExposure;
+#endif
 }
 
 void main() {
@@ -107,7 +219,9 @@ class Viewer {
     const gl = this.canvas.getContext("webgl2", { antialias: false, alpha: false, preserveDrawingBuffer: true });
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl;
-    this.program = this.compile();
+    this.programs = [this.compile(false)]; // the point light's, and an extended light's
+    if ((manifest.kernel_nodes || []).length) this.programs.push(this.compile(true));
+    this.use(false);
     this.tiles = new Map(); // key -> {state, textures, used}
     this.queue = new Set();
     this.fetching = 0;
@@ -120,13 +234,16 @@ class Viewer {
     this.std = 0;
     this.compare = manifest.lights.length > 0;
     this.snap = manifest.lights.length > 0;
+    this.nodes = manifest.kernel_nodes || [];
+    this.extended = this.nodes.length > 0; // the capture's kernel (else a point light)
     this.complete = false;
     this.lastInput = -Infinity;
     this.scale = 1;
     this.fit();
   }
 
-  compile() {
+  // The shader program of a point light or (extended) the capture's kernel: {p, u} (uniforms by name).
+  compile(extended) {
     const gl = this.gl;
     const shader = (type, source) => {
       const s = gl.createShader(type);
@@ -137,14 +254,15 @@ class Viewer {
     };
     const p = gl.createProgram();
     gl.attachShader(p, shader(gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(p, shader(gl.FRAGMENT_SHADER, FRAGMENT));
+    const source = FRAGMENT.replace("\n", `\n#define EXTENDED ${extended ? 1 : 0}\n`); // after #version
+    gl.attachShader(p, shader(gl.FRAGMENT_SHADER, source));
     gl.linkProgram(p);
     if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
     gl.useProgram(p);
-    this.u = {};
+    const u = (this.u = {});
     for (let i = 0; i < gl.getProgramParameter(p, gl.ACTIVE_UNIFORMS); i++) {
       const name = gl.getActiveUniform(p, i).name.replace("[0]", "");
-      this.u[name] = gl.getUniformLocation(p, name);
+      u[name] = gl.getUniformLocation(p, name);
     }
     ["tGeo", "tRough", "tKd", "tKs", "tKs2", "tStd", "tPhoto"].forEach((n, i) => gl.uniform1i(this.u[n], i));
     gl.uniform1f(this.u.uTile, this.m.tile);
@@ -155,7 +273,26 @@ class Viewer {
     for (const name of this.m.untrusted_flags) untrusted |= this.m.flag_bits[name] || 0;
     gl.uniform1i(this.u.uUntrusted, untrusted);
     gl.uniform3fv(this.u.uView, this.m.view);
-    return p;
+    const nodes = this.m.kernel_nodes || [];
+    if (nodes.length) gl.uniform3fv(this.u.uNode, nodes.flat());
+    gl.uniform1i(this.u.uAngular, this.m.kernel_angular ? 1 : 0);
+    gl.uniform1f(this.u.uSigma, this.m.kernel_sigma || 0);
+    const rule = this.m.kernel_lobe_rule || [];
+    gl.uniform1i(this.u.uLobeNodes, rule.length);
+    if (rule.length) gl.uniform3fv(this.u.uLobeRule, rule.flat());
+    const table = this.m.kernel_diffuse || [];
+    gl.uniform1i(this.u.uDiffuseRows, table.length);
+    gl.uniform1f(this.u.uDiffuseReach, this.m.kernel_diffuse_reach || 1);
+    if (table.length) gl.uniform4fv(this.u.uDiffuse, table.flat());
+    gl.uniform1i(this.u.uNodes, nodes.length);
+    return { p, u };
+  }
+
+  use(extended) {
+    const program = this.programs[extended && this.programs.length > 1 ? 1 : 0];
+    if (this.current !== program) this.gl.useProgram(program.p);
+    this.current = program;
+    this.u = program.u;
   }
 
   // The view: zoom (screen pixels per level-0 pixel) and the image point at the centre of a panel.
@@ -297,6 +434,7 @@ class Viewer {
     gl.viewport(0, 0, w, h);
     gl.clearColor(0.125, 0.125, 0.125, 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
+    this.use(this.extended);
     gl.uniform3fv(this.u.uLight, this.light);
     gl.uniform1f(this.u.uExposure, this.exposure);
     gl.uniform1i(this.u.uStd, this.std);
@@ -462,6 +600,7 @@ function hemisphere(viewer) {
     const [x, y, z] = viewer.light, el = (Math.asin(Math.min(1, z)) * 180) / Math.PI;
     const frame = viewer.frame >= 0 ? `, frame ${viewer.frame}` : "";
     document.getElementById("light").textContent = `light ${x.toFixed(3)} ${y.toFixed(3)} ${z.toFixed(3)} (elevation ${el.toFixed(1)} deg${frame})`;
+    document.getElementById("kernel").textContent = viewer.extended ? viewer.m.kernel_label : "point light";
   };
   const move = (e) => {
     viewer.lastInput = performance.now();
@@ -498,8 +637,8 @@ function controls(viewer) {
   document.getElementById("std").onchange = (e) => ((viewer.std = Number(e.target.value)), viewer.request());
   document.getElementById("fit").onclick = () => viewer.fit();
   document.getElementById("one").onclick = () => ((viewer.zoom = 1 / devicePixelRatio), viewer.request());
-  for (const id of ["snap", "compare"]) {
-    document.getElementById(`${id}-label`).hidden = m.lights.length === 0;
+  for (const id of ["snap", "compare", "extended"]) {
+    document.getElementById(`${id}-label`).hidden = id === "extended" ? !viewer.nodes.length : m.lights.length === 0;
     document.getElementById(id).onchange = (e) => ((viewer[id] = e.target.checked), viewer.setLight(viewer.light));
   }
   document.getElementById("title").textContent = `torchspec: ${m.title} (${m.width} x ${m.height})`;
@@ -572,23 +711,25 @@ window.torchspecView = {
       document.getElementById("status").textContent = `cannot show the maps: ${e.message}`;
       throw e;
     }),
-  // Set the view: {light: [x, y(, z)], layer, exposure, snap, compare, zoom, centre, origin}
+  // Set the view: {light: [x, y(, z)], layer, exposure, snap, compare, extended, zoom, centre, origin}
   // (origin: 1:1, the image's top-left pixel at the canvas's); returns the state it shows.
   show(o) {
     const v = this.viewer;
-    for (const key of ["exposure", "snap", "compare", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
+    for (const key of ["exposure", "snap", "compare", "extended", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
+    v.extended = v.extended && v.nodes.length > 0;
     if ("layer" in o) {
       v.layer = LAYERS.indexOf(o.layer);
       [...document.getElementById("layers").children].forEach((b) => b.classList.toggle("on", b.textContent === o.layer));
     }
-    for (const id of ["snap", "compare"]) document.getElementById(id).checked = v[id];
+    for (const id of ["snap", "compare", "extended"]) document.getElementById(id).checked = v[id];
     if (o.light) v.setLight(o.light);
     if (o.origin) {
       v.zoom = 1;
       v.centre = [v.panels()[0].w / 2, v.canvas.height / 2];
     }
     v.request();
-    return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light };
+    v.onLight();
+    return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light, extended: v.extended };
   },
   // Frames per second of `count` relit frames, the light circling at `zenith` radians: each
   // frame drawn and finished (one pixel read back) before the next.
