@@ -405,21 +405,27 @@ def _ratio_gains(values, ok, points, directions, positions, gains, options, roun
     return gains, rms_level
 
 
+def _dome_misfit(values, ok, points, directions, radius, gains, options) -> float:
+    """The median pixel misfit of lights on a dome of ``radius`` along ``directions`` (``None``:
+    distant), gains refitted by :func:`_ratio_gains`."""
+    positions = None if radius is None else radius * directions
+    return float(_ratio_gains(values, ok, points, directions, positions, gains, options, 3)[1])
+
+
 def _start_radius(values, ok, points, directions, gains, options) -> float:
-    """The dome radius of :data:`RADII` whose lights (at the input directions, gains refitted by
-    :func:`_ratio_gains`) leave the smallest median pixel misfit."""
-    scores = [float(_ratio_gains(values, ok, points, directions, r * directions, gains, options, 3)[1]) for r in RADII]
-    return RADII[min(range(len(RADII)), key=scores.__getitem__)]
+    """The dome radius of :data:`RADII` whose lights (at the input directions) leave the smallest
+    median pixel misfit (:func:`_dome_misfit`)."""
+    return min(RADII, key=lambda r: _dome_misfit(values, ok, points, directions, r, gains, options))
 
 
 def dome_radius(values, ok, points, directions, gains, options) -> tuple[float | None, dict]:
-    """The dome radius of :data:`RADII` (all lights at it along their ``directions``, gains refitted
-    by :func:`_ratio_gains`) whose median pixel misfit is the least, or ``None`` (distant lights)
+    """The dome radius of :data:`RADII` (all lights at it along their ``directions``) whose median
+    pixel misfit (:func:`_dome_misfit`) is the least, or ``None`` (distant lights)
     unless that misfit is below ``1 - DOME_MARGIN`` of the distant lights': ``(radius, misfit of
     each candidate)``."""
-    misfit = {"distant": float(_ratio_gains(values, ok, points, directions, None, gains, options, 3)[1])}
+    misfit = {"distant": _dome_misfit(values, ok, points, directions, None, gains, options)}
     for r in RADII:
-        misfit[str(r)] = float(_ratio_gains(values, ok, points, directions, r * directions, gains, options, 3)[1])
+        misfit[str(r)] = _dome_misfit(values, ok, points, directions, r, gains, options)
     best = min(RADII, key=lambda r: misfit[str(r)])
     return (best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None), misfit
 

@@ -46,7 +46,7 @@ def render_near(
     positions = positions.to(svbrdf.normal)
     tiling = tiling_of(height, width, TILE_PIXELS, positions)
     flat = svbrdf.flatten()
-    coefficients = term.coefficients.reshape(height * width, *term.coefficients.shape[-2:]) if term else None
+    coefficients = None if term is None else term.coefficients.reshape(height * width, *term.coefficients.shape[-2:])
     out = None
     for first, stop in tiling.ranges:
         index = tiling.order[first:stop].to(svbrdf.normal.device)
