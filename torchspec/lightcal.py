@@ -99,9 +99,8 @@ class LightCalibration:
         rms: ``(K,)`` relative RMS misfit per frame, ``sqrt(sum r^2 / sum I^2)`` over the lit, valid
             samples of the explained pixels (highlights included).
         iterations: the iterations run.
-        radius: the dome radius chosen (``dome``; image widths), ``None`` for distant lights or
-            without ``dome``; ``radius_misfit``: the median relative pixel misfit of each radius
-            tried (``"distant"`` and each of :data:`RADII`), ``None`` without ``dome``.
+        radius: ``dome``'s radius (image widths), else ``None`` (also for distant lights);
+            ``radius_misfit``: ``dome``'s median pixel misfit of ``"distant"`` and each of :data:`RADII`.
     """
 
     gains: Tensor
@@ -406,16 +405,9 @@ def _ratio_gains(values, ok, points, directions, positions, gains, options, roun
 
 
 def _dome_misfit(values, ok, points, directions, radius, gains, options) -> float:
-    """The median pixel misfit of lights on a dome of ``radius`` along ``directions`` (``None``:
-    distant), gains refitted by :func:`_ratio_gains`."""
+    """The median pixel misfit of lights at ``radius`` along ``directions`` (``None``: distant), gains refitted."""
     positions = None if radius is None else radius * directions
     return float(_ratio_gains(values, ok, points, directions, positions, gains, options, 3)[1])
-
-
-def _start_radius(values, ok, points, directions, gains, options) -> float:
-    """The dome radius of :data:`RADII` whose lights (at the input directions) leave the smallest
-    median pixel misfit (:func:`_dome_misfit`)."""
-    return min(RADII, key=lambda r: _dome_misfit(values, ok, points, directions, r, gains, options))
 
 
 def dome_radius(values, ok, points, directions, gains, options) -> tuple[float | None, dict]:
@@ -494,7 +486,9 @@ def calibrate_lights(
     gains = torch.ones(k, c, dtype=work, device=device)
     positions, chosen, misfit = None, None, None
     if near:
-        positions = (radius if radius is not None else _start_radius(values, ok, points, dirs, gains, options)) * dirs
+        if radius is None:  # the start: the radius of RADII whose lights leave the least misfit
+            radius = min(RADII, key=lambda r: _dome_misfit(values, ok, points, dirs, r, gains, options))
+        positions = radius * dirs
     elif dome:
         chosen, misfit = dome_radius(values, ok, points, dirs, gains, options)
         positions = None if chosen is None else chosen * dirs
