@@ -316,19 +316,40 @@ def test_info_of_a_saturated_capture_agrees_with_the_fit_masks(tmp_path):
     frames[3, :, 2:, 1:4] = 3.0  # 18 values at a lower level: a frame's own top, not the sensor's
     write_capture(tmp_path, _capture(), frames)
     report = inspect_capture(tmp_path)
-    assert report["verdict"] == WARNINGS and report["reason"] is None
+    # every pixel keeps 4 of its 5 frames, all a fit needs: a note, and the verdict stays ok
+    assert report["verdict"] == OK and report["reason"] is None and report["warnings"] == []
     assert report["saturation"] == 5.0
     expected = sample_masks(frames).saturated.sum((1, 2)).tolist()  # as the fit masks them
     # row 0 and pixel (1, 0) clip; grown by a pixel: rows 0 and 1, and pixels (2, 0), (2, 1)
     assert [row["saturated"] for row in report["per_frame"]] == expected == [0, 12, 0, 0, 0]
     assert report["frames_at_fault"] == [1]
-    assert any("saturated pixel(s)" in note and "frames 1," in note for note in report["warnings"])
+    assert report["kept"] == {"fewest": 4, "need": 4, "short": 0}
+    assert any("saturated pixel(s)" in note and "frames 1," in note for note in report["notes"])
     assert "frames[1] frames/0001.exr: 12 saturated" in format_report(report)
+    assert "every pixel keeps at least 4 of the 5 frames" in format_report(report)
     # a known clipping level instead of the detection
     given_level = inspect_capture(tmp_path, saturation=3.0)
     assert [row["saturated"] for row in given_level["per_frame"]] == sample_masks(frames, saturation=3.0).saturated.sum(
         (1, 2)
     ).tolist()
+
+
+def test_info_warns_where_saturation_leaves_a_pixel_short_of_frames(tmp_path):
+    """Saturated samples lower the verdict only where the pixels that hold them keep fewer frames
+    than a fit needs; the counts agree with a brute-force count over the fit's masks."""
+    frames = _frames(count=6, seed=1)
+    frames[0:4, :, 1, 1] = 5.0  # one pixel clipped in 4 of 6 frames (grown to its neighbours)
+    frames[5, :, 0, 0] = 5.0
+    frames[5, :, 3, 2:] = 5.0  # 16 samples at the level in all: a clipped sensor's plateau
+    write_capture(tmp_path, _capture(6), frames)
+    report = inspect_capture(tmp_path)
+    assert report["verdict"] == WARNINGS and report["notes"] == []
+    kept = 6 - sample_masks(frames).saturated.sum(0)  # brute force: frames kept at each pixel
+    assert report["kept"] == {"fewest": int(kept.min()), "need": 4, "short": int((kept < 4).sum())}
+    assert report["kept"]["fewest"] < 4 and report["kept"]["short"] > 1
+    assert any(
+        f"leaves {report['kept']['short']} pixel(s) fewer than 4 of the 6 frames" in w for w in report["warnings"]
+    )
 
 
 def test_info_counts_nan_and_negative_pixels(written):

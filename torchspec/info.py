@@ -17,10 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
-from .layout import coverage_warning, fit_problem, layout_of
+from .layout import MIN_FRAMES, MIN_PEAK_SAMPLES, coverage_warning, fit_problem, layout_of
 from .photometric import peak_of, sample_masks, saturation_level
 from .progress import bar as progress_bar
 
@@ -28,7 +29,9 @@ __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
 
 OK = "ok"
 WARNINGS = "usable with warnings"
-"""Problems a fit masks or fixes: saturated or bad pixels, renormalised directions, unknown keys."""
+"""Problems a fit masks or fixes at a cost: NaN, Inf or negative pixels, saturated samples that
+leave a pixel short of frames, renormalised directions, unknown keys. Saturated samples that every
+pixel can spare (clipped highlights, masked by the fit) are ``notes`` and leave the verdict :data:`OK`."""
 UNUSABLE = "unusable"
 
 _LISTED = 10
@@ -57,14 +60,17 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         the finite pixel values), ``saturation`` (the clipping level, ``None`` when nothing
         clips), ``counts`` (total ``saturated``, ``nonfinite`` and ``negative`` pixels),
         ``per_frame`` (one dict per frame: ``index``, ``file``, those three counts, ``min``,
-        ``max`` and ``error``, the message of an unreadable frame) and ``frames_at_fault``.
+        ``max`` and ``error``, the message of an unreadable frame), ``frames_at_fault``, ``kept``
+        (what masking saturated samples leaves each pixel: ``fewest`` frames, ``need`` and
+        ``short`` pixels, see :func:`_kept`; ``None`` when nothing clips) and ``notes`` (facts
+        that do not lower the verdict, e.g. saturated samples every pixel can spare).
 
     Example:
         >>> report = inspect_capture("../shared/data/painting-dev")  # doctest: +SKIP
         >>> report["verdict"], report["layout"]["kind"], report["frames"]  # doctest: +SKIP
         ('ok', 'grid', 88)
     """
-    report: dict[str, Any] = {"capture": str(path), "verdict": UNUSABLE, "reason": None, "warnings": []}
+    report: dict[str, Any] = {"capture": str(path), "verdict": UNUSABLE, "reason": None, "warnings": [], "notes": []}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -105,7 +111,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
 
     if saturation is None:  # the level an imported capture records, as the fit uses it
         saturation = capture.saturation
-    rows, level = _scan(capture, saturation, progress)
+    rows, level, saturated_frames = _scan(capture, saturation, progress)
     report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
     report["saturation"] = level if math.isfinite(level) else None
     report["counts"] = {name: sum(row[name] for row in rows) for name in ("saturated", "nonfinite", "negative")}
@@ -113,7 +119,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     report["frames_at_fault"] = [
         row["index"] for row in rows if row["error"] or row["saturated"] or row["nonfinite"] or row["negative"]
     ]
-    report["warnings"] += _pixel_warnings(rows, level, capture)
+    report["kept"] = _kept(saturated_frames, count)
+    report["warnings"] += _pixel_warnings(rows, level, capture, report["kept"], report["notes"])
     unreadable = [row for row in rows if row["error"]]
     if unreadable:
         reasons.append(
@@ -142,10 +149,15 @@ def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
     return []
 
 
-def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[list[dict[str, Any]], float]:
-    """Read the frames one by one: a row of counts per frame, and the clipping level (``inf``
-    when nothing clips)."""
+def _scan(
+    capture: Capture, saturation: float | None, progress: bool
+) -> tuple[list[dict[str, Any]], float, Tensor | None]:
+    """Read the frames one by one: a row of counts per frame, the clipping level (``inf`` when
+    nothing clips) and, per pixel, how many frames are saturated there (``None`` when none is)."""
     rows, peaks, tops = [], [], []
+    # Per-pixel counts of saturated frames, one map per candidate level (a frame's own top) until
+    # the stack's level is known; a sensor has one or two distinct tops, so few maps are kept.
+    counts: dict[float, Tensor] = {}
     with progress_bar(len(capture.frames), unit="frame", desc="info", enabled=progress) as bar:
         for k, frame in enumerate(capture.frames):
             row = {"index": k, "file": frame.file, "saturated": 0, "nonfinite": 0, "negative": 0}
@@ -170,33 +182,65 @@ def _scan(capture: Capture, saturation: float | None, progress: bool) -> tuple[l
             peaks.append((top, repeats))
             tops.append((row, float(top)))
             clip = top if saturation is None else saturation
-            row["saturated"] = int(sample_masks(image, saturation=clip, shadow=0.0).saturated.sum())
+            mask = sample_masks(image, saturation=clip, shadow=0.0).saturated[0]
+            row["saturated"] = int(mask.sum())
+            if row["saturated"]:
+                key = float(clip)
+                counts[key] = counts.get(key, torch.zeros(mask.shape, dtype=torch.int32)) + mask.cpu()
             rows.append(row)
             bar.update()
     if saturation is not None:
-        return rows, float(saturation)
+        return rows, float(saturation), counts.get(float(saturation))
     level = float(saturation_level(peaks)) if peaks else math.inf
     for row, top in tops:
         if top != level:
             row["saturated"] = 0
-    return rows, level
+    return rows, level, counts.get(level)
 
 
-def _pixel_warnings(rows: list[dict[str, Any]], level: float, capture: Capture) -> list[str]:
-    """One message per kind of bad pixel, naming the frames."""
-    notes = []
+def _kept(saturated: Tensor | None, frames: int) -> dict[str, int] | None:
+    """What masking the saturated samples leaves the fit, per pixel: ``fewest`` frames kept at a
+    pixel, ``need`` (what every pixel should keep) and ``short`` (pixels that keep fewer).
+
+    A pixel is short when masking leaves it fewer than half its frames, or fewer than a fit needs
+    (:data:`~torchspec.layout.MIN_FRAMES`; :data:`~torchspec.layout.MIN_PEAK_SAMPLES` squared for a
+    lobe) where all the frames had enough."""
+    if saturated is None:
+        return None
+    need = math.ceil(frames / 2)
+    for minimum in (MIN_FRAMES, MIN_PEAK_SAMPLES**2):
+        if frames >= minimum:
+            need = max(need, minimum)
+    kept = frames - saturated
+    return {"fewest": int(kept.min()), "need": need, "short": int((kept < need).sum())}
+
+
+def _pixel_warnings(
+    rows: list[dict[str, Any]], level: float, capture: Capture, kept: dict[str, int] | None, notes: list[str]
+) -> list[str]:
+    """One message per kind of bad pixel, naming the frames. Saturated samples are a warning only
+    where masking them leaves some pixel short of frames (:func:`_kept`); otherwise the fit loses
+    nothing it needs and they go to ``notes``."""
+    warned = []
     pixels = capture.width * capture.height
     saturated = [row for row in rows if row["saturated"]]
-    if saturated:
+    if saturated and kept is not None:
         total = sum(row["saturated"] for row in saturated)
-        notes.append(
+        message = (
             f"{total} saturated pixel(s) (clipped at {level:.6g}, grown by a pixel) in {len(saturated)} frame(s) "
-            f"(frames {_indices(saturated)}, of {pixels} pixels each): the fit masks them."
+            f"(frames {_indices(saturated)}, of {pixels} pixels each): the fit masks them"
         )
+        if kept["short"]:
+            warned.append(
+                f"{message}, which leaves {kept['short']} pixel(s) fewer than {kept['need']} of the "
+                f"{len(rows)} frames (the fewest: {kept['fewest']}); their maps rest on the frames left."
+            )
+        else:
+            notes.append(f"{message}; every pixel keeps at least {kept['fewest']} of the {len(rows)} frames.")
     nonfinite = [row for row in rows if row["nonfinite"]]
     if nonfinite:
         total = sum(row["nonfinite"] for row in nonfinite)
-        notes.append(
+        warned.append(
             f"{total} pixel(s) with NaN or Inf in {len(nonfinite)} frame(s) (frames {_indices(nonfinite)}): the fit "
             "masks them."
         )
@@ -204,12 +248,12 @@ def _pixel_warnings(rows: list[dict[str, Any]], level: float, capture: Capture) 
     if negative:
         total = sum(row["negative"] for row in negative)
         lowest = min(row["min"] for row in negative)
-        notes.append(
+        warned.append(
             f"{total} pixel(s) with a negative value in {len(negative)} frame(s) (frames {_indices(negative)}, the "
             f"most negative {lowest:.3g}): the fit reads them as they are (sensor noise "
             "about a black level of 0); a black-level offset is not subtracted."
         )
-    return notes
+    return warned
 
 
 def _layout(directions: torch.Tensor, extra: dict | None = None) -> dict[str, Any]:
@@ -341,9 +385,11 @@ def format_report(report: dict[str, Any]) -> str:
             described = [_fault(row) for row in faults[:_LISTED]]
             if len(faults) > _LISTED:
                 described.append(f"... and {len(faults) - _LISTED} more (--json lists every frame)")
-            lines += _block(f"{len(faults)} frame(s) at fault", described, header=True)
+            lines += _block(f"{len(faults)} frame(s) the fit cannot use whole", described, header=True)
     if report["warnings"]:
         lines += _block("warnings", report["warnings"], header=True)
+    if report.get("notes"):
+        lines += _block("notes", report["notes"], header=True)
     return "\n".join(lines)
 
 
