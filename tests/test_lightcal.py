@@ -109,6 +109,24 @@ def test_noisy_dome_within_noise():
     assert result.position_std.shape == (16, 3)
 
 
+@pytest.mark.parametrize("near", [False, True])
+def test_give_up_stops_after_two_steps_only_above_its_misfit(near):
+    """``give_up`` below the misfit (1 % noise: a misfit of about 1 %) stops after two steps, whose
+    misfit is within 1.1x of the converged one (what lets ``auto`` judge the lights by it); above
+    it, the calibration is exactly the one without it."""
+    frames, gains, positions, _ = make_capture(near=near, noise=0.01)
+    directions = positions / positions.norm(dim=-1, keepdim=True)
+    options = {"near": near, "radius": 2.0 if near else None}
+    full = calibrate_lights(frames, directions, **options)
+    kept = calibrate_lights(frames, directions, give_up=0.5, **options)
+    assert full.iterations > 2 and kept.iterations == full.iterations
+    assert torch.equal(kept.gains, full.gains) and torch.equal(kept.gain_std, full.gain_std)
+    stopped = calibrate_lights(frames, directions, give_up=1e-4, **options)
+    assert stopped.iterations == 2 and not torch.equal(stopped.gains, full.gains)
+    assert float(stopped.rms.median()) < 1.1 * float(full.rms.median())
+    assert bool(torch.isfinite(stopped.gain_std).all())
+
+
 def test_highlights_left_out():
     """A strong Gaussian lobe (peak 0.3, above the diffuse's 0.1-0.29) on every pixel: the robust
     weights keep the gains within 5 % and the positions within 5 % (measured 1.5 % and 1.9 %)."""
