@@ -225,6 +225,17 @@ def test_layers_show_the_maps(browser):
 
 
 @needs_browser
+def test_the_origin_is_placed_in_the_canvas_as_laid_out_now(browser):
+    maps = model_maps("ward-iso", 16, 24, seed=2)
+    with _page(browser, open_site(maps)):
+        browser.evaluate("torchspecView.settle()")
+        browser.evaluate("document.getElementById('bar').style.paddingTop = '37px'")  # the canvas shrinks, no frame yet
+        browser.show(origin=True, layer="normal")
+        page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
+        assert np.abs(page - np.round((maps.svbrdf.normal.numpy() * 0.5 + 0.5) * 255)).max() <= 1
+
+
+@needs_browser
 def test_with_a_capture_the_light_snaps_and_the_photograph_shows(browser, tmp_path):
     maps = model_maps("ward-iso", 24, 32, seed=5)
     capture = _capture(tmp_path / "c", maps)
@@ -254,13 +265,14 @@ def test_dragging_on_the_hemisphere_moves_the_light_and_a_click_reads_a_pixel(br
         assert np.allclose(light[:2], [0.3, 0.1], atol=0.02)  # the last move; the release does not move it
         canvas = browser.evaluate("(() => { const r = torchspecView.viewer.canvas.getBoundingClientRect(); "
                                   "return [r.left, r.top]; })()")  # fmt: skip
+        count = browser.evaluate("torchspecView.viewer.readouts")
         for kind in ("mousePressed", "mouseReleased"):
             browser.call("Input.dispatchMouseEvent", type=kind, x=canvas[0] + 5.5, y=canvas[1] + 9.5,
                          button="left", buttons=1, clickCount=1)  # fmt: skip
-        rows = browser.evaluate(
-            "new Promise(r => setTimeout(() => r([...document.querySelectorAll('#info tr')]"
-            ".map(t => t.innerText)), 300))"
-        )
+        # The readout fetches the pixel's tile: wait for the page to say the table is filled (a
+        # fixed delay fails whenever the tile takes longer, as on a loaded machine).
+        browser.evaluate(f"torchspecView.readout({count + 1})")
+        rows = browser.evaluate("[...document.querySelectorAll('#info tr')].map(t => t.innerText)")
         assert rows[0].split() == ["pixel", "5,", "9"]
         k_s2 = maps.svbrdf.specular2[9, 5, 0].item()
         shown = {row.split("\t")[0]: row.split("\t")[1] for row in rows}

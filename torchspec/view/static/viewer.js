@@ -237,6 +237,8 @@ class Viewer {
     this.nodes = manifest.kernel_nodes || [];
     this.extended = this.nodes.length > 0; // the capture's kernel (else a point light)
     this.complete = false;
+    this.readouts = 0; // clicks read (canvasEvents)
+    this.readout = Promise.resolve([]);
     this.lastInput = -Infinity;
     this.scale = 1;
     this.fit();
@@ -669,15 +671,20 @@ function canvasEvents(viewer) {
       viewer.setLight([(x - w / 2) / size, -(e.offsetY - r.height / 2) / size]);
     }
   });
-  canvas.addEventListener("pointerup", async (e) => {
+  // A click reads its pixel (a tile fetched): viewer.readouts counts the readouts begun and
+  // viewer.readout is the promise of the last one's rows, once they are in the table.
+  canvas.addEventListener("pointerup", (e) => {
     const click = down && !down.moved;
     down = null;
     if (!click) return;
-    const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), v = await viewer.pick(x, y);
-    const table = document.getElementById("info");
-    table.innerHTML = "";
-    if (!v) return;
-    for (const [k, val] of describe(viewer.m, v)) table.insertRow().append(...[k, val].map((t) => Object.assign(document.createElement("td"), { textContent: t })));
+    const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), seq = ++viewer.readouts;
+    viewer.readout = viewer.pick(x, y).then((v) => {
+      const table = document.getElementById("info"), rows = v ? describe(viewer.m, v) : [];
+      if (seq !== viewer.readouts) return rows; // a later click's readout owns the table
+      table.innerHTML = "";
+      for (const [k, val] of rows) table.insertRow().append(...[k, val].map((t) => Object.assign(document.createElement("td"), { textContent: t })));
+      return rows;
+    });
   });
   canvas.addEventListener("wheel", (e) => {
     e.preventDefault();
@@ -700,10 +707,8 @@ window.torchspecView = {
       controls(viewer);
       hemisphere(viewer);
       canvasEvents(viewer);
-      if (m.lights.length) {
-        viewer.setLight([0, 0, 1]);
-        viewer.fit(); // to the panel beside the photograph
-      }
+      if (m.lights.length) viewer.setLight([0, 0, 1]);
+      viewer.fit(); // to the layout the controls leave (their labels may wrap the bar) and the photograph's panel
       window.torchspecView.viewer = viewer;
       return viewer;
     })
@@ -715,6 +720,7 @@ window.torchspecView = {
   // (origin: 1:1, the image's top-left pixel at the canvas's); returns the state it shows.
   show(o) {
     const v = this.viewer;
+    v.resize(); // the canvas's size now, not at the last frame's: an origin or panel is placed in it
     for (const key of ["exposure", "snap", "compare", "extended", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
     v.extended = v.extended && v.nodes.length > 0;
     if ("layer" in o) {
@@ -743,6 +749,15 @@ window.torchspecView = {
       gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, one);
     }
     return (count * 1000) / (performance.now() - start);
+  },
+  // The rows of the `count`-th click's readout (counted from the page's load), once they are in
+  // the table: waits for the click to arrive, then for its pixel's tile.
+  readout(count) {
+    const v = this.viewer;
+    return new Promise((resolve) => {
+      const check = () => (v.readouts >= count ? resolve(v.readout) : setTimeout(check, 5));
+      check();
+    });
   },
   settle() {
     const v = this.viewer;
