@@ -22,10 +22,10 @@ from torchspec.io import Capture, Frame, LightSpec, write_capture, write_svbrdf
 from torchspec.lights import Kernel, Lights
 from torchspec.outputs import OutputError
 from torchspec.rendering import render_image
-from torchspec.residual_term import encode
+from torchspec.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, encode
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
 from torchspec.view.browser import Browser, find_chromium
-from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb
+from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb, with_term
 from torchspec.view.light import MAX_NODES, light_quadrature
 from torchspec.view.tiles import levels_for
 
@@ -33,10 +33,10 @@ CHROMIUM, WHY = find_chromium()
 needs_browser = pytest.mark.skipif(CHROMIUM is None, reason=f"no headless Chromium: {WHY}")
 
 
-def _decode(data: bytes) -> dict[str, np.ndarray]:
+def _decode(data: bytes, textures=TEXTURES) -> dict[str, np.ndarray]:
     """A tile's planes, ``(TILE, TILE)`` float32 each, as the page reads them."""
     planes, offset = {}, 0
-    for _, dtype, names in TEXTURES:
+    for _, dtype, names in textures:
         size = TILE * TILE * 4 * np.dtype(dtype).itemsize
         values = np.frombuffer(data[offset : offset + size], dtype=np.dtype(dtype).newbyteorder("<"))
         values = values.reshape(TILE, TILE, 4).astype(np.float32)
@@ -352,3 +352,78 @@ def test_the_page_sums_other_kernels_on_their_fixed_nodes(browser, kernel):
             expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int)
             assert np.abs(page - expected).max() <= 1, light
             assert np.abs(reference_srgb(maps.svbrdf, tuple(light)).astype(int) - expected).max() > 5
+
+
+def _term(maps) -> ResidualTerm:
+    """The maps' residual term as ``torchspec render`` reads it (torchspec.relight.render_capture)."""
+    extra = maps.extra
+    return ResidualTerm.from_map(extra[MAP_NAME], len(maps.svbrdf.channels), weight=extra.get(WEIGHT_MAP))
+
+
+def test_the_web_export_holds_the_residual_terms_planes(tmp_path):
+    maps = with_term(model_maps("ward-iso", 40, 300, seed=8), order=2, seed=1)
+    export_web(maps, tmp_path / "web")
+    manifest = json.loads((tmp_path / "web" / "manifest.json").read_text())
+    assert manifest["term"] == 4 and manifest["layers"][:2] == ["relit", "physical"]
+    textures = [(t["name"], t["dtype"], t["planes"]) for t in manifest["textures"]]
+    assert textures[: len(TEXTURES)] == [(n, d, list(p)) for n, d, p in TEXTURES] and len(textures) == len(TEXTURES) + 4
+    tile = _decode((tmp_path / "web" / "tiles" / "0" / "0_1.bin").read_bytes(), textures)  # columns 256..299
+    term = _term(maps)
+    for j in range(4):
+        for c, name in enumerate("rgb"):
+            expected = term.coefficients[:, 256:, j, c].numpy()
+            assert np.allclose(tile[f"term_{j}_{name}"][:40, :44], expected, rtol=1e-3, atol=1e-7)  # float16
+    assert np.allclose(tile["term_weight"][:40, :44], term.weight[:, 256:].numpy(), rtol=1e-3, atol=0)
+    assert not tile["term_pad_0"].any() and not tile["term_0_r"][40:].any()
+    assert "term" not in open_site(model_maps("ward-iso", 8, 8)).manifest["layers"]
+
+
+@needs_browser
+@pytest.mark.parametrize("order", [3, 2])
+def test_the_page_adds_the_residual_term_as_render_does(browser, order):
+    maps = with_term(model_maps("ward-dual" if order == 3 else "ward-aniso", 48, 64, seed=11), order, seed=2)
+    term = _term(maps)
+    lights = hemisphere_lights(20 if order == 3 else 4, 80.0)
+    with _page(browser, open_site(maps)):
+        for light in lights:
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            physical = reference_srgb(maps.svbrdf, tuple(light)).astype(int)
+            assert np.abs(physical - expected).max() > 20  # the term matters here
+        assert browser.evaluate("document.getElementById('shown').textContent") == "relit: model + residual term"
+        browser.show(layer="physical")  # the term off: the maps alone
+        page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+        assert np.abs(page - physical).max() <= 1
+        assert "physical maps only" in browser.evaluate("document.getElementById('shown').textContent")
+
+
+@needs_browser
+def test_under_a_kernel_the_term_is_taken_at_its_effective_direction(browser, tmp_path):
+    maps = with_term(model_maps("ward-iso", 24, 32, seed=12, alpha=(0.2, 0.45)), 3, seed=3)
+    capture = _capture(tmp_path / "c", maps, sigma=DEMO_SIGMA)
+    kernel, term = capture.lights().kernel, _term(maps)
+    with _page(browser, open_site(maps, capture)):
+        for light in hemisphere_lights(4, 60.0):  # as the kernel's test above: lower, the maps alone differ by 2
+            state = browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False)
+            assert state["extended"]
+            page = browser.read(0, 0, 32, 24)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel, term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            assert np.abs(reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int) - expected).max() > 20
+
+
+@needs_browser
+def test_under_a_kernel_without_a_table_the_term_is_taken_at_the_nodes_mean(browser):
+    maps = with_term(model_maps("ward-iso", 16, 24, seed=9, alpha=(0.2, 0.45)), 3, seed=4)
+    kernel, term = _table_kernel(), _term(maps)
+    site = open_site(maps)
+    site.manifest.update(light_quadrature(kernel).describe())  # as a capture with this kernel gives it
+    assert site.manifest["kernel_diffuse"] == []  # no table of effective directions: the nodes' sum
+    with _page(browser, site):
+        for light in hemisphere_lights(2, 60.0):  # render of a tabulated kernel takes a second
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel, term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light

@@ -4,7 +4,8 @@ web server can host (``torchspec export --to web``). Both lay the site out the s
 
     index.html, viewer.js, viewer.css   the page (package data: torchspec/view/static/)
     manifest.json                       size, channels, view, levels, textures, layers, lights,
-                                        the light kernel's nodes (:mod:`torchspec.view.light`)
+                                        the light kernel's nodes (:mod:`torchspec.view.light`),
+                                        ``term``: the residual term's basis functions (0: none)
     tiles/L/R_C.bin                     the maps' tile at level L, row R, column C
     photo/K/L/R_C.bin                   with a capture: frame K's photograph, the same tiling
 """
@@ -129,7 +130,8 @@ def open_site(
     pyramid = Pyramid.of_maps(maps)
     extra, meta = maps.extra, maps.meta
     svbrdf = maps.svbrdf
-    layers = ["relit", "normal", "diffuse", "specular", "roughness"]
+    terms = sum(name.startswith("term_") and name.endswith("_r") for *_, names in pyramid.textures for name in names)
+    layers = ["relit"] + (["physical"] if terms else []) + ["normal", "diffuse", "specular", "roughness"]
     layers += [name for name in ("model", "quality") if name in extra]
     layers += ["flags"] if "flags" in extra else []
     layers += ["std"] if any(name.startswith("std_") for name in extra) else []
@@ -153,6 +155,7 @@ def open_site(
             **{n: _quantile(extra[n].numpy()) for n in extra if n.startswith("std_")},
         },
         "lights": [] if capture is None else capture.directions().tolist(),
+        "term": terms,
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
     }

@@ -10,6 +10,10 @@ what a highlight is sensitive to (the normal, the rotation, the roughness), floa
 of level 0 (normals renormalised); the model code, the flags and the rotation take the top-left
 texel. The coarser levels are made in the background (:class:`Pyramid`).
 
+Maps with a residual term (``residual_term.exr``, :mod:`torchspec.residual_term`) add the
+textures of :func:`term_textures`: its weight ``w`` and its coefficients per basis function and
+channel (RGB, grey replicated), float16, packed four planes a texture (:func:`term_planes`).
+
 A photograph's tile is one float16 RGBA texture: the frame divided by its exposure and irradiance
 (the value under a unit light, comparable with the relit maps at the same exposure).
 """
@@ -25,8 +29,9 @@ import torch
 import torch.nn.functional as F
 
 from ..io import Maps
+from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid"]
+__all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid", "term_textures", "term_planes", "textures_of"]
 
 TILE = 256
 """Texels on a tile's side."""
@@ -81,6 +86,49 @@ def _planes(maps: Maps) -> dict[str, torch.Tensor]:
     rough = extra.get("std_roughness")
     planes["std_roughness"] = zero if rough is None else (rough[..., 0] if rough.dim() == 3 else rough)
     return {name: value.float() for name, value in planes.items()}
+
+
+def term_textures(terms: int) -> tuple:
+    """The textures of a residual term of ``terms`` basis functions (4 or 9): planes
+    ``term_weight``, then ``term_{j}_{r,g,b}`` for each function ``j``, then zero planes
+    ``term_pad_{k}`` up to a multiple of four."""
+    names = ["term_weight"] + [f"term_{j}_{c}" for j in range(terms) for c in "rgb"]
+    names += [f"term_pad_{k}" for k in range(-len(names) % 4)]
+    return tuple((f"term{i}", "float16", tuple(names[4 * i : 4 * i + 4])) for i in range(len(names) // 4))
+
+
+def term_planes(maps: Maps) -> dict[str, torch.Tensor]:
+    """The planes of :func:`term_textures` of the maps' residual term ``(H, W)`` float32 each (none
+    without a term).
+
+    Raises:
+        TorchspecError: the term's map does not fit the maps' channels, or its weight is outside
+            ``[0, 1]`` (:meth:`ResidualTerm.from_map`, naming ``residual_term.exr``).
+    """
+    if MAP_NAME not in maps.extra:
+        return {}
+    channels = len(maps.svbrdf.channels)
+    value = maps.extra[MAP_NAME]
+    value = value[..., None] if value.dim() == 2 else value
+    term = ResidualTerm.from_map(value, channels, f"{MAP_NAME}.exr", maps.extra.get(WEIGHT_MAP))
+    coefficients = _rgb(term.coefficients)  # (H, W, J, 3)
+    weight = torch.ones(coefficients.shape[:2]) if term.weight is None else term.weight
+    planes = {"term_weight": weight}
+    for j in range(coefficients.shape[2]):
+        planes.update({f"term_{j}_{c}": coefficients[:, :, j, i] for i, c in enumerate("rgb")})
+    zero = torch.zeros(1, 1).expand(*coefficients.shape[:2])
+    for _, _, names in term_textures(coefficients.shape[2]):
+        planes.update({name: zero for name in names if name.startswith("term_pad")})
+    return {name: plane.float() for name, plane in planes.items()}
+
+
+def textures_of(maps: Maps) -> tuple:
+    """A tile's textures for ``maps``: :data:`TEXTURES`, and the term's when the maps have one."""
+    if MAP_NAME not in maps.extra:
+        return TEXTURES
+    value = maps.extra[MAP_NAME]
+    count = value.shape[-1] if value.dim() == 3 else 1
+    return TEXTURES + term_textures(max(1, count // max(1, len(maps.svbrdf.channels))))
 
 
 def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
@@ -145,7 +193,7 @@ class Pyramid:
     @classmethod
     def of_maps(cls, maps: Maps) -> Pyramid:
         """The pyramid of a fit's maps (:data:`TEXTURES`)."""
-        return cls.build(_planes(maps))
+        return cls.build({**_planes(maps), **term_planes(maps)}, textures_of(maps))
 
     @property
     def height(self) -> int:
