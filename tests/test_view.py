@@ -18,7 +18,8 @@ import torch
 
 from torchspec.errors import TorchspecError
 from torchspec.export import ExportError, export
-from torchspec.io import Capture, Frame, LightSpec, write_capture, write_svbrdf
+from torchspec.io import Capture, Frame, LightSpec, read_svbrdf, write_capture, write_svbrdf
+from torchspec.io import svbrdf as svbrdf_io
 from torchspec.lights import Kernel, Lights
 from torchspec.outputs import OutputError
 from torchspec.rendering import render_image
@@ -427,3 +428,44 @@ def test_under_a_kernel_without_a_table_the_term_is_taken_at_the_nodes_mean(brow
             page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
             expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel, term=term).astype(int)
             assert np.abs(page - expected).max() <= 1, light
+
+
+def _lazy_and_in_memory(folder):
+    """A map folder's pyramid read lazily (64-texel tiles, levels 0 and 1 made on demand, 2 in memory
+    from a pass over the rows, 3 reduced from it) and the pyramid of its maps read whole."""
+    lazy = open_site(folder, tile=64, keep_texels=5000).pyramid
+    return lazy, Pyramid.of_maps(read_svbrdf(folder), tile=64)
+
+
+def test_tiles_read_lazily_equal_the_tiles_in_memory_bit_for_bit(tmp_path):
+    write_svbrdf(tmp_path / "maps", with_term(model_maps("ward-dual", 200, 300, seed=13), 2, seed=5))
+    lazy, whole = _lazy_and_in_memory(tmp_path / "maps")
+    assert (
+        lazy.kept == 2
+        and whole.kept == 0
+        and lazy.levels == whole.levels == [(200, 300), (100, 150), (50, 75), (25, 38)]
+    )
+    assert lazy.textures == whole.textures and len(lazy.textures) == len(TEXTURES) + 4
+    for level in range(4):
+        rows, columns = whole.grid(level)
+        for row in range(rows):
+            for column in range(columns):
+                assert lazy.tile(level, row, column) == whole.tile(level, row, column), (level, row, column)
+
+
+def test_a_tile_request_reads_only_its_rows(tmp_path, monkeypatch):
+    write_svbrdf(tmp_path / "maps", model_maps("ward-iso", 200, 300, seed=14))
+    lazy = _lazy_and_in_memory(tmp_path / "maps")[0]
+    lazy.made[lazy.kept].wait()  # the background pass over the rows is done
+    read, real = [], svbrdf_io._read_band
+    monkeypatch.setattr(
+        svbrdf_io, "_read_band", lambda path, channels, rows: read.append(rows) or real(path, channels, rows)
+    )
+    lazy.tile(0, 1, 2)
+    assert read and set(read) == {(64, 128)}  # every map's file, those rows only
+    read.clear()
+    lazy.tile(0, 1, 0)  # the same rows: kept
+    lazy.tile(2, 0, 0)  # a level held in memory
+    assert read == []
+    lazy.tile(1, 1, 1)  # level 1: rows 128..199 of level 0
+    assert set(read) == {(128, 192), (192, 200)}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -29,8 +30,10 @@ from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
+from ..io.exr import exr_size
 from ..lights import Kernel
 from ..outputs import check_output
+from ..progress import bar
 from ..report import MODEL_COLOURS
 from .light import light_quadrature
 from .tiles import Pyramid, photo_pyramid
@@ -47,9 +50,14 @@ PHOTO_CACHE = 4
 """Photographs whose pyramids the server keeps (the frames last asked for)."""
 
 
-def _quantile(value: np.ndarray, q: float = 0.99, samples: int = 1 << 18) -> float:
+SAMPLE_BANDS = (16, 16)
+"""A folder's display ranges come from this many bands of this many rows, spread over the maps."""
+
+
+def _quantile(values: list[np.ndarray], q: float = 0.99, samples: int = 1 << 18) -> float:
     """The ``q`` quantile of the positive finite values (of a regular subsample of ``samples``)."""
-    value = value.reshape(-1)[:: max(1, value.size // samples)]
+    value = np.concatenate([v.reshape(-1) for v in values])
+    value = value[:: max(1, value.size // samples)]
     finite = value[np.isfinite(value) & (value > 0)]
     return float(np.quantile(finite, q)) if finite.size else 1.0
 
@@ -106,36 +114,54 @@ class Site:
             return self.photos[k]
 
 
+def _sample(folder: Path) -> tuple[list[Maps], tuple[int, int]]:
+    """Bands of a map folder's rows spread over it (:data:`SAMPLE_BANDS`), and its ``(H, W)``."""
+    first = read_svbrdf(folder, rows=(0, 1))
+    height, width = exr_size(folder / "normal.exr")
+    count, rows = SAMPLE_BANDS
+    starts = sorted({round(i * max(0, height - rows) / max(1, count - 1)) for i in range(count)})
+    return [first] + [read_svbrdf(folder, rows=(a, min(height, a + rows))) for a in starts], (height, width)
+
+
 def open_site(
-    maps: Maps | SVBRDF | str | Path, capture: Capture | str | Path | None = None, *, title: str = ""
+    maps: Maps | SVBRDF | str | Path, capture: Capture | str | Path | None = None, *, title: str = "", **options
 ) -> Site:
     """The viewer data of maps (a folder or :class:`~torchspec.io.Maps`) and, optionally, the
     capture they were fitted from.
+
+    A folder is read lazily (:meth:`Pyramid.of_folder`): at start its headers and a sample of its
+    rows (the display ranges); then each tile's rows when it is asked for, and the coarse levels in
+    a background pass; a bad value (NaN, a normal off unit length) is found in the tile that holds
+    it (its request fails, naming the file and row). ``options`` go to the :class:`Pyramid`
+    (``tile``; for a folder also ``keep_texels``, ``cache_bytes``).
 
     Raises:
         SVBRDFError, CaptureError: a folder that is not a valid map folder or capture.
         TorchspecError: a capture of another size than the maps.
     """
     source = str(maps) if isinstance(maps, (str, Path)) else ""
-    maps = Maps(maps) if isinstance(maps, SVBRDF) else maps
-    maps = read_svbrdf(maps) if not isinstance(maps, Maps) else maps
+    if isinstance(maps, (str, Path)):
+        folder = Path(maps)
+        folder = folder.parent if folder.suffix.lower() == ".json" or folder.is_file() else folder
+        bands, (height, width) = _sample(folder)
+        pyramid = Pyramid.of_folder(folder, bands[0], (height, width), **options)
+    else:
+        bands = [Maps(maps) if isinstance(maps, SVBRDF) else maps]
+        height, width = bands[0].svbrdf.shape
+        pyramid = Pyramid.of_maps(bands[0], **options)
     if capture is not None and not isinstance(capture, Capture):
         capture = read_capture(capture)
-    height, width = maps.svbrdf.shape
     if capture is not None and (capture.height, capture.width) != (height, width):
         raise TorchspecError(
             f"{capture.manifest} is {capture.width}x{capture.height} but the maps are {width}x{height}: "
             "view a fit with the capture it was fitted from."
         )
-    pyramid = Pyramid.of_maps(maps)
-    extra, meta = maps.extra, maps.meta
-    svbrdf = maps.svbrdf
+    extra, meta, svbrdf = bands[0].extra, bands[0].meta, bands[0].svbrdf
     terms = sum(name.startswith("term_") and name.endswith("_r") for *_, names in pyramid.textures for name in names)
     layers = ["relit"] + (["physical"] if terms else []) + ["normal", "diffuse", "specular", "roughness"]
     layers += [name for name in ("model", "quality") if name in extra]
     layers += ["flags"] if "flags" in extra else []
     layers += ["std"] if any(name.startswith("std_") for name in extra) else []
-    alpha = svbrdf.roughness.numpy()
     manifest = {
         "format": "torchspec.view",
         "version": 1,
@@ -150,9 +176,9 @@ def open_site(
         "flag_bits": meta.get("flag_bits", {}),
         "untrusted_flags": meta.get("untrusted_flags", []),
         "ranges": {
-            "alpha": _quantile(alpha),
-            "specular": _quantile(svbrdf.specular.numpy()),
-            **{n: _quantile(extra[n].numpy()) for n in extra if n.startswith("std_")},
+            "alpha": _quantile([band.svbrdf.roughness.numpy() for band in bands]),
+            "specular": _quantile([band.svbrdf.specular.numpy() for band in bands]),
+            **{n: _quantile([band.extra[n].numpy() for band in bands]) for n in extra if n.startswith("std_")},
         },
         "lights": [] if capture is None else capture.directions().tolist(),
         "term": terms,
@@ -168,9 +194,13 @@ def export_web(
     *,
     capture: Capture | str | Path | None = None,
     overwrite: bool = False,
+    progress: bool = False,
 ) -> Path:
     """Write the viewer as a static site to ``output`` (any web server can host it; browsers do
     not load ``file://`` tiles). With ``capture``, every frame's photograph is written too.
+    A folder of maps is read lazily (:func:`open_site`), level by level and row by row of tiles:
+    memory is bounded by the pyramid's bands and coarse levels, not by the maps. ``progress``: a
+    bar over the tiles (on stderr).
 
     Returns:
         ``output / "index.html"``, written last (a folder with it holds the whole site).
@@ -183,15 +213,19 @@ def export_web(
     pyramids = [(Path("tiles"), site.pyramid)]
     if site.capture is not None:
         pyramids += [(Path("photo") / str(k), None) for k in range(len(site.capture.frames))]
-    for folder, pyramid in pyramids:
-        pyramid = pyramid if pyramid is not None else site.photo(int(folder.name))
-        for level in range(len(pyramid.levels)):
-            rows, columns = pyramid.grid(level)
-            (output / folder / str(level)).mkdir(parents=True, exist_ok=True)
-            for row in range(rows):
-                for column in range(columns):
-                    with atomic_path(output / folder / str(level) / f"{row}_{column}.bin") as tmp:
-                        tmp.write_bytes(pyramid.tile(level, row, column))
+    grids = [site.pyramid.grid(level) for level in range(len(site.pyramid.levels))]
+    total = len(pyramids) * sum(rows * columns for rows, columns in grids)  # a photograph's: the maps' tiling
+    with bar(total, desc="export web", unit="tile", enabled=progress) as shown:
+        for folder, pyramid in pyramids:
+            pyramid = pyramid if pyramid is not None else site.photo(int(folder.name))
+            for level in range(len(pyramid.levels)):
+                rows, columns = pyramid.grid(level)
+                (output / folder / str(level)).mkdir(parents=True, exist_ok=True)
+                for row in range(rows):
+                    for column in range(columns):
+                        with atomic_path(output / folder / str(level) / f"{row}_{column}.bin") as tmp:
+                            tmp.write_bytes(pyramid.tile(level, row, column))
+                        shown.update(1)
     write_json(output / "manifest.json", site.manifest)
     for name in STATIC:
         with atomic_path(output / name) as tmp:
@@ -205,7 +239,12 @@ class _Handler(BaseHTTPRequestHandler):
         super().__init__(*args, **kwargs)
 
     def do_GET(self):  # noqa: N802 (http.server's name)
-        body = self.site.file(self.path)
+        try:
+            body = self.site.file(self.path)
+        except TorchspecError as error:  # a lazily read tile's rows hold a bad value
+            print(f"torchspec view: {self.path}: {error}", file=sys.stderr, flush=True)
+            self.send_error(500, explain=str(error))
+            return
         if body is None:
             self.send_error(404)
             return

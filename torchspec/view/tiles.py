@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
+from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -50,9 +50,9 @@ NEAREST = ("rotation", "model", "flags")
 """Planes a coarser level takes from the top-left texel instead of the average."""
 
 
-def levels_for(height: int, width: int) -> int:
+def levels_for(height: int, width: int, tile: int = TILE) -> int:
     """How many levels a ``height x width`` image takes: down to one that fits in one tile."""
-    return 1 + max(0, math.ceil(math.log2(max(height, width, 1) / TILE)))
+    return 1 + max(0, math.ceil(math.log2(max(height, width, 1) / tile)))
 
 
 def _rgb(value: torch.Tensor) -> torch.Tensor:
@@ -152,70 +152,143 @@ def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
     return out
 
 
-@dataclass
+KEEP_TEXELS = 1 << 23
+"""A lazily read pyramid holds in memory the levels of at most this many texels (8 megapixels: 768
+MB of planes); the finer ones are made on demand from level 0's rows."""
+CACHE_BYTES = 1 << 30
+"""The bands of level-0 rows a lazily read pyramid keeps (the last ones read), in bytes of planes."""
+
+
 class Pyramid:
     """Tiled levels of an image with named planes; :meth:`tile` encodes one tile.
 
-    Level 0 is the image; a background thread, started at construction, halves it level after
-    level (each a ``2 x 2`` reduction of the one before), and a tile of a level
-    not yet made waits for it: the server starts at once, and the coarsest level (the page's first
-    image) follows after one pass over the image and a third of one.
+    In memory (``planes``): level 0 is the image; a background thread, started at construction,
+    halves it level after level (each a ``2 x 2`` reduction of the one before), and a tile of a
+    level not yet made waits for it: the server starts at once, and the coarsest level (the page's
+    first image) follows after one pass over the image and a third of one.
+
+    Read lazily (``read``: level 0's rows from files, :func:`~torchspec.io.read_svbrdf`'s
+    ``rows``): the levels of at most ``keep_texels`` texels are held in memory, the finest of them
+    (level ``kept``) made by a background pass that reads level 0 in bands and reduces each band
+    (memory: one band), the coarser ones reduced from it; a tile of a finer level is made on demand
+    from the level-0 rows under it (a level-``l`` tile: ``tile 2^l`` rows), read in bands of
+    ``tile`` rows of which the last read are kept (``cache_bytes``). Both give the same tiles, bit
+    for bit: the bands and tiles are aligned on the ``2 x 2`` blocks of every level.
 
     Attributes:
-        planes: level 0, ``P`` float32 planes ``(H, W)`` (views of the maps: not copied), in the
-            order of the textures' planes.
         textures: ``(name, dtype, planes)`` of a tile's textures, in file order.
+        size: level 0's ``(H, W)``.
+        tile_size: texels on a tile's side.
+        kept: the finest level held in memory (0 in memory).
     """
 
-    planes: tuple
-    textures: tuple
-    reduced: list = field(init=False, repr=False)
-    made: list = field(init=False, repr=False)
-
-    def __post_init__(self):
-        self.reduced = [self.planes] + [None] * (len(self.levels) - 1)
-        self.made = [threading.Event() for _ in self.levels]
-        self.made[0].set()
-        threading.Thread(target=self._reduce_all, name="torchspec-view-pyramid", daemon=True).start()
-
-    def _reduce_all(self) -> None:
-        names = tuple(name for _, _, names in self.textures for name in names)
-        for level in range(1, len(self.levels)):
-            self.reduced[level] = _reduce(self.reduced[level - 1], names)
+    def __init__(self, textures, size, planes=None, read=None, *, tile=TILE, keep_texels=KEEP_TEXELS,
+                 cache_bytes=CACHE_BYTES):  # fmt: skip
+        self.textures, self.size, self.tile_size = tuple(textures), tuple(size), tile
+        self.names = tuple(name for _, _, names in self.textures for name in names)
+        self.read = read if planes is None else (lambda a, b: torch.stack([p[a:b] for p in planes]))
+        sizes = self.levels
+        held = [i for i, (h, w) in enumerate(sizes) if h * w <= keep_texels] + [len(sizes) - 1]
+        self.kept = 0 if planes is not None else held[0]
+        self.reduced = [planes] + [None] * (len(sizes) - 1)
+        self.made = [threading.Event() for _ in sizes]
+        for level in range(self.kept + (planes is not None)):
             self.made[level].set()
+        self.error: BaseException | None = None
+        self.bands: OrderedDict = OrderedDict()
+        self.band_count = max(2, cache_bytes // max(1, 4 * len(self.names) * tile * size[1]))
+        self.lock = threading.Lock()
+        threading.Thread(target=self._make_all, name="torchspec-view-pyramid", daemon=True).start()
+
+    def _make_all(self) -> None:
+        try:
+            if self.reduced[self.kept] is None:
+                self.reduced[self.kept] = self._stream(self.kept)
+                self.made[self.kept].set()
+            for level in range(self.kept + 1, len(self.made)):
+                self.reduced[level] = _reduce(self.reduced[level - 1], self.names)
+                self.made[level].set()
+        except BaseException as error:  # a tile of a level never made says why
+            self.error = error
+            for made in self.made:
+                made.set()
+
+    def _stream(self, level: int) -> torch.Tensor:
+        """Level ``level`` from level 0's rows, read in bands (a multiple of ``2^level`` rows)."""
+        height, width = self.levels[level]
+        out = torch.empty(len(self.names), height, width)
+        band = 2**level * max(1, self.tile_size // 2**level)
+        for start in range(0, self.size[0], band):
+            block = self.read(start, min(self.size[0], start + band))
+            for _ in range(level):
+                block = _reduce(block, self.names)
+            out[:, start // 2**level : start // 2**level + block.shape[1]] = block
+        return out
+
+    def rows(self, start: int, stop: int) -> torch.Tensor:
+        """Level 0's rows ``start`` to ``stop - 1``, ``(P, stop - start, W)``, from the bands of
+        ``tile_size`` rows read last (or read now)."""
+        n, parts = self.tile_size, []
+        for index in range(start // n, -(-stop // n)):
+            with self.lock:
+                if index not in self.bands:
+                    self.bands[index] = self.read(index * n, min(self.size[0], (index + 1) * n))
+                    while len(self.bands) > self.band_count:
+                        self.bands.popitem(last=False)
+                self.bands.move_to_end(index)
+                band = self.bands[index]
+            parts.append(band[:, max(start - index * n, 0) : stop - index * n])
+        return torch.cat(parts, 1) if len(parts) > 1 else parts[0]
 
     @classmethod
-    def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES) -> Pyramid:
+    def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES, tile: int = TILE) -> Pyramid:
         """The pyramid of ``planes`` (each ``(H, W)``) packed into ``textures``."""
         names = [name for _, _, names in textures for name in names]
-        return cls(tuple(planes[name].float() for name in names), tuple(textures))
+        return cls(textures, planes[names[0]].shape, tuple(planes[name].float() for name in names), tile=tile)
 
     @classmethod
-    def of_maps(cls, maps: Maps) -> Pyramid:
-        """The pyramid of a fit's maps (:data:`TEXTURES`)."""
-        return cls.build({**_planes(maps), **term_planes(maps)}, textures_of(maps))
+    def of_maps(cls, maps: Maps, tile: int = TILE) -> Pyramid:
+        """The pyramid of a fit's maps (:data:`TEXTURES`, and the residual term's)."""
+        return cls.build({**_planes(maps), **term_planes(maps)}, textures_of(maps), tile)
+
+    @classmethod
+    def of_folder(cls, folder, head: Maps, size: tuple[int, int], **options) -> Pyramid:
+        """The pyramid of the map folder ``folder`` of ``size`` ``(H, W)``, read lazily (``head``:
+        a band of its rows, for the textures; ``options``: ``tile``, ``keep_texels``,
+        ``cache_bytes``)."""
+        from ..io import read_svbrdf
+
+        textures = textures_of(head)
+        names = [name for _, _, names in textures for name in names]
+
+        def read(start: int, stop: int) -> torch.Tensor:
+            band = read_svbrdf(folder, rows=(start, stop))
+            planes = {**_planes(band), **term_planes(band)}
+            return torch.stack([planes[name] for name in names])
+
+        return cls(textures, size, read=read, **options)
 
     @property
     def height(self) -> int:
-        return self.planes[0].shape[0]
+        return self.size[0]
 
     @property
     def width(self) -> int:
-        return self.planes[0].shape[1]
+        return self.size[1]
 
     @property
     def levels(self) -> list[tuple[int, int]]:
         """``(h, w)`` of every level, 0 first."""
-        count = levels_for(self.height, self.width)
+        count = levels_for(self.height, self.width, self.tile_size)
         return [(-(-self.height // 2**level), -(-self.width // 2**level)) for level in range(count)]
 
     def grid(self, level: int) -> tuple[int, int]:
         """``(rows, columns)`` of tiles at ``level``."""
         h, w = self.levels[level]
-        return -(-h // TILE), -(-w // TILE)
+        return -(-h // self.tile_size), -(-w // self.tile_size)
 
-    def tile(self, level: int, row: int, column: int) -> bytes:
-        """The file of a tile: each texture's ``TILE x TILE x 4`` values, padded with zeros.
+    def block(self, level: int, row: int, column: int) -> torch.Tensor:
+        """A tile's planes ``(P, h, w)`` (``h, w <= tile_size``: an edge tile is cut).
 
         Raises:
             IndexError: no such level or tile.
@@ -225,12 +298,30 @@ class Pyramid:
         rows, columns = self.grid(level)
         if not (0 <= row < rows and 0 <= column < columns):
             raise IndexError(f"no tile {row}, {column} at level {level}")
+        n = self.tile_size
+        if level < self.kept:  # made on demand from level 0's rows under it
+            span = n * 2**level
+            block = self.rows(row * span, min(self.height, (row + 1) * span))[:, :, column * span : (column + 1) * span]
+            for _ in range(level):
+                block = _reduce(block, self.names)
+            return block
         self.made[level].wait()
-        rows, columns = slice(row * TILE, (row + 1) * TILE), slice(column * TILE, (column + 1) * TILE)
-        block = torch.stack([plane[rows, columns] for plane in self.reduced[level]], -1)
-        parts, first = [], 0
+        if self.error is not None:
+            raise self.error
+        return torch.stack(
+            [plane[row * n : (row + 1) * n, column * n : (column + 1) * n] for plane in self.reduced[level]]
+        )
+
+    def tile(self, level: int, row: int, column: int) -> bytes:
+        """The file of a tile: each texture's ``tile_size^2 x 4`` values, padded with zeros.
+
+        Raises:
+            IndexError: no such level or tile.
+        """
+        block = self.block(level, row, column).permute(1, 2, 0)
+        n, parts, first = self.tile_size, [], 0
         for _, dtype, planes in self.textures:
-            padded = np.zeros((TILE, TILE, 4), dtype=np.dtype(dtype).newbyteorder("<"))
+            padded = np.zeros((n, n, 4), dtype=np.dtype(dtype).newbyteorder("<"))
             with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf (an undetermined deviation's)
                 padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
             parts.append(padded.tobytes())
@@ -240,7 +331,7 @@ class Pyramid:
     def describe(self) -> dict:
         """The pyramid's part of the page's ``manifest.json``."""
         return {
-            "tile": TILE,
+            "tile": self.tile_size,
             "levels": [list(size) for size in self.levels],
             "textures": [{"name": n, "dtype": d, "planes": list(p)} for n, d, p in self.textures],
         }
