@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 import threading
+import urllib.error
 import urllib.request
 
 import numpy as np
@@ -469,3 +470,24 @@ def test_a_tile_request_reads_only_its_rows(tmp_path, monkeypatch):
     assert read == []
     lazy.tile(1, 1, 1)  # level 1: rows 128..199 of level 0
     assert set(read) == {(128, 192), (192, 200)}
+
+
+def test_a_tile_of_a_level_not_yet_made_is_asked_again_later(tmp_path):
+    write_svbrdf(tmp_path / "maps", model_maps("ward-iso", 200, 300, seed=15))
+    site = open_site(tmp_path / "maps", tile=64, keep_texels=5000)
+    site.pyramid.made[3].wait()
+    site.pyramid.made[3].clear()  # as while the background pass runs
+    server = serve(site)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{server.server_address[1]}/tiles"
+    try:
+        with pytest.raises(urllib.error.HTTPError) as answer:
+            urllib.request.urlopen(f"{url}/3/0_0.bin", timeout=10)
+        assert answer.value.code == 503 and answer.value.headers["Retry-After"] == "1"
+        with urllib.request.urlopen(f"{url}/0/2_3.bin", timeout=10) as tile:  # level 0: read on demand
+            assert tile.read() == site.pyramid.tile(0, 2, 3)
+        site.pyramid.made[3].set()
+        with urllib.request.urlopen(f"{url}/3/0_0.bin", timeout=10) as tile:
+            assert tile.read() == site.pyramid.tile(3, 0, 0)
+    finally:
+        server.shutdown()

@@ -64,7 +64,7 @@ class Maps:
     extra: dict = field(default_factory=dict)
 
 
-def read_svbrdf(path: str | Path, *, rows: tuple[int, int] | None = None) -> Maps:
+def read_svbrdf(path: str | Path, *, rows: tuple[int, int] | None = None, extra_maps=None) -> Maps:
     """Read and validate a folder of SVBRDF maps, or (``rows``) a band of their rows.
 
     ``diffuse.exr`` defines the channels (``R, G, B`` in that order when present, otherwise the
@@ -78,6 +78,7 @@ def read_svbrdf(path: str | Path, *, rows: tuple[int, int] | None = None) -> Map
             files' blocks that hold them (:func:`~torchspec.io.read_exr`), validated as the whole
             maps are (an error names the row in the image); the sizes are checked from the
             headers.
+        extra_maps: the stems of the extra maps to read (default: all; others are not opened).
 
     Returns:
         The maps: float32 tensors, leading dims ``(H, W)`` (``(stop - start, W)`` with ``rows``);
@@ -128,6 +129,8 @@ def read_svbrdf(path: str | Path, *, rows: tuple[int, int] | None = None) -> Map
     extra = {}
     for file in sorted(folder.glob("*.exr")):
         if file.stem in _MAPS + _SECOND or file.name.startswith("."):  # .*.part.exr: a write in progress
+            continue
+        if extra_maps is not None and file.stem not in extra_maps:
             continue
         try:
             image = _read(file, None)[1] if rows is None else _read_band(file, None, rows)[1]

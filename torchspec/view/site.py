@@ -36,7 +36,7 @@ from ..outputs import check_output
 from ..progress import bar
 from ..report import MODEL_COLOURS
 from .light import light_quadrature
-from .tiles import Pyramid, photo_pyramid
+from .tiles import EXTRA_MAPS, Pyramid, photo_pyramid
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
 
@@ -69,6 +69,10 @@ def _kernel(capture: Capture | None) -> Kernel | None:
     return Kernel("unknown") if capture.light.kernel == "unknown" else capture.lights().kernel
 
 
+class NotMade(Exception):
+    """A tile whose level the background pass has not made yet."""
+
+
 @dataclass
 class Site:
     """A fit's viewer data: the maps' pyramid, the manifest, and the capture whose photographs
@@ -80,8 +84,13 @@ class Site:
     photos: OrderedDict = field(default_factory=OrderedDict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def file(self, path: str) -> bytes | None:
-        """The bytes of the site's file at URL path ``path``; ``None`` for no such file."""
+    def file(self, path: str, wait: bool = True) -> bytes | None:
+        """The bytes of the site's file at URL path ``path``; ``None`` for no such file.
+
+        Raises:
+            NotMade: ``wait`` is false and the tile's level is still being made (the server
+                answers 503: the page asks again, and its connection serves other tiles meanwhile).
+        """
         name = path.split("?", 1)[0]
         name = "/index.html" if name == "/" else name
         if name[1:] in STATIC:
@@ -94,6 +103,8 @@ class Site:
         frame, level, row, column = match.groups()
         try:
             pyramid = self.pyramid if frame is None else self.photo(int(frame))
+            if pyramid is not None and not wait and not pyramid.ready(int(level)):
+                raise NotMade(path)
             return pyramid.tile(int(level), int(row), int(column)) if pyramid is not None else None
         except IndexError:
             return None
@@ -116,11 +127,12 @@ class Site:
 
 def _sample(folder: Path) -> tuple[list[Maps], tuple[int, int]]:
     """Bands of a map folder's rows spread over it (:data:`SAMPLE_BANDS`), and its ``(H, W)``."""
-    first = read_svbrdf(folder, rows=(0, 1))
+    first = read_svbrdf(folder, rows=(0, 1), extra_maps=EXTRA_MAPS)
     height, width = exr_size(folder / "normal.exr")
     count, rows = SAMPLE_BANDS
     starts = sorted({round(i * max(0, height - rows) / max(1, count - 1)) for i in range(count)})
-    return [first] + [read_svbrdf(folder, rows=(a, min(height, a + rows))) for a in starts], (height, width)
+    bands = [read_svbrdf(folder, rows=(a, min(height, a + rows)), extra_maps=EXTRA_MAPS) for a in starts]
+    return [first] + bands, (height, width)
 
 
 def open_site(
@@ -240,7 +252,13 @@ class _Handler(BaseHTTPRequestHandler):
 
     def do_GET(self):  # noqa: N802 (http.server's name)
         try:
-            body = self.site.file(self.path)
+            body = self.site.file(self.path, wait=False)
+        except NotMade:
+            self.send_response(503)
+            self.send_header("Retry-After", "1")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
         except TorchspecError as error:  # a lazily read tile's rows hold a bad value
             print(f"torchspec view: {self.path}: {error}", file=sys.stderr, flush=True)
             self.send_error(500, explain=str(error))

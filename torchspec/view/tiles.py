@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import OrderedDict
 
 import numpy as np
@@ -45,6 +46,10 @@ TEXTURES = (
     ("std", "float16", ("std_normal_deg", "std_diffuse", "std_specular", "std_roughness")),
 )
 """The textures of a map tile: name, dtype, the four planes (RGBA)."""
+
+EXTRA_MAPS = ("quality", "model", "flags", "std_normal_deg", "std_diffuse", "std_specular", "std_roughness",
+              MAP_NAME, WEIGHT_MAP)  # fmt: skip
+"""The extra maps of a fit that the tiles hold (the others are not read)."""
 
 NEAREST = ("rotation", "model", "flags")
 """Planes a coarser level takes from the top-left texel instead of the average."""
@@ -172,7 +177,8 @@ class Pyramid:
     (level ``kept``) made by a background pass that reads level 0 in bands and reduces each band
     (memory: one band), the coarser ones reduced from it; a tile of a finer level is made on demand
     from the level-0 rows under it (a level-``l`` tile: ``tile 2^l`` rows), read in bands of
-    ``tile`` rows of which the last read are kept (``cache_bytes``). Both give the same tiles, bit
+    ``tile`` rows of which the last read are kept (``cache_bytes``), as is a level-0 tile asked for
+    before the pass has read level 0 when that is the level held. Both give the same tiles, bit
     for bit: the bands and tiles are aligned on the ``2 x 2`` blocks of every level.
 
     Attributes:
@@ -197,7 +203,9 @@ class Pyramid:
         self.error: BaseException | None = None
         self.bands: OrderedDict = OrderedDict()
         self.band_count = max(2, cache_bytes // max(1, 4 * len(self.names) * tile * size[1]))
-        self.lock = threading.Lock()
+        self.lock = threading.Lock()  # the band cache
+        self.io = threading.Lock()  # OpenEXR's reader aborts the process when two threads read at once
+        self.urgent = 0  # tile requests waiting to read: the background pass lets them go first
         threading.Thread(target=self._make_all, name="torchspec-view-pyramid", daemon=True).start()
 
     def _make_all(self) -> None:
@@ -219,7 +227,10 @@ class Pyramid:
         out = torch.empty(len(self.names), height, width)
         band = 2**level * max(1, self.tile_size // 2**level)
         for start in range(0, self.size[0], band):
-            block = self.read(start, min(self.size[0], start + band))
+            while self.urgent:
+                time.sleep(0.005)
+            with self.io:
+                block = self.read(start, min(self.size[0], start + band))
             for _ in range(level):
                 block = _reduce(block, self.names)
             out[:, start // 2**level : start // 2**level + block.shape[1]] = block
@@ -232,7 +243,12 @@ class Pyramid:
         for index in range(start // n, -(-stop // n)):
             with self.lock:
                 if index not in self.bands:
-                    self.bands[index] = self.read(index * n, min(self.size[0], (index + 1) * n))
+                    self.urgent += 1
+                    try:
+                        with self.io:
+                            self.bands[index] = self.read(index * n, min(self.size[0], (index + 1) * n))
+                    finally:
+                        self.urgent -= 1
                     while len(self.bands) > self.band_count:
                         self.bands.popitem(last=False)
                 self.bands.move_to_end(index)
@@ -262,7 +278,7 @@ class Pyramid:
         names = [name for _, _, names in textures for name in names]
 
         def read(start: int, stop: int) -> torch.Tensor:
-            band = read_svbrdf(folder, rows=(start, stop))
+            band = read_svbrdf(folder, rows=(start, stop), extra_maps=EXTRA_MAPS)
             planes = {**_planes(band), **term_planes(band)}
             return torch.stack([planes[name] for name in names])
 
@@ -287,6 +303,10 @@ class Pyramid:
         h, w = self.levels[level]
         return -(-h // self.tile_size), -(-w // self.tile_size)
 
+    def ready(self, level: int) -> bool:
+        """Whether a tile of ``level`` can be made now (its level made, or made on demand)."""
+        return not 0 <= level < len(self.made) or level < self.kept or level == 0 or self.made[level].is_set()
+
     def block(self, level: int, row: int, column: int) -> torch.Tensor:
         """A tile's planes ``(P, h, w)`` (``h, w <= tile_size``: an edge tile is cut).
 
@@ -299,7 +319,7 @@ class Pyramid:
         if not (0 <= row < rows and 0 <= column < columns):
             raise IndexError(f"no tile {row}, {column} at level {level}")
         n = self.tile_size
-        if level < self.kept:  # made on demand from level 0's rows under it
+        if level < self.kept or not self.made[level].is_set() and level == 0:  # on demand from level 0's rows
             span = n * 2**level
             block = self.rows(row * span, min(self.height, (row + 1) * span))[:, :, column * span : (column + 1) * span]
             for _ in range(level):

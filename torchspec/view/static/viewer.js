@@ -19,6 +19,7 @@ const MAX_FETCHES = 6;
 const INTERACTIVE_MS = 250; // input this recent: frames at a reduced scale
 const FRAME_MS = 40; // the frame time a reduced scale aims at
 const TILE_FRAME_MS = 300; // while tiles arrive, a frame at most this often
+const RETRY_MS = 500; // a tile the server has not made yet (503: its level's pass still runs): asked again after
 
 const VERTEX = `#version 300 es
 uniform vec4 uRect;
@@ -432,10 +433,10 @@ class Viewer {
     return photo ? `photo/${this.frame}/${level}/${r}_${c}.bin` : `tiles/${level}/${r}_${c}.bin`;
   }
 
-  // The tile at `url`, uploaded; null while it loads (its fetch queued).
+  // The tile at `url`, uploaded; null while it loads (its fetch queued) or waits to be asked again.
   tile(url) {
     const t = this.tiles.get(url);
-    if (t) {
+    if (t && !(t.state === "later" && performance.now() >= t.retry)) {
       t.used = performance.now();
       return t.state === "ready" ? t : null;
     }
@@ -452,8 +453,15 @@ class Viewer {
       this.tiles.set(url, entry);
       this.fetching++;
       fetch(url)
-        .then((r) => (r.ok ? r.arrayBuffer() : Promise.reject(new Error(`${url}: ${r.status}`))))
-        .then((buffer) => this.upload(entry, buffer, url.startsWith("photo")))
+        .then((r) => {
+          if (r.status === 503) return null; // not made yet: the connection is freed for others
+          return r.ok ? r.arrayBuffer() : Promise.reject(new Error(`${url}: ${r.status}`));
+        })
+        .then((buffer) => {
+          if (buffer) return this.upload(entry, buffer, url.startsWith("photo"));
+          [entry.state, entry.retry] = ["later", performance.now() + RETRY_MS];
+          setTimeout(() => this.request(), RETRY_MS);
+        })
         .catch((e) => {
           entry.state = "error";
           this.status(String(e));
