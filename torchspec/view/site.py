@@ -13,6 +13,7 @@ web server can host (``torchspec export --to web``). Both lay the site out the s
 from __future__ import annotations
 
 import json
+import os
 import re
 import sys
 import threading
@@ -24,6 +25,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 import torch
 
 from ..atomic import atomic_path, write_json
@@ -46,6 +48,8 @@ STATIC = ("index.html", "viewer.js", "viewer.css")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript", ".css": "text/css",
           ".json": "application/json", ".bin": "application/octet-stream"}  # fmt: skip
 _TILE = re.compile(r"^/(?:tiles|photo/(\d+))/(\d+)/(\d+)_(\d+)\.bin$")
+WAIT = 0.5
+"""Seconds a tile request waits for its level before the server answers 503 (asked again later)."""
 PHOTO_CACHE = 4
 """Photographs whose pyramids the server keeps (the frames last asked for)."""
 
@@ -103,7 +107,7 @@ class Site:
         frame, level, row, column = match.groups()
         try:
             pyramid = self.pyramid if frame is None else self.photo(int(frame))
-            if pyramid is not None and not wait and not pyramid.ready(int(level)):
+            if pyramid is not None and not wait and not pyramid.ready(int(level), timeout=WAIT):
                 raise NotMade(path)
             return pyramid.tile(int(level), int(row), int(column)) if pyramid is not None else None
         except IndexError:
@@ -141,7 +145,8 @@ def open_site(
     """The viewer data of maps (a folder or :class:`~torchspec.io.Maps`) and, optionally, the
     capture they were fitted from.
 
-    A folder is read lazily (:meth:`Pyramid.of_folder`): at start its headers and a sample of its
+    A folder is read lazily (:meth:`Pyramid.of_folder`, its EXR blocks decoded on OpenEXR's worker
+    threads, one a core, when the process has none): at start its headers and a sample of its
     rows (the display ranges); then each tile's rows when it is asked for, and the coarse levels in
     a background pass; a bad value (NaN, a normal off unit length) is found in the tile that holds
     it (its request fails, naming the file and row). ``options`` go to the :class:`Pyramid`
@@ -155,6 +160,8 @@ def open_site(
     if isinstance(maps, (str, Path)):
         folder = Path(maps)
         folder = folder.parent if folder.suffix.lower() == ".json" or folder.is_file() else folder
+        if OpenEXR.global_thread_count() == 0:  # decode the files' blocks on every core (process-wide)
+            OpenEXR.set_global_thread_count(os.cpu_count() or 1)
         bands, (height, width) = _sample(folder)
         pyramid = Pyramid.of_folder(folder, bands[0], (height, width), **options)
     else:

@@ -204,7 +204,9 @@ class Pyramid:
         self.bands: OrderedDict = OrderedDict()
         self.band_count = max(2, cache_bytes // max(1, 4 * len(self.names) * tile * size[1]))
         self.lock = threading.Lock()  # the band cache
-        self.io = threading.Lock()  # OpenEXR's reader aborts the process when two threads read at once
+        # EXR reads one at a time: torchspec.io.exr redirects descriptor 2 around OpenEXR's calls (not
+        # thread-safe), and two threads reading at once aborted the process here once
+        self.io = threading.Lock()
         self.urgent = 0  # tile requests waiting to read: the background pass lets them go first
         threading.Thread(target=self._make_all, name="torchspec-view-pyramid", daemon=True).start()
 
@@ -303,9 +305,10 @@ class Pyramid:
         h, w = self.levels[level]
         return -(-h // self.tile_size), -(-w // self.tile_size)
 
-    def ready(self, level: int) -> bool:
-        """Whether a tile of ``level`` can be made now (its level made, or made on demand)."""
-        return not 0 <= level < len(self.made) or level < self.kept or level == 0 or self.made[level].is_set()
+    def ready(self, level: int, timeout: float = 0.0) -> bool:
+        """Whether a tile of ``level`` can be made now (its level made, or made on demand), after
+        waiting up to ``timeout`` seconds for its level."""
+        return not 0 <= level < len(self.made) or level < self.kept or level == 0 or self.made[level].wait(timeout)
 
     def block(self, level: int, row: int, column: int) -> torch.Tensor:
         """A tile's planes ``(P, h, w)`` (``h, w <= tile_size``: an edge tile is cut).
