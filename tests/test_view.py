@@ -491,3 +491,25 @@ def test_a_tile_of_a_level_not_yet_made_is_asked_again_later(tmp_path):
             assert tile.read() == site.pyramid.tile(3, 0, 0)
     finally:
         server.shutdown()
+
+
+@needs_browser
+def test_the_page_asks_again_for_a_tile_not_yet_made(browser, tmp_path):
+    maps = model_maps("ward-iso", 40, 300, seed=16)
+    write_svbrdf(tmp_path / "maps", maps)
+    site = open_site(tmp_path / "maps")  # levels (40, 300) and (20, 150)
+    site.pyramid.made[1].wait()
+    site.pyramid.made[1].clear()  # as while the background pass runs
+    with _page(browser, site):
+        browser.show(layer="normal", zoom=0.5, centre=[150, 20])  # level 1
+        waited = (
+            "new Promise(r => setTimeout(() => r([...torchspecView.viewer.tiles.values()].map(t => t.state)), 1500))"
+        )
+        assert "later" in browser.evaluate(waited)  # answered 503: to be asked again
+        site.pyramid.made[1].set()
+        browser.evaluate("torchspecView.settle()")  # resolves once the level's tile is drawn
+        assert browser.evaluate("torchspecView.viewer.tiles.get('tiles/1/0_0.bin').state") == "ready"
+        state = browser.show()
+        x, y = state["width"] // 2 - 75, state["height"] // 2 - 10  # the image's top left (150 x 20 on screen)
+        page = browser.read(x + 1, y + 1, 148, 18)[..., :3].astype(int)
+        assert (np.abs(page - 32).max(-1) > 0).all()  # no background (grey 32) where the image is
