@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 import threading
+import urllib.error
 import urllib.request
 
 import numpy as np
@@ -18,14 +19,15 @@ import torch
 
 from torchspec.errors import TorchspecError
 from torchspec.export import ExportError, export
-from torchspec.io import Capture, Frame, LightSpec, write_capture, write_svbrdf
+from torchspec.io import Capture, Frame, LightSpec, read_svbrdf, write_capture, write_svbrdf
+from torchspec.io import svbrdf as svbrdf_io
 from torchspec.lights import Kernel, Lights
 from torchspec.outputs import OutputError
 from torchspec.rendering import render_image
-from torchspec.residual_term import encode
+from torchspec.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, encode
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
 from torchspec.view.browser import Browser, find_chromium
-from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb
+from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb, with_term
 from torchspec.view.light import MAX_NODES, light_quadrature
 from torchspec.view.tiles import levels_for
 
@@ -33,10 +35,10 @@ CHROMIUM, WHY = find_chromium()
 needs_browser = pytest.mark.skipif(CHROMIUM is None, reason=f"no headless Chromium: {WHY}")
 
 
-def _decode(data: bytes) -> dict[str, np.ndarray]:
+def _decode(data: bytes, textures=TEXTURES) -> dict[str, np.ndarray]:
     """A tile's planes, ``(TILE, TILE)`` float32 each, as the page reads them."""
     planes, offset = {}, 0
-    for _, dtype, names in TEXTURES:
+    for _, dtype, names in textures:
         size = TILE * TILE * 4 * np.dtype(dtype).itemsize
         values = np.frombuffer(data[offset : offset + size], dtype=np.dtype(dtype).newbyteorder("<"))
         values = values.reshape(TILE, TILE, 4).astype(np.float32)
@@ -225,6 +227,17 @@ def test_layers_show_the_maps(browser):
 
 
 @needs_browser
+def test_the_origin_is_placed_in_the_canvas_as_laid_out_now(browser):
+    maps = model_maps("ward-iso", 16, 24, seed=2)
+    with _page(browser, open_site(maps)):
+        browser.evaluate("torchspecView.settle()")
+        browser.evaluate("document.getElementById('bar').style.paddingTop = '37px'")  # the canvas shrinks, no frame yet
+        browser.show(origin=True, layer="normal")
+        page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
+        assert np.abs(page - np.round((maps.svbrdf.normal.numpy() * 0.5 + 0.5) * 255)).max() <= 1
+
+
+@needs_browser
 def test_with_a_capture_the_light_snaps_and_the_photograph_shows(browser, tmp_path):
     maps = model_maps("ward-iso", 24, 32, seed=5)
     capture = _capture(tmp_path / "c", maps)
@@ -254,13 +267,14 @@ def test_dragging_on_the_hemisphere_moves_the_light_and_a_click_reads_a_pixel(br
         assert np.allclose(light[:2], [0.3, 0.1], atol=0.02)  # the last move; the release does not move it
         canvas = browser.evaluate("(() => { const r = torchspecView.viewer.canvas.getBoundingClientRect(); "
                                   "return [r.left, r.top]; })()")  # fmt: skip
+        count = browser.evaluate("torchspecView.viewer.readouts")
         for kind in ("mousePressed", "mouseReleased"):
             browser.call("Input.dispatchMouseEvent", type=kind, x=canvas[0] + 5.5, y=canvas[1] + 9.5,
                          button="left", buttons=1, clickCount=1)  # fmt: skip
-        rows = browser.evaluate(
-            "new Promise(r => setTimeout(() => r([...document.querySelectorAll('#info tr')]"
-            ".map(t => t.innerText)), 300))"
-        )
+        # The readout fetches the pixel's tile: wait for the page to say the table is filled (a
+        # fixed delay fails whenever the tile takes longer, as on a loaded machine).
+        browser.evaluate(f"torchspecView.readout({count + 1})")
+        rows = browser.evaluate("[...document.querySelectorAll('#info tr')].map(t => t.innerText)")
         assert rows[0].split() == ["pixel", "5,", "9"]
         k_s2 = maps.svbrdf.specular2[9, 5, 0].item()
         shown = {row.split("\t")[0]: row.split("\t")[1] for row in rows}
@@ -340,3 +354,162 @@ def test_the_page_sums_other_kernels_on_their_fixed_nodes(browser, kernel):
             expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int)
             assert np.abs(page - expected).max() <= 1, light
             assert np.abs(reference_srgb(maps.svbrdf, tuple(light)).astype(int) - expected).max() > 5
+
+
+def _term(maps) -> ResidualTerm:
+    """The maps' residual term as ``torchspec render`` reads it (torchspec.relight.render_capture)."""
+    extra = maps.extra
+    return ResidualTerm.from_map(extra[MAP_NAME], len(maps.svbrdf.channels), weight=extra.get(WEIGHT_MAP))
+
+
+def test_the_web_export_holds_the_residual_terms_planes(tmp_path):
+    maps = with_term(model_maps("ward-iso", 40, 300, seed=8), order=2, seed=1)
+    export_web(maps, tmp_path / "web")
+    manifest = json.loads((tmp_path / "web" / "manifest.json").read_text())
+    assert manifest["term"] == 4 and manifest["layers"][:2] == ["relit", "physical"]
+    textures = [(t["name"], t["dtype"], t["planes"]) for t in manifest["textures"]]
+    assert textures[: len(TEXTURES)] == [(n, d, list(p)) for n, d, p in TEXTURES] and len(textures) == len(TEXTURES) + 4
+    tile = _decode((tmp_path / "web" / "tiles" / "0" / "0_1.bin").read_bytes(), textures)  # columns 256..299
+    term = _term(maps)
+    for j in range(4):
+        for c, name in enumerate("rgb"):
+            expected = term.coefficients[:, 256:, j, c].numpy()
+            assert np.allclose(tile[f"term_{j}_{name}"][:40, :44], expected, rtol=1e-3, atol=1e-7)  # float16
+    assert np.allclose(tile["term_weight"][:40, :44], term.weight[:, 256:].numpy(), rtol=1e-3, atol=0)
+    assert not tile["term_pad_0"].any() and not tile["term_0_r"][40:].any()
+    assert "term" not in open_site(model_maps("ward-iso", 8, 8)).manifest["layers"]
+
+
+@needs_browser
+@pytest.mark.parametrize("order", [3, 2])
+def test_the_page_adds_the_residual_term_as_render_does(browser, order):
+    maps = with_term(model_maps("ward-dual" if order == 3 else "ward-aniso", 48, 64, seed=11), order, seed=2)
+    term = _term(maps)
+    lights = hemisphere_lights(20 if order == 3 else 4, 80.0)
+    with _page(browser, open_site(maps)):
+        for light in lights:
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            physical = reference_srgb(maps.svbrdf, tuple(light)).astype(int)
+            assert np.abs(physical - expected).max() > 20  # the term matters here
+        assert browser.evaluate("document.getElementById('shown').textContent") == "relit: model + residual term"
+        browser.show(layer="physical")  # the term off: the maps alone
+        page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
+        assert np.abs(page - physical).max() <= 1
+        assert "physical maps only" in browser.evaluate("document.getElementById('shown').textContent")
+
+
+@needs_browser
+def test_under_a_kernel_the_term_is_taken_at_its_effective_direction(browser, tmp_path):
+    maps = with_term(model_maps("ward-iso", 24, 32, seed=12, alpha=(0.2, 0.45)), 3, seed=3)
+    capture = _capture(tmp_path / "c", maps, sigma=DEMO_SIGMA)
+    kernel, term = capture.lights().kernel, _term(maps)
+    with _page(browser, open_site(maps, capture)):
+        for light in hemisphere_lights(4, 60.0):  # as the kernel's test above: lower, the maps alone differ by 2
+            state = browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False)
+            assert state["extended"]
+            page = browser.read(0, 0, 32, 24)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel, term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            assert np.abs(reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int) - expected).max() > 20
+
+
+@needs_browser
+def test_under_a_kernel_without_a_table_the_term_is_taken_at_the_nodes_mean(browser):
+    maps = with_term(model_maps("ward-iso", 16, 24, seed=9, alpha=(0.2, 0.45)), 3, seed=4)
+    kernel, term = _table_kernel(), _term(maps)
+    site = open_site(maps)
+    site.manifest.update(light_quadrature(kernel).describe())  # as a capture with this kernel gives it
+    assert site.manifest["kernel_diffuse"] == []  # no table of effective directions: the nodes' sum
+    with _page(browser, site):
+        for light in hemisphere_lights(2, 60.0):  # render of a tabulated kernel takes a second
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel, term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+
+
+def _lazy_and_in_memory(folder):
+    """A map folder's pyramid read lazily (64-texel tiles, levels 0 and 1 made on demand, 2 in memory
+    from a pass over the rows, 3 reduced from it) and the pyramid of its maps read whole."""
+    lazy = open_site(folder, tile=64, keep_texels=5000).pyramid
+    return lazy, Pyramid.of_maps(read_svbrdf(folder), tile=64)
+
+
+def test_tiles_read_lazily_equal_the_tiles_in_memory_bit_for_bit(tmp_path):
+    write_svbrdf(tmp_path / "maps", with_term(model_maps("ward-dual", 200, 300, seed=13), 2, seed=5))
+    lazy, whole = _lazy_and_in_memory(tmp_path / "maps")
+    assert (
+        lazy.kept == 2
+        and whole.kept == 0
+        and lazy.levels == whole.levels == [(200, 300), (100, 150), (50, 75), (25, 38)]
+    )
+    assert lazy.textures == whole.textures and len(lazy.textures) == len(TEXTURES) + 4
+    for level in range(4):
+        rows, columns = whole.grid(level)
+        for row in range(rows):
+            for column in range(columns):
+                assert lazy.tile(level, row, column) == whole.tile(level, row, column), (level, row, column)
+
+
+def test_a_tile_request_reads_only_its_rows(tmp_path, monkeypatch):
+    write_svbrdf(tmp_path / "maps", model_maps("ward-iso", 200, 300, seed=14))
+    lazy = _lazy_and_in_memory(tmp_path / "maps")[0]
+    lazy.made[lazy.kept].wait()  # the background pass over the rows is done
+    read, real = [], svbrdf_io._read_band
+    monkeypatch.setattr(
+        svbrdf_io, "_read_band", lambda path, channels, rows: read.append(rows) or real(path, channels, rows)
+    )
+    lazy.tile(0, 1, 2)
+    assert read and set(read) == {(64, 128)}  # every map's file, those rows only
+    read.clear()
+    lazy.tile(0, 1, 0)  # the same rows: kept
+    lazy.tile(2, 0, 0)  # a level held in memory
+    assert read == []
+    lazy.tile(1, 1, 1)  # level 1: rows 128..199 of level 0
+    assert set(read) == {(128, 192), (192, 200)}
+
+
+def test_a_tile_of_a_level_not_yet_made_is_asked_again_later(tmp_path):
+    write_svbrdf(tmp_path / "maps", model_maps("ward-iso", 200, 300, seed=15))
+    site = open_site(tmp_path / "maps", tile=64, keep_texels=5000)
+    site.pyramid.made[3].wait()
+    site.pyramid.made[3].clear()  # as while the background pass runs
+    server = serve(site)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{server.server_address[1]}/tiles"
+    try:
+        with pytest.raises(urllib.error.HTTPError) as answer:
+            urllib.request.urlopen(f"{url}/3/0_0.bin", timeout=10)
+        assert answer.value.code == 503 and answer.value.headers["Retry-After"] == "1"
+        with urllib.request.urlopen(f"{url}/0/2_3.bin", timeout=10) as tile:  # level 0: read on demand
+            assert tile.read() == site.pyramid.tile(0, 2, 3)
+        site.pyramid.made[3].set()
+        with urllib.request.urlopen(f"{url}/3/0_0.bin", timeout=10) as tile:
+            assert tile.read() == site.pyramid.tile(3, 0, 0)
+    finally:
+        server.shutdown()
+
+
+@needs_browser
+def test_the_page_asks_again_for_a_tile_not_yet_made(browser, tmp_path):
+    maps = model_maps("ward-iso", 40, 300, seed=16)
+    write_svbrdf(tmp_path / "maps", maps)
+    site = open_site(tmp_path / "maps")  # levels (40, 300) and (20, 150)
+    site.pyramid.made[1].wait()
+    site.pyramid.made[1].clear()  # as while the background pass runs
+    with _page(browser, site):
+        browser.show(layer="normal", zoom=0.5, centre=[150, 20])  # level 1
+        waited = (
+            "new Promise(r => setTimeout(() => r([...torchspecView.viewer.tiles.values()].map(t => t.state)), 1500))"
+        )
+        assert "later" in browser.evaluate(waited)  # answered 503: to be asked again
+        site.pyramid.made[1].set()
+        browser.evaluate("torchspecView.settle()")  # resolves once the level's tile is drawn
+        assert browser.evaluate("torchspecView.viewer.tiles.get('tiles/1/0_0.bin').state") == "ready"
+        state = browser.show()
+        x, y = state["width"] // 2 - 75, state["height"] // 2 - 10  # the image's top left (150 x 20 on screen)
+        page = browser.read(x + 1, y + 1, 148, 18)[..., :3].astype(int)
+        assert (np.abs(page - 32).max(-1) > 0).all()  # no background (grey 32) where the image is

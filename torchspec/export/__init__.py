@@ -71,6 +71,7 @@ def export(
     irradiance: float | Sequence[float] | None = None,
     overwrite: bool = False,
     capture: str | Path | None = None,
+    progress: bool = False,
 ) -> Path:
     """Export maps to one of :data:`FORMATS` (``"mitsuba"``, ``"gltf"``, ``"png16"``, ``"openlime"``, ``"rti"``,
     ``"web"``).
@@ -88,6 +89,7 @@ def export(
             (:func:`torchspec.outputs.check_output`).
         capture: ``web`` only: the capture the maps were fitted from, whose photographs the page
             shows beside the relit fit (:func:`torchspec.view.export_web`).
+        progress: ``web`` only: a bar over the tiles written (on stderr).
 
     Returns:
         The export's manifest: ``scene.xml``, ``scene.gltf``, ``png16.json``, ``info.json``, ``rti.json``
@@ -110,7 +112,7 @@ def export(
     if to == "web" and light is None and irradiance is None:
         from ..view import export_web  # the viewer's page, tiled maps (torchspec.view)
 
-        return export_web(maps, output, capture=capture, overwrite=overwrite)
+        return export_web(maps, output, capture=capture, overwrite=overwrite, progress=progress)
     if to == "mitsuba":
         light = DEFAULT_LIGHT if light is None else light
         irradiance = 1.0 if irradiance is None else irradiance

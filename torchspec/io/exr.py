@@ -29,7 +29,7 @@ import OpenEXR
 from ..atomic import atomic_path
 from ..errors import TorchspecError
 
-__all__ = ["ExrError", "read_exr", "write_exr"]
+__all__ = ["ExrError", "exr_size", "read_exr", "write_exr"]
 
 _GROUPS = (("R", "G", "B"), ("X", "Y", "Z"))
 
@@ -235,10 +235,26 @@ def _read_rows(path: Path, channels: Sequence[str] | None, rows: tuple[int, int]
     """:func:`read_exr` of a band of rows: the band ``(stop - start, W, C)`` and the image's
     ``(H, W)``. Reads the header, then the band through the binding's scanline interface
     (``InputFile``; deprecated in OpenEXR 3.3, so a binding without it reads the whole image)."""
-    file = _open(path, header_only=True)
-    header = file.header()
-    low, high = header["dataWindow"]
-    size = (int(high[1] - low[1] + 1), int(high[0] - low[0] + 1))
+    return _read_band(path, channels, rows)[1:]
+
+
+def exr_size(path: str | Path) -> tuple[int, int]:
+    """``(H, W)`` of an EXR image, from its header (its pixels are not read).
+
+    Raises:
+        ExrError: the file is missing or not a readable EXR.
+    """
+    low, high = _open(Path(path), header_only=True).header()["dataWindow"]
+    return int(high[1] - low[1] + 1), int(high[0] - low[0] + 1)
+
+
+def _read_band(
+    path: Path, channels: Sequence[str] | None, rows: tuple[int, int]
+) -> tuple[list[str], np.ndarray, tuple[int, int]]:
+    """:func:`_read_rows` that also returns the names of the channels read, in order, first."""
+    header = _open(path, header_only=True).header()
+    low = header["dataWindow"][0]
+    size = exr_size(path)
     found = {channel.name: channel for channel in header["channels"]}
     if isinstance(channels, str):
         channels = [channels]
@@ -259,7 +275,7 @@ def _read_rows(path: Path, channels: Sequence[str] | None, rows: tuple[int, int]
             f"got {start}:{stop}."
         )
     if not hasattr(OpenEXR, "InputFile"):
-        return np.ascontiguousarray(_read(path, names)[1][start:stop]), size
+        return names, np.ascontiguousarray(_read(path, names)[1][start:stop]), size
     import Imath  # shipped with the binding, beside the InputFile it describes
 
     try:
@@ -277,7 +293,7 @@ def _read_rows(path: Path, channels: Sequence[str] | None, rows: tuple[int, int]
     band = np.empty((stop - start, size[1], len(names)), dtype=np.float32)
     for c, buffer in enumerate(data):
         band[:, :, c] = np.frombuffer(buffer, dtype=np.float32).reshape(stop - start, size[1])
-    return band, size
+    return names, band, size
 
 
 def _to_numpy(image) -> np.ndarray:

@@ -29,7 +29,7 @@ from ..atomic import read_json, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..outputs import check_output
-from .exr import ExrError, _read, write_exr
+from .exr import ExrError, _read, _read_band, write_exr
 
 __all__ = ["Maps", "SVBRDFError", "read_svbrdf", "write_svbrdf"]
 
@@ -64,8 +64,8 @@ class Maps:
     extra: dict = field(default_factory=dict)
 
 
-def read_svbrdf(path: str | Path) -> Maps:
-    """Read and validate a folder of SVBRDF maps.
+def read_svbrdf(path: str | Path, *, rows: tuple[int, int] | None = None, extra_maps=None) -> Maps:
+    """Read and validate a folder of SVBRDF maps, or (``rows``) a band of their rows.
 
     ``diffuse.exr`` defines the channels (``R, G, B`` in that order when present, otherwise the
     file's names sorted); ``specular.exr`` is read with the same channels. Normals within
@@ -74,11 +74,16 @@ def read_svbrdf(path: str | Path) -> Maps:
 
     Args:
         path: the folder, or its ``svbrdf.json``.
+        rows: ``(start, stop)``: only rows ``start`` to ``stop - 1`` of every map, read from the
+            files' blocks that hold them (:func:`~torchspec.io.read_exr`), validated as the whole
+            maps are (an error names the row in the image); the sizes are checked from the
+            headers.
+        extra_maps: the stems of the extra maps to read (default: all; others are not opened).
 
     Returns:
-        The maps: float32 tensors, leading dims ``(H, W)``; ``svbrdf.rotation`` from channel
-        ``A`` of ``roughness.exr`` when present, else ``None``; ``svbrdf.specular2`` and
-        ``roughness2`` from ``specular2.exr`` and ``roughness2.exr`` when present.
+        The maps: float32 tensors, leading dims ``(H, W)`` (``(stop - start, W)`` with ``rows``);
+        ``svbrdf.rotation`` from channel ``A`` of ``roughness.exr`` when present, else ``None``;
+        ``svbrdf.specular2`` and ``roughness2`` from ``specular2.exr`` and ``roughness2.exr`` when present.
 
     Raises:
         SVBRDFError: ``svbrdf.json`` is missing or invalid, a map is missing, unreadable, lacks
@@ -100,11 +105,10 @@ def read_svbrdf(path: str | Path) -> Maps:
     path = Path(path)
     folder = path.parent if path.suffix.lower() == ".json" or path.is_file() else path
     meta = _read_meta(folder / META)
-    normal = _read_map(folder / "normal.exr", ["X", "Y", "Z"])[1]
-    size = normal.shape[:2]
-    channels, diffuse = _read_map(folder / "diffuse.exr", None, size)
-    specular = _read_map(folder / "specular.exr", channels, size)[1]
-    names, roughness = _read_map(folder / "roughness.exr", None, size)
+    _, normal, size = _read_map(folder / "normal.exr", ["X", "Y", "Z"], rows=rows)
+    channels, diffuse, _ = _read_map(folder / "diffuse.exr", None, size, rows)
+    specular = _read_map(folder / "specular.exr", channels, size, rows)[1]
+    names, roughness, _ = _read_map(folder / "roughness.exr", None, size, rows)
     for name in ("X", "Y"):
         if name not in names:
             raise SVBRDFError(
@@ -117,17 +121,19 @@ def read_svbrdf(path: str | Path) -> Maps:
         _check_finite(folder / f"{name}.exr", value)
     if rotation is not None:
         _check_finite(folder / "roughness.exr", rotation)
-    normal = _unit(folder / "normal.exr", normal)
+    normal = _unit(folder / "normal.exr", normal, first=0 if rows is None else rows[0])
     _check_non_negative(folder / "roughness.exr", "roughness (alpha)", roughness)
     _check_non_negative(folder / "specular.exr", "k_s", specular)
-    second = _read_second(folder, channels, size)
+    second = _read_second(folder, channels, size, rows)
 
     extra = {}
     for file in sorted(folder.glob("*.exr")):
         if file.stem in _MAPS + _SECOND or file.name.startswith("."):  # .*.part.exr: a write in progress
             continue
+        if extra_maps is not None and file.stem not in extra_maps:
+            continue
         try:
-            _, image = _read(file, None)
+            image = _read(file, None)[1] if rows is None else _read_band(file, None, rows)[1]
         except ExrError as error:
             if file.stem in _KNOWN_EXTRA:
                 raise SVBRDFError(f"{file} must be a readable EXR; got: {error}") from error
@@ -147,7 +153,7 @@ def read_svbrdf(path: str | Path) -> Maps:
     return Maps(svbrdf=svbrdf, meta=meta, extra=extra)
 
 
-def _read_second(folder: Path, channels: list[str], size) -> dict:
+def _read_second(folder: Path, channels: list[str], size, rows=None) -> dict:
     """``specular2`` and ``roughness2`` (a second lobe) when the folder has them, else nothing."""
     present = [(folder / f"{name}.exr").exists() for name in _SECOND]
     if not any(present):
@@ -155,8 +161,8 @@ def _read_second(folder: Path, channels: list[str], size) -> dict:
     if not all(present):
         have, lack = (_SECOND[0], _SECOND[1]) if present[0] else (_SECOND[1], _SECOND[0])
         raise SVBRDFError(f"{folder / (have + '.exr')} (a second lobe) needs {folder / (lack + '.exr')} beside it.")
-    specular = _read_map(folder / "specular2.exr", channels, size)[1]
-    roughness = _read_map(folder / "roughness2.exr", ["X", "Y"], size)[1]
+    specular = _read_map(folder / "specular2.exr", channels, size, rows)[1]
+    roughness = _read_map(folder / "roughness2.exr", ["X", "Y"], size, rows)[1]
     for name, value in (("specular2", specular), ("roughness2", roughness)):
         _check_finite(folder / f"{name}.exr", value)
     _check_non_negative(folder / "specular2.exr", "k_s", specular)
@@ -283,20 +289,20 @@ def _read_meta(file: Path) -> dict:
     return meta
 
 
-def _read_map(file: Path, channels, size=None) -> tuple[list[str], np.ndarray]:
-    """Channel names and ``(H, W, C)`` of a map, checked to be ``size``."""
+def _read_map(file: Path, channels, size=None, rows=None) -> tuple[list[str], np.ndarray, tuple[int, int]]:
+    """Channel names, ``(H, W, C)`` of a map (of its ``rows``) and its size, checked to be ``size``."""
     if not file.is_file():
         raise SVBRDFError(f"{file} must exist; got no such file. A map folder holds {', '.join(_MAPS)} (.exr).")
     try:
-        names, image = _read(file, channels)
+        names, image, found = (*_read(file, channels), None) if rows is None else _read_band(file, channels, rows)
     except ExrError as error:
         raise SVBRDFError(f"{file} must be a readable map; got: {error}") from error
-    if size is not None and image.shape[:2] != size:
+    found = tuple(image.shape[:2]) if found is None else tuple(found)
+    if size is not None and found != tuple(size):
         raise SVBRDFError(
-            f"{file} must have the size of normal.exr, {size[0]}x{size[1]} (height x width); "
-            f"got {image.shape[0]}x{image.shape[1]}."
+            f"{file} must have the size of normal.exr, {size[0]}x{size[1]} (height x width); got {found[0]}x{found[1]}."
         )
-    return names, image
+    return names, image, found
 
 
 def _check_finite(file: Path, value: np.ndarray, prefix: str = "") -> None:
@@ -306,14 +312,14 @@ def _check_finite(file: Path, value: np.ndarray, prefix: str = "") -> None:
         raise SVBRDFError(f"{prefix}{file} must be finite; got {pixels} pixel(s) with NaN or Inf.")
 
 
-def _unit(file: Path, normal: np.ndarray, prefix: str = "") -> np.ndarray:
+def _unit(file: Path, normal: np.ndarray, prefix: str = "", first: int = 0) -> np.ndarray:
     norm = np.linalg.norm(normal.astype(np.float64), axis=-1, keepdims=True)
     far = np.abs(norm[:, :, 0] - 1) > _UNIT_TOLERANCE
     if far.any():
         row, col = np.argwhere(far)[0]
         raise SVBRDFError(
             f"{prefix}{file}: normals must be unit vectors (norm within {_UNIT_TOLERANCE:g} of 1); got "
-            f"{int(far.sum())} pixel(s) that are not, the first at row {row}, column {col} with norm "
+            f"{int(far.sum())} pixel(s) that are not, the first at row {first + row}, column {col} with norm "
             f"{norm[row, col, 0]:.6g}. Normalise the normals."
         )
     return (normal / norm).astype(np.float32)

@@ -20,9 +20,9 @@ from ..lights import Kernel, Lights
 from ..lobe import lobe_frame, lobe_moments
 from ..pipeline.settings import MODEL_CODES
 from ..rendering import render_image
-from ..residual_term import encode
+from ..residual_term import MAP_NAME, TERMS, WEIGHT_MAP, ResidualTerm, encode
 
-__all__ = ["MODEL_TYPES", "model_maps", "reference_srgb", "hemisphere_lights", "lobe_width"]
+__all__ = ["MODEL_TYPES", "model_maps", "with_term", "reference_srgb", "hemisphere_lights", "lobe_width"]
 
 MODEL_TYPES = ("diffuse", "ward-iso", "ward-aniso", "ward-dual")
 """The model types the page shades (``ward-iso-colour`` is ``ward-iso`` with a coloured ``k_s``)."""
@@ -74,6 +74,21 @@ def model_maps(
     return Maps(svbrdf, meta, extra)
 
 
+def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1) -> Maps:
+    """``maps`` with a random residual term (as a fit writes it: ``residual_term`` channel-major,
+    ``residual_term_weight``): coefficients uniform in ``[-size, size]`` on three pixels of four
+    (the others none), the weight 1 on half of those and uniform in ``[0, 1]`` on the rest."""
+    height, width = maps.svbrdf.shape
+    channels = len(maps.svbrdf.channels)
+    g = torch.Generator().manual_seed(seed)
+    coefficients = size * (2 * torch.rand(height, width, TERMS[order], channels, generator=g) - 1)
+    chosen = torch.rand(height, width, generator=g) < 0.75
+    blended = chosen & (torch.rand(height, width, generator=g) < 0.5)
+    weight = torch.where(blended, torch.rand(height, width, generator=g), torch.ones(height, width))
+    term = ResidualTerm(coefficients * chosen[..., None, None], chosen, weight)
+    return Maps(maps.svbrdf, maps.meta, {**maps.extra, MAP_NAME: term.to_map(), WEIGHT_MAP: weight})
+
+
 def reference_srgb(
     svbrdf: SVBRDF,
     light,
@@ -82,14 +97,17 @@ def reference_srgb(
     exposure: float = 1.0,
     dtype: torch.dtype = torch.float64,
     kernel: Kernel | None = None,
+    term: ResidualTerm | None = None,
 ) -> np.ndarray:
     """``(H, W, 3)`` uint8: :func:`torchspec.rendering.render_image` of ``svbrdf`` under a light
-    centred at ``light (3,)`` of unit irradiance (a point, or ``kernel``), times ``exposure``,
+    centred at ``light (3,)`` of unit irradiance (a point, or ``kernel``), with the residual
+    ``term`` applied as ``torchspec render`` applies it (:meth:`ResidualTerm.apply`), times ``exposure``,
     sRGB-encoded (clipped to ``[0, 1]``) and rounded to 8 bits as the page shows it (grey
     replicated to 3 channels)."""
     one = torch.ones(1, 1, dtype=dtype)
     lights = Lights(torch.tensor([light], dtype=dtype), kernel or Kernel("point"), one, one[0])
     value = render_image(svbrdf.to(dtype), lights, torch.tensor(view, dtype=dtype))
+    value = value if term is None else term.apply(value, lights)
     value = (value[:, :, 0] * exposure).clamp(0.0, 1.0)
     value = value.expand(*value.shape[:2], 3) if value.shape[-1] == 1 else value[..., :3]
     return torch.round(encode(value) * 255.0).to(torch.uint8).numpy()

@@ -4,7 +4,8 @@ web server can host (``torchspec export --to web``). Both lay the site out the s
 
     index.html, viewer.js, viewer.css   the page (package data: torchspec/view/static/)
     manifest.json                       size, channels, view, levels, textures, layers, lights,
-                                        the light kernel's nodes (:mod:`torchspec.view.light`)
+                                        the light kernel's nodes (:mod:`torchspec.view.light`),
+                                        ``term``: the residual term's basis functions (0: none)
     tiles/L/R_C.bin                     the maps' tile at level L, row R, column C
     photo/K/L/R_C.bin                   with a capture: frame K's photograph, the same tiling
 """
@@ -12,7 +13,9 @@ web server can host (``torchspec export --to web``). Both lay the site out the s
 from __future__ import annotations
 
 import json
+import os
 import re
+import sys
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -22,17 +25,20 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 import torch
 
 from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
+from ..io.exr import exr_size
 from ..lights import Kernel
 from ..outputs import check_output
+from ..progress import bar
 from ..report import MODEL_COLOURS
 from .light import light_quadrature
-from .tiles import Pyramid, photo_pyramid
+from .tiles import EXTRA_MAPS, Pyramid, photo_pyramid
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
 
@@ -42,13 +48,20 @@ STATIC = ("index.html", "viewer.js", "viewer.css")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript", ".css": "text/css",
           ".json": "application/json", ".bin": "application/octet-stream"}  # fmt: skip
 _TILE = re.compile(r"^/(?:tiles|photo/(\d+))/(\d+)/(\d+)_(\d+)\.bin$")
+WAIT = 0.5
+"""Seconds a tile request waits for its level before the server answers 503 (asked again later)."""
 PHOTO_CACHE = 4
 """Photographs whose pyramids the server keeps (the frames last asked for)."""
 
 
-def _quantile(value: np.ndarray, q: float = 0.99, samples: int = 1 << 18) -> float:
+SAMPLE_BANDS = (16, 16)
+"""A folder's display ranges come from this many bands of this many rows, spread over the maps."""
+
+
+def _quantile(values: list[np.ndarray], q: float = 0.99, samples: int = 1 << 18) -> float:
     """The ``q`` quantile of the positive finite values (of a regular subsample of ``samples``)."""
-    value = value.reshape(-1)[:: max(1, value.size // samples)]
+    value = np.concatenate([v.reshape(-1) for v in values])
+    value = value[:: max(1, value.size // samples)]
     finite = value[np.isfinite(value) & (value > 0)]
     return float(np.quantile(finite, q)) if finite.size else 1.0
 
@@ -58,6 +71,10 @@ def _kernel(capture: Capture | None) -> Kernel | None:
     if capture is None:
         return None
     return Kernel("unknown") if capture.light.kernel == "unknown" else capture.lights().kernel
+
+
+class NotMade(Exception):
+    """A tile whose level the background pass has not made yet."""
 
 
 @dataclass
@@ -71,8 +88,13 @@ class Site:
     photos: OrderedDict = field(default_factory=OrderedDict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def file(self, path: str) -> bytes | None:
-        """The bytes of the site's file at URL path ``path``; ``None`` for no such file."""
+    def file(self, path: str, wait: bool = True) -> bytes | None:
+        """The bytes of the site's file at URL path ``path``; ``None`` for no such file.
+
+        Raises:
+            NotMade: ``wait`` is false and the tile's level is still being made (the server
+                answers 503: the page asks again, and its connection serves other tiles meanwhile).
+        """
         name = path.split("?", 1)[0]
         name = "/index.html" if name == "/" else name
         if name[1:] in STATIC:
@@ -85,6 +107,8 @@ class Site:
         frame, level, row, column = match.groups()
         try:
             pyramid = self.pyramid if frame is None else self.photo(int(frame))
+            if pyramid is not None and not wait and not pyramid.ready(int(level), timeout=WAIT):
+                raise NotMade(path)
             return pyramid.tile(int(level), int(row), int(column)) if pyramid is not None else None
         except IndexError:
             return None
@@ -105,35 +129,58 @@ class Site:
             return self.photos[k]
 
 
+def _sample(folder: Path) -> tuple[list[Maps], tuple[int, int]]:
+    """Bands of a map folder's rows spread over it (:data:`SAMPLE_BANDS`), and its ``(H, W)``."""
+    first = read_svbrdf(folder, rows=(0, 1), extra_maps=EXTRA_MAPS)
+    height, width = exr_size(folder / "normal.exr")
+    count, rows = SAMPLE_BANDS
+    starts = sorted({round(i * max(0, height - rows) / max(1, count - 1)) for i in range(count)})
+    bands = [read_svbrdf(folder, rows=(a, min(height, a + rows)), extra_maps=EXTRA_MAPS) for a in starts]
+    return [first] + bands, (height, width)
+
+
 def open_site(
-    maps: Maps | SVBRDF | str | Path, capture: Capture | str | Path | None = None, *, title: str = ""
+    maps: Maps | SVBRDF | str | Path, capture: Capture | str | Path | None = None, *, title: str = "", **options
 ) -> Site:
     """The viewer data of maps (a folder or :class:`~torchspec.io.Maps`) and, optionally, the
     capture they were fitted from.
+
+    A folder is read lazily (:meth:`Pyramid.of_folder`, its EXR blocks decoded on OpenEXR's worker
+    threads, one a core, when the process has none): at start its headers and a sample of its
+    rows (the display ranges); then each tile's rows when it is asked for, and the coarse levels in
+    a background pass; a bad value (NaN, a normal off unit length) is found in the tile that holds
+    it (its request fails, naming the file and row). ``options`` go to the :class:`Pyramid`
+    (``tile``; for a folder also ``keep_texels``, ``cache_bytes``).
 
     Raises:
         SVBRDFError, CaptureError: a folder that is not a valid map folder or capture.
         TorchspecError: a capture of another size than the maps.
     """
     source = str(maps) if isinstance(maps, (str, Path)) else ""
-    maps = Maps(maps) if isinstance(maps, SVBRDF) else maps
-    maps = read_svbrdf(maps) if not isinstance(maps, Maps) else maps
+    if isinstance(maps, (str, Path)):
+        folder = Path(maps)
+        folder = folder.parent if folder.suffix.lower() == ".json" or folder.is_file() else folder
+        if OpenEXR.global_thread_count() == 0:  # decode the files' blocks on every core (process-wide)
+            OpenEXR.set_global_thread_count(os.cpu_count() or 1)
+        bands, (height, width) = _sample(folder)
+        pyramid = Pyramid.of_folder(folder, bands[0], (height, width), **options)
+    else:
+        bands = [Maps(maps) if isinstance(maps, SVBRDF) else maps]
+        height, width = bands[0].svbrdf.shape
+        pyramid = Pyramid.of_maps(bands[0], **options)
     if capture is not None and not isinstance(capture, Capture):
         capture = read_capture(capture)
-    height, width = maps.svbrdf.shape
     if capture is not None and (capture.height, capture.width) != (height, width):
         raise TorchspecError(
             f"{capture.manifest} is {capture.width}x{capture.height} but the maps are {width}x{height}: "
             "view a fit with the capture it was fitted from."
         )
-    pyramid = Pyramid.of_maps(maps)
-    extra, meta = maps.extra, maps.meta
-    svbrdf = maps.svbrdf
-    layers = ["relit", "normal", "diffuse", "specular", "roughness"]
+    extra, meta, svbrdf = bands[0].extra, bands[0].meta, bands[0].svbrdf
+    terms = sum(name.startswith("term_") and name.endswith("_r") for *_, names in pyramid.textures for name in names)
+    layers = ["relit"] + (["physical"] if terms else []) + ["normal", "diffuse", "specular", "roughness"]
     layers += [name for name in ("model", "quality") if name in extra]
     layers += ["flags"] if "flags" in extra else []
     layers += ["std"] if any(name.startswith("std_") for name in extra) else []
-    alpha = svbrdf.roughness.numpy()
     manifest = {
         "format": "torchspec.view",
         "version": 1,
@@ -148,11 +195,12 @@ def open_site(
         "flag_bits": meta.get("flag_bits", {}),
         "untrusted_flags": meta.get("untrusted_flags", []),
         "ranges": {
-            "alpha": _quantile(alpha),
-            "specular": _quantile(svbrdf.specular.numpy()),
-            **{n: _quantile(extra[n].numpy()) for n in extra if n.startswith("std_")},
+            "alpha": _quantile([band.svbrdf.roughness.numpy() for band in bands]),
+            "specular": _quantile([band.svbrdf.specular.numpy() for band in bands]),
+            **{n: _quantile([band.extra[n].numpy() for band in bands]) for n in extra if n.startswith("std_")},
         },
         "lights": [] if capture is None else capture.directions().tolist(),
+        "term": terms,
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
     }
@@ -165,9 +213,13 @@ def export_web(
     *,
     capture: Capture | str | Path | None = None,
     overwrite: bool = False,
+    progress: bool = False,
 ) -> Path:
     """Write the viewer as a static site to ``output`` (any web server can host it; browsers do
     not load ``file://`` tiles). With ``capture``, every frame's photograph is written too.
+    A folder of maps is read lazily (:func:`open_site`), level by level and row by row of tiles:
+    memory is bounded by the pyramid's bands and coarse levels, not by the maps. ``progress``: a
+    bar over the tiles (on stderr).
 
     Returns:
         ``output / "index.html"``, written last (a folder with it holds the whole site).
@@ -180,15 +232,19 @@ def export_web(
     pyramids = [(Path("tiles"), site.pyramid)]
     if site.capture is not None:
         pyramids += [(Path("photo") / str(k), None) for k in range(len(site.capture.frames))]
-    for folder, pyramid in pyramids:
-        pyramid = pyramid if pyramid is not None else site.photo(int(folder.name))
-        for level in range(len(pyramid.levels)):
-            rows, columns = pyramid.grid(level)
-            (output / folder / str(level)).mkdir(parents=True, exist_ok=True)
-            for row in range(rows):
-                for column in range(columns):
-                    with atomic_path(output / folder / str(level) / f"{row}_{column}.bin") as tmp:
-                        tmp.write_bytes(pyramid.tile(level, row, column))
+    grids = [site.pyramid.grid(level) for level in range(len(site.pyramid.levels))]
+    total = len(pyramids) * sum(rows * columns for rows, columns in grids)  # a photograph's: the maps' tiling
+    with bar(total, desc="export web", unit="tile", enabled=progress) as shown:
+        for folder, pyramid in pyramids:
+            pyramid = pyramid if pyramid is not None else site.photo(int(folder.name))
+            for level in range(len(pyramid.levels)):
+                rows, columns = pyramid.grid(level)
+                (output / folder / str(level)).mkdir(parents=True, exist_ok=True)
+                for row in range(rows):
+                    for column in range(columns):
+                        with atomic_path(output / folder / str(level) / f"{row}_{column}.bin") as tmp:
+                            tmp.write_bytes(pyramid.tile(level, row, column))
+                        shown.update(1)
     write_json(output / "manifest.json", site.manifest)
     for name in STATIC:
         with atomic_path(output / name) as tmp:
@@ -202,7 +258,18 @@ class _Handler(BaseHTTPRequestHandler):
         super().__init__(*args, **kwargs)
 
     def do_GET(self):  # noqa: N802 (http.server's name)
-        body = self.site.file(self.path)
+        try:
+            body = self.site.file(self.path, wait=False)
+        except NotMade:
+            self.send_response(503)
+            self.send_header("Retry-After", "1")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
+        except TorchspecError as error:  # a lazily read tile's rows hold a bad value
+            print(f"torchspec view: {self.path}: {error}", file=sys.stderr, flush=True)
+            self.send_error(500, explain=str(error))
+            return
         if body is None:
             self.send_error(404)
             return

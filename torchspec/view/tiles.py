@@ -10,6 +10,10 @@ what a highlight is sensitive to (the normal, the rotation, the roughness), floa
 of level 0 (normals renormalised); the model code, the flags and the rotation take the top-left
 texel. The coarser levels are made in the background (:class:`Pyramid`).
 
+Maps with a residual term (``residual_term.exr``, :mod:`torchspec.residual_term`) add the
+textures of :func:`term_textures`: its weight ``w`` and its coefficients per basis function and
+channel (RGB, grey replicated), float16, packed four planes a texture (:func:`term_planes`).
+
 A photograph's tile is one float16 RGBA texture: the frame divided by its exposure and irradiance
 (the value under a unit light, comparable with the relit maps at the same exposure).
 """
@@ -18,15 +22,17 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
+import time
+from collections import OrderedDict
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from ..io import Maps
+from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid"]
+__all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid", "term_textures", "term_planes", "textures_of"]
 
 TILE = 256
 """Texels on a tile's side."""
@@ -41,13 +47,17 @@ TEXTURES = (
 )
 """The textures of a map tile: name, dtype, the four planes (RGBA)."""
 
+EXTRA_MAPS = ("quality", "model", "flags", "std_normal_deg", "std_diffuse", "std_specular", "std_roughness",
+              MAP_NAME, WEIGHT_MAP)  # fmt: skip
+"""The extra maps of a fit that the tiles hold (the others are not read)."""
+
 NEAREST = ("rotation", "model", "flags")
 """Planes a coarser level takes from the top-left texel instead of the average."""
 
 
-def levels_for(height: int, width: int) -> int:
+def levels_for(height: int, width: int, tile: int = TILE) -> int:
     """How many levels a ``height x width`` image takes: down to one that fits in one tile."""
-    return 1 + max(0, math.ceil(math.log2(max(height, width, 1) / TILE)))
+    return 1 + max(0, math.ceil(math.log2(max(height, width, 1) / tile)))
 
 
 def _rgb(value: torch.Tensor) -> torch.Tensor:
@@ -83,6 +93,49 @@ def _planes(maps: Maps) -> dict[str, torch.Tensor]:
     return {name: value.float() for name, value in planes.items()}
 
 
+def term_textures(terms: int) -> tuple:
+    """The textures of a residual term of ``terms`` basis functions (4 or 9): planes
+    ``term_weight``, then ``term_{j}_{r,g,b}`` for each function ``j``, then zero planes
+    ``term_pad_{k}`` up to a multiple of four."""
+    names = ["term_weight"] + [f"term_{j}_{c}" for j in range(terms) for c in "rgb"]
+    names += [f"term_pad_{k}" for k in range(-len(names) % 4)]
+    return tuple((f"term{i}", "float16", tuple(names[4 * i : 4 * i + 4])) for i in range(len(names) // 4))
+
+
+def term_planes(maps: Maps) -> dict[str, torch.Tensor]:
+    """The planes of :func:`term_textures` of the maps' residual term ``(H, W)`` float32 each (none
+    without a term).
+
+    Raises:
+        TorchspecError: the term's map does not fit the maps' channels, or its weight is outside
+            ``[0, 1]`` (:meth:`ResidualTerm.from_map`, naming ``residual_term.exr``).
+    """
+    if MAP_NAME not in maps.extra:
+        return {}
+    channels = len(maps.svbrdf.channels)
+    value = maps.extra[MAP_NAME]
+    value = value[..., None] if value.dim() == 2 else value
+    term = ResidualTerm.from_map(value, channels, f"{MAP_NAME}.exr", maps.extra.get(WEIGHT_MAP))
+    coefficients = _rgb(term.coefficients)  # (H, W, J, 3)
+    weight = torch.ones(coefficients.shape[:2]) if term.weight is None else term.weight
+    planes = {"term_weight": weight}
+    for j in range(coefficients.shape[2]):
+        planes.update({f"term_{j}_{c}": coefficients[:, :, j, i] for i, c in enumerate("rgb")})
+    zero = torch.zeros(1, 1).expand(*coefficients.shape[:2])
+    for _, _, names in term_textures(coefficients.shape[2]):
+        planes.update({name: zero for name in names if name.startswith("term_pad")})
+    return {name: plane.float() for name, plane in planes.items()}
+
+
+def textures_of(maps: Maps) -> tuple:
+    """A tile's textures for ``maps``: :data:`TEXTURES`, and the term's when the maps have one."""
+    if MAP_NAME not in maps.extra:
+        return TEXTURES
+    value = maps.extra[MAP_NAME]
+    count = value.shape[-1] if value.dim() == 3 else 1
+    return TEXTURES + term_textures(max(1, count // max(1, len(maps.svbrdf.channels))))
+
+
 def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
     """The next level of ``planes`` (``(h, w)`` each, or ``(P, h, w)``), stacked ``(P, h', w')``:
     ``2 x 2`` averages (odd sizes: the last row or column repeated), normals renormalised,
@@ -104,70 +157,161 @@ def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
     return out
 
 
-@dataclass
+KEEP_TEXELS = 1 << 23
+"""A lazily read pyramid holds in memory the levels of at most this many texels (8 megapixels: 768
+MB of planes); the finer ones are made on demand from level 0's rows."""
+CACHE_BYTES = 1 << 30
+"""The bands of level-0 rows a lazily read pyramid keeps (the last ones read), in bytes of planes."""
+
+
 class Pyramid:
     """Tiled levels of an image with named planes; :meth:`tile` encodes one tile.
 
-    Level 0 is the image; a background thread, started at construction, halves it level after
-    level (each a ``2 x 2`` reduction of the one before), and a tile of a level
-    not yet made waits for it: the server starts at once, and the coarsest level (the page's first
-    image) follows after one pass over the image and a third of one.
+    In memory (``planes``): level 0 is the image; a background thread, started at construction,
+    halves it level after level (each a ``2 x 2`` reduction of the one before), and a tile of a
+    level not yet made waits for it: the server starts at once, and the coarsest level (the page's
+    first image) follows after one pass over the image and a third of one.
+
+    Read lazily (``read``: level 0's rows from files, :func:`~torchspec.io.read_svbrdf`'s
+    ``rows``): the levels of at most ``keep_texels`` texels are held in memory, the finest of them
+    (level ``kept``) made by a background pass that reads level 0 in bands and reduces each band
+    (memory: one band), the coarser ones reduced from it; a tile of a finer level is made on demand
+    from the level-0 rows under it (a level-``l`` tile: ``tile 2^l`` rows), read in bands of
+    ``tile`` rows of which the last read are kept (``cache_bytes``), as is a level-0 tile asked for
+    before the pass has read level 0 when that is the level held. Both give the same tiles, bit
+    for bit: the bands and tiles are aligned on the ``2 x 2`` blocks of every level.
 
     Attributes:
-        planes: level 0, ``P`` float32 planes ``(H, W)`` (views of the maps: not copied), in the
-            order of the textures' planes.
         textures: ``(name, dtype, planes)`` of a tile's textures, in file order.
+        size: level 0's ``(H, W)``.
+        tile_size: texels on a tile's side.
+        kept: the finest level held in memory (0 in memory).
     """
 
-    planes: tuple
-    textures: tuple
-    reduced: list = field(init=False, repr=False)
-    made: list = field(init=False, repr=False)
-
-    def __post_init__(self):
-        self.reduced = [self.planes] + [None] * (len(self.levels) - 1)
-        self.made = [threading.Event() for _ in self.levels]
-        self.made[0].set()
-        threading.Thread(target=self._reduce_all, name="torchspec-view-pyramid", daemon=True).start()
-
-    def _reduce_all(self) -> None:
-        names = tuple(name for _, _, names in self.textures for name in names)
-        for level in range(1, len(self.levels)):
-            self.reduced[level] = _reduce(self.reduced[level - 1], names)
+    def __init__(self, textures, size, planes=None, read=None, *, tile=TILE, keep_texels=KEEP_TEXELS,
+                 cache_bytes=CACHE_BYTES):  # fmt: skip
+        self.textures, self.size, self.tile_size = tuple(textures), tuple(size), tile
+        self.names = tuple(name for _, _, names in self.textures for name in names)
+        self.read = read if planes is None else (lambda a, b: torch.stack([p[a:b] for p in planes]))
+        sizes = self.levels
+        held = [i for i, (h, w) in enumerate(sizes) if h * w <= keep_texels] + [len(sizes) - 1]
+        self.kept = 0 if planes is not None else held[0]
+        self.reduced = [planes] + [None] * (len(sizes) - 1)
+        self.made = [threading.Event() for _ in sizes]
+        for level in range(self.kept + (planes is not None)):
             self.made[level].set()
+        self.error: BaseException | None = None
+        self.bands: OrderedDict = OrderedDict()
+        self.band_count = max(2, cache_bytes // max(1, 4 * len(self.names) * tile * size[1]))
+        self.lock = threading.Lock()  # the band cache
+        # EXR reads one at a time: torchspec.io.exr redirects descriptor 2 around OpenEXR's calls (not
+        # thread-safe), and two threads reading at once aborted the process here once
+        self.io = threading.Lock()
+        self.urgent = 0  # tile requests waiting to read: the background pass lets them go first
+        threading.Thread(target=self._make_all, name="torchspec-view-pyramid", daemon=True).start()
+
+    def _make_all(self) -> None:
+        try:
+            if self.reduced[self.kept] is None:
+                self.reduced[self.kept] = self._stream(self.kept)
+                self.made[self.kept].set()
+            for level in range(self.kept + 1, len(self.made)):
+                self.reduced[level] = _reduce(self.reduced[level - 1], self.names)
+                self.made[level].set()
+        except BaseException as error:  # a tile of a level never made says why
+            self.error = error
+            for made in self.made:
+                made.set()
+
+    def _stream(self, level: int) -> torch.Tensor:
+        """Level ``level`` from level 0's rows, read in bands (a multiple of ``2^level`` rows)."""
+        height, width = self.levels[level]
+        out = torch.empty(len(self.names), height, width)
+        band = 2**level * max(1, self.tile_size // 2**level)
+        for start in range(0, self.size[0], band):
+            while self.urgent:
+                time.sleep(0.005)
+            with self.io:
+                block = self.read(start, min(self.size[0], start + band))
+            for _ in range(level):
+                block = _reduce(block, self.names)
+            out[:, start // 2**level : start // 2**level + block.shape[1]] = block
+        return out
+
+    def rows(self, start: int, stop: int) -> torch.Tensor:
+        """Level 0's rows ``start`` to ``stop - 1``, ``(P, stop - start, W)``, from the bands of
+        ``tile_size`` rows read last (or read now)."""
+        n, parts = self.tile_size, []
+        for index in range(start // n, -(-stop // n)):
+            with self.lock:
+                if index not in self.bands:
+                    self.urgent += 1
+                    try:
+                        with self.io:
+                            self.bands[index] = self.read(index * n, min(self.size[0], (index + 1) * n))
+                    finally:
+                        self.urgent -= 1
+                    while len(self.bands) > self.band_count:
+                        self.bands.popitem(last=False)
+                self.bands.move_to_end(index)
+                band = self.bands[index]
+            parts.append(band[:, max(start - index * n, 0) : stop - index * n])
+        return torch.cat(parts, 1) if len(parts) > 1 else parts[0]
 
     @classmethod
-    def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES) -> Pyramid:
+    def build(cls, planes: dict[str, torch.Tensor], textures=TEXTURES, tile: int = TILE) -> Pyramid:
         """The pyramid of ``planes`` (each ``(H, W)``) packed into ``textures``."""
         names = [name for _, _, names in textures for name in names]
-        return cls(tuple(planes[name].float() for name in names), tuple(textures))
+        return cls(textures, planes[names[0]].shape, tuple(planes[name].float() for name in names), tile=tile)
 
     @classmethod
-    def of_maps(cls, maps: Maps) -> Pyramid:
-        """The pyramid of a fit's maps (:data:`TEXTURES`)."""
-        return cls.build(_planes(maps))
+    def of_maps(cls, maps: Maps, tile: int = TILE) -> Pyramid:
+        """The pyramid of a fit's maps (:data:`TEXTURES`, and the residual term's)."""
+        return cls.build({**_planes(maps), **term_planes(maps)}, textures_of(maps), tile)
+
+    @classmethod
+    def of_folder(cls, folder, head: Maps, size: tuple[int, int], **options) -> Pyramid:
+        """The pyramid of the map folder ``folder`` of ``size`` ``(H, W)``, read lazily (``head``:
+        a band of its rows, for the textures; ``options``: ``tile``, ``keep_texels``,
+        ``cache_bytes``)."""
+        from ..io import read_svbrdf
+
+        textures = textures_of(head)
+        names = [name for _, _, names in textures for name in names]
+
+        def read(start: int, stop: int) -> torch.Tensor:
+            band = read_svbrdf(folder, rows=(start, stop), extra_maps=EXTRA_MAPS)
+            planes = {**_planes(band), **term_planes(band)}
+            return torch.stack([planes[name] for name in names])
+
+        return cls(textures, size, read=read, **options)
 
     @property
     def height(self) -> int:
-        return self.planes[0].shape[0]
+        return self.size[0]
 
     @property
     def width(self) -> int:
-        return self.planes[0].shape[1]
+        return self.size[1]
 
     @property
     def levels(self) -> list[tuple[int, int]]:
         """``(h, w)`` of every level, 0 first."""
-        count = levels_for(self.height, self.width)
+        count = levels_for(self.height, self.width, self.tile_size)
         return [(-(-self.height // 2**level), -(-self.width // 2**level)) for level in range(count)]
 
     def grid(self, level: int) -> tuple[int, int]:
         """``(rows, columns)`` of tiles at ``level``."""
         h, w = self.levels[level]
-        return -(-h // TILE), -(-w // TILE)
+        return -(-h // self.tile_size), -(-w // self.tile_size)
 
-    def tile(self, level: int, row: int, column: int) -> bytes:
-        """The file of a tile: each texture's ``TILE x TILE x 4`` values, padded with zeros.
+    def ready(self, level: int, timeout: float = 0.0) -> bool:
+        """Whether a tile of ``level`` can be made now (its level made, or made on demand), after
+        waiting up to ``timeout`` seconds for its level."""
+        return not 0 <= level < len(self.made) or level < self.kept or level == 0 or self.made[level].wait(timeout)
+
+    def block(self, level: int, row: int, column: int) -> torch.Tensor:
+        """A tile's planes ``(P, h, w)`` (``h, w <= tile_size``: an edge tile is cut).
 
         Raises:
             IndexError: no such level or tile.
@@ -177,12 +321,30 @@ class Pyramid:
         rows, columns = self.grid(level)
         if not (0 <= row < rows and 0 <= column < columns):
             raise IndexError(f"no tile {row}, {column} at level {level}")
+        n = self.tile_size
+        if level < self.kept or not self.made[level].is_set() and level == 0:  # on demand from level 0's rows
+            span = n * 2**level
+            block = self.rows(row * span, min(self.height, (row + 1) * span))[:, :, column * span : (column + 1) * span]
+            for _ in range(level):
+                block = _reduce(block, self.names)
+            return block
         self.made[level].wait()
-        rows, columns = slice(row * TILE, (row + 1) * TILE), slice(column * TILE, (column + 1) * TILE)
-        block = torch.stack([plane[rows, columns] for plane in self.reduced[level]], -1)
-        parts, first = [], 0
+        if self.error is not None:
+            raise self.error
+        return torch.stack(
+            [plane[row * n : (row + 1) * n, column * n : (column + 1) * n] for plane in self.reduced[level]]
+        )
+
+    def tile(self, level: int, row: int, column: int) -> bytes:
+        """The file of a tile: each texture's ``tile_size^2 x 4`` values, padded with zeros.
+
+        Raises:
+            IndexError: no such level or tile.
+        """
+        block = self.block(level, row, column).permute(1, 2, 0)
+        n, parts, first = self.tile_size, [], 0
         for _, dtype, planes in self.textures:
-            padded = np.zeros((TILE, TILE, 4), dtype=np.dtype(dtype).newbyteorder("<"))
+            padded = np.zeros((n, n, 4), dtype=np.dtype(dtype).newbyteorder("<"))
             with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf (an undetermined deviation's)
                 padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
             parts.append(padded.tobytes())
@@ -192,7 +354,7 @@ class Pyramid:
     def describe(self) -> dict:
         """The pyramid's part of the page's ``manifest.json``."""
         return {
-            "tile": TILE,
+            "tile": self.tile_size,
             "levels": [list(size) for size in self.levels],
             "textures": [{"name": n, "dtype": d, "planes": list(p)} for n, d, p in self.textures],
         }

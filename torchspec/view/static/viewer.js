@@ -5,15 +5,21 @@
 // torchspec/diffuse.py): value = k_d / pi <n, l>^+ + k_s W(l) + k_s2 W2(l), times the exposure.
 // Under a capture's extended light kernel, the weighted sum of that value over the kernel's fixed
 // quadrature nodes about the light's centre (manifest kernel_nodes: torchspec/view/light.py).
+// A fit's residual term (manifest term: its basis functions; the tiles' term textures), on the
+// "relit" layer, as torchspec.residual_term.ResidualTerm.apply adds it at unit light:
+// decode(w encode(value) + sum_j c_j H_j(d)), d the light's direction (an extended kernel's
+// effective direction); the "physical" layer leaves it off.
 "use strict";
 
-const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", "quality", "flags", "std"];
+const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", "quality", "flags", "std", "photo", "physical"];
 const PHOTO_LAYER = 9;
+const TILE_UNITS = 6; // a map tile's first textures' units (then the photograph's, then the term's)
 const MAX_TILES = 160; // textures kept on the GPU (least recently used dropped)
 const MAX_FETCHES = 6;
 const INTERACTIVE_MS = 250; // input this recent: frames at a reduced scale
 const FRAME_MS = 40; // the frame time a reduced scale aims at
 const TILE_FRAME_MS = 300; // while tiles arrive, a frame at most this often
+const RETRY_MS = 500; // a tile the server has not made yet (503: its level's pass still runs): asked again after
 
 const VERTEX = `#version 300 es
 uniform vec4 uRect;
@@ -41,6 +47,9 @@ uniform vec3 uLobeRule[16]; // standard normal Gauss-Hermite points (x, y) and w
 uniform int uDiffuseRows; // > 0: the kernel's effective diffuse direction, tabulated over |l_xy| of the centre
 uniform float uDiffuseReach;
 uniform vec4 uDiffuse[64]; // rows 2i and 2i + 1: (a, b) of d = (a l_xy / |l_xy|, b)
+#endif
+#if TERM // the residual term's basis functions (4 or 9): its weight and coefficients, packed
+uniform sampler2D tTerm0, tTerm1, tTerm2, tTerm3, tTerm4, tTerm5, tTerm6;
 #endif
 uniform vec3 uLight, uView, uModelColours[8];
 uniform float uExposure, uGain;
@@ -111,6 +120,18 @@ float lobeUnderKernel(vec3 n, vec3 s, vec3 t, float ax, float ay, float co) {
   return sum;
 }
 
+// Node q's direction about the light's centre (its z <= 0: at or beyond the horizon, no light).
+vec3 nodeDirection(int q, vec3 e1, vec3 e2) {
+  vec3 node = uNode[q];
+  if (uAngular != 0) {
+    float g = length(node.xy);
+    return g > 0.0 ? cos(g) * uLight + (sin(g) / g) * (node.x * e1 + node.y * e2) : uLight;
+  }
+  vec2 p = uLight.xy + node.xy;
+  float r2 = dot(p, p);
+  return vec3(p, r2 < 1.0 ? sqrt(1.0 - r2) : 0.0);
+}
+
 // The kernel's effective diffuse direction at the light's centre, interpolated in its table.
 vec3 effective() {
   float rho = length(uLight.xy), f = clamp(rho / uDiffuseReach, 0.0, 1.0) * float(uDiffuseRows - 1);
@@ -140,7 +161,7 @@ vec3 relit(ivec2 ij) {
   vec3 kd = texelFetch(tKd, ij, 0).rgb / PI, ks = texelFetch(tKs, ij, 0).rgb, ks2 = texelFetch(tKs2, ij, 0).rgb;
 #if !EXTENDED
   float ci = dot(n, uLight);
-  return (kd * max(ci, 0.0) + ks * ward(uLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(uLight, n, s2, t2, r.z, r.w, ci, co)) * uExposure;
+  return kd * max(ci, 0.0) + ks * ward(uLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(uLight, n, s2, t2, r.z, r.w, ci, co);
 #else
   vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1);
   vec3 value = vec3(0.0);
@@ -151,21 +172,12 @@ vec3 relit(ivec2 ij) {
   bool clear = uDiffuseRows > 0 && uSigma > 0.0 && dot(n, uLight) > 5.5 * uSigma * length(slope);
   for (int q = 0; q < 64; q++) {
     if (q >= uNodes || clear) break;
-    vec3 node = uNode[q];
-    vec3 l;
-    if (uAngular != 0) {
-      float g = length(node.xy);
-      l = g > 0.0 ? cos(g) * uLight + (sin(g) / g) * (node.x * e1 + node.y * e2) : uLight;
-    } else {
-      vec2 p = uLight.xy + node.xy;
-      float r2 = dot(p, p);
-      l = vec3(p, r2 < 1.0 ? sqrt(1.0 - r2) : 0.0);
-    }
+    vec3 l = nodeDirection(q, e1, e2);
     if (l.z <= 0.0) continue; // at or beyond the horizon: no light
-    float ci = dot(n, l);
-    front += node.z * max(ci, 0.0);
-    behind += node.z * max(-ci, 0.0);
-    if (uSigma <= 0.0) value += node.z * (ks * ward(l, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(l, n, s2, t2, r.z, r.w, ci, co));
+    float ci = dot(n, l), weight = uNode[q].z;
+    front += weight * max(ci, 0.0);
+    behind += weight * max(-ci, 0.0);
+    if (uSigma <= 0.0) value += weight * (ks * ward(l, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(l, n, s2, t2, r.z, r.w, ci, co));
   }
   if (uSigma > 0.0) value += ks * lobeUnderKernel(n, s2, t2, r.x, r.y, co) + ks2 * lobeUnderKernel(n, s2, t2, r.z, r.w, co);
   // The diffuse term: with the table, torchspec/diffuse.py's rule: the effective direction's
@@ -173,15 +185,88 @@ vec3 relit(ivec2 ij) {
   // the part in front (the smaller integral on the nodes).
   float linear = uDiffuseRows > 0 ? dot(n, effective()) : -1.0;
   value += kd * (linear >= 0.0 ? linear + behind : front);
-  return value * uExposure;
+  return value;
 #endif
 }
+
+#if TERM
+// The direction the residual term is a function of (torchspec.residual_term.term_directions): the
+// light's, or an extended kernel's effective direction: the table's, else the nodes' sum
+// (torchspec.lights.diffuse_directions; not of unit length).
+vec3 termDirection() {
+#if !EXTENDED
+  return uLight;
+#else
+  if (uDiffuseRows > 0) return effective();
+  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1), d = vec3(0.0);
+  for (int q = 0; q < 64; q++) {
+    if (q >= uNodes) break;
+    vec3 l = nodeDirection(q, e1, e2);
+    if (l.z > 0.0) d += uNode[q].z * l;
+  }
+  return d;
+#endif
+}
+
+// torchspec.residual_term.encode and decode: the sRGB transfer extended to every real value (at
+// the knee either side: the two agree there).
+vec3 encode(vec3 v) {
+  vec3 a = abs(v);
+  return sign(v) * mix(12.92 * a, 1.055 * pow(max(a, 0.0031308), vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), a));
+}
+
+vec3 decode(vec3 e) {
+  vec3 a = abs(e), knee = vec3(12.92 * 0.0031308);
+  return sign(e) * mix(a / 12.92, pow((max(a, knee) + 0.055) / 1.055, vec3(2.4)), step(knee, a));
+}
+
+// The physical value at unit light with the pixel's residual term (ResidualTerm.apply): the
+// hemispherical harmonics of torchspec.residual_term.hsh_basis at d (phi's cosine and sine from d's
+// x and y: atan2's 0 where both are 0).
+vec3 withTerm(ivec2 ij, vec3 value) {
+  vec4 p[7];
+  p[0] = texelFetch(tTerm0, ij, 0);
+  p[1] = texelFetch(tTerm1, ij, 0);
+  p[2] = texelFetch(tTerm2, ij, 0);
+  p[3] = texelFetch(tTerm3, ij, 0);
+#if TERM == 9
+  p[4] = texelFetch(tTerm4, ij, 0);
+  p[5] = texelFetch(tTerm5, ij, 0);
+  p[6] = texelFetch(tTerm6, ij, 0);
+#endif
+  vec3 d = termDirection();
+  float t = clamp(d.z, 0.0, 1.0), s = sqrt(max(t - t * t, 0.0)), r = length(d.xy);
+  float c1 = r > 0.0 ? d.x / r : 1.0, s1 = r > 0.0 ? d.y / r : 0.0;
+  float c2 = c1 * c1 - s1 * s1, s2 = 2.0 * s1 * c1;
+  float H[9];
+  H[0] = 1.0 / sqrt(2.0 * PI);
+  H[1] = sqrt(6.0 / PI) * c1 * s;
+  H[2] = sqrt(3.0 / (2.0 * PI)) * (2.0 * t - 1.0);
+  H[3] = sqrt(6.0 / PI) * s1 * s;
+  H[4] = sqrt(30.0 / PI) * c2 * (t * t - t);
+  H[5] = sqrt(30.0 / PI) * c1 * (2.0 * t - 1.0) * s;
+  H[6] = sqrt(5.0 / (2.0 * PI)) * (6.0 * t * t - 6.0 * t + 1.0);
+  H[7] = sqrt(30.0 / PI) * s1 * (2.0 * t - 1.0) * s;
+  H[8] = sqrt(30.0 / PI) * s2 * (t * t - t);
+  vec3 sum = vec3(0.0);
+  for (int j = 0; j < TERM; j++) {
+    int k = 1 + 3 * j; // planes k, k + 1, k + 2: function j's r, g, b (plane 0: the weight)
+    sum += H[j] * vec3(p[k / 4][k % 4], p[(k + 1) / 4][(k + 1) % 4], p[(k + 2) / 4][(k + 2) % 4]);
+  }
+  return decode(p[0].x * encode(value) + sum);
+}
+#endif
 
 void main() {
   ivec2 ij = ivec2(floor(vTex));
   if (ij.x >= uValid.x || ij.y >= uValid.y) discard;
   vec3 colour;
-  if (uLayer == 0) colour = srgb(relit(ij));
+#if TERM
+  if (uLayer == 0) colour = srgb(withTerm(ij, relit(ij)) * uExposure);
+#else
+  if (uLayer == 0) colour = srgb(relit(ij) * uExposure);
+#endif
+  else if (uLayer == 10) colour = srgb(relit(ij) * uExposure);
   else if (uLayer == 1) colour = texelFetch(tGeo, ij, 0).xyz * 0.5 + 0.5;
   else if (uLayer == 2) colour = srgb(texelFetch(tKd, ij, 0).rgb);
   else if (uLayer == 3) colour = srgb(texelFetch(tKs, ij, 0).rgb * uGain);
@@ -237,6 +322,8 @@ class Viewer {
     this.nodes = manifest.kernel_nodes || [];
     this.extended = this.nodes.length > 0; // the capture's kernel (else a point light)
     this.complete = false;
+    this.readouts = 0; // clicks read (canvasEvents)
+    this.readout = Promise.resolve([]);
     this.lastInput = -Infinity;
     this.scale = 1;
     this.fit();
@@ -254,7 +341,8 @@ class Viewer {
     };
     const p = gl.createProgram();
     gl.attachShader(p, shader(gl.VERTEX_SHADER, VERTEX));
-    const source = FRAGMENT.replace("\n", `\n#define EXTENDED ${extended ? 1 : 0}\n`); // after #version
+    const defines = `\n#define EXTENDED ${extended ? 1 : 0}\n#define TERM ${this.m.term || 0}\n`;
+    const source = FRAGMENT.replace("\n", defines); // after #version
     gl.attachShader(p, shader(gl.FRAGMENT_SHADER, source));
     gl.linkProgram(p);
     if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
@@ -265,6 +353,7 @@ class Viewer {
       u[name] = gl.getUniformLocation(p, name);
     }
     ["tGeo", "tRough", "tKd", "tKs", "tKs2", "tStd", "tPhoto"].forEach((n, i) => gl.uniform1i(this.u[n], i));
+    for (let i = 0; i < 7; i++) if (this.u[`tTerm${i}`]) gl.uniform1i(this.u[`tTerm${i}`], TILE_UNITS + 1 + i);
     gl.uniform1f(this.u.uTile, this.m.tile);
     const colours = (this.m.model_colours || []).slice(0, 8);
     gl.uniform1i(this.u.uModels, colours.length);
@@ -344,10 +433,10 @@ class Viewer {
     return photo ? `photo/${this.frame}/${level}/${r}_${c}.bin` : `tiles/${level}/${r}_${c}.bin`;
   }
 
-  // The tile at `url`, uploaded; null while it loads (its fetch queued).
+  // The tile at `url`, uploaded; null while it loads (its fetch queued) or waits to be asked again.
   tile(url) {
     const t = this.tiles.get(url);
-    if (t) {
+    if (t && !(t.state === "later" && performance.now() >= t.retry)) {
       t.used = performance.now();
       return t.state === "ready" ? t : null;
     }
@@ -364,8 +453,15 @@ class Viewer {
       this.tiles.set(url, entry);
       this.fetching++;
       fetch(url)
-        .then((r) => (r.ok ? r.arrayBuffer() : Promise.reject(new Error(`${url}: ${r.status}`))))
-        .then((buffer) => this.upload(entry, buffer, url.startsWith("photo")))
+        .then((r) => {
+          if (r.status === 503) return null; // not made yet: the connection is freed for others
+          return r.ok ? r.arrayBuffer() : Promise.reject(new Error(`${url}: ${r.status}`));
+        })
+        .then((buffer) => {
+          if (buffer) return this.upload(entry, buffer, url.startsWith("photo"));
+          [entry.state, entry.retry] = ["later", performance.now() + RETRY_MS];
+          setTimeout(() => this.request(), RETRY_MS);
+        })
         .catch((e) => {
           entry.state = "error";
           this.status(String(e));
@@ -503,7 +599,7 @@ class Viewer {
     this.drawn = true;
     const [h, w] = this.m.levels[level];
     t.textures.forEach((x, i) => {
-      gl.activeTexture(gl.TEXTURE0 + (t.textures.length === 1 ? 6 : i));
+      gl.activeTexture(gl.TEXTURE0 + (t.textures.length === 1 ? TILE_UNITS : i < TILE_UNITS ? i : i + 1));
       gl.bindTexture(gl.TEXTURE_2D, x);
     });
     gl.uniform2i(this.u.uValid, Math.min(n, w - c * n), Math.min(n, h - r * n));
@@ -570,6 +666,7 @@ function describe(m, v) {
     const names = Object.entries(m.flag_bits).filter(([, b]) => Math.round(v.flags) & b).map(([n]) => n);
     rows.push(["flags", names.join(", ") || "none"]);
   }
+  if (m.term) rows.push(["term w", f(v.term_weight)]);
   if (m.layers.includes("std")) {
     rows.push(["std normal", `${f(v.std_normal_deg)} deg`], ["std k_d", f(v.std_diffuse)]);
     rows.push(["std k_s", f(v.std_specular)], ["std alpha", f(v.std_roughness)]);
@@ -615,6 +712,15 @@ function hemisphere(viewer) {
   drawHemi();
 }
 
+// What the relit layers show: the fit's model with its residual term, or the physical maps alone.
+function showing(viewer) {
+  const name = LAYERS[viewer.layer], term = viewer.m.term > 0;
+  let text = "";
+  if (name === "relit") text = term ? "relit: model + residual term" : "relit: the physical maps (the fit has no residual term)";
+  if (name === "physical") text = "relit: physical maps only (the residual term off), as a renderer uses them";
+  document.getElementById("shown").textContent = text;
+}
+
 function controls(viewer) {
   const m = viewer.m, bar = document.getElementById("layers");
   for (const name of m.layers) {
@@ -623,11 +729,13 @@ function controls(viewer) {
     b.onclick = () => {
       viewer.layer = LAYERS.indexOf(name);
       [...bar.children].forEach((x) => x.classList.toggle("on", x === b));
+      showing(viewer);
       viewer.request();
     };
     bar.appendChild(b);
   }
   bar.firstChild.classList.add("on");
+  showing(viewer);
   const exposure = document.getElementById("exposure");
   exposure.oninput = () => {
     viewer.exposure = 2 ** Number(exposure.value);
@@ -669,15 +777,20 @@ function canvasEvents(viewer) {
       viewer.setLight([(x - w / 2) / size, -(e.offsetY - r.height / 2) / size]);
     }
   });
-  canvas.addEventListener("pointerup", async (e) => {
+  // A click reads its pixel (a tile fetched): viewer.readouts counts the readouts begun and
+  // viewer.readout is the promise of the last one's rows, once they are in the table.
+  canvas.addEventListener("pointerup", (e) => {
     const click = down && !down.moved;
     down = null;
     if (!click) return;
-    const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), v = await viewer.pick(x, y);
-    const table = document.getElementById("info");
-    table.innerHTML = "";
-    if (!v) return;
-    for (const [k, val] of describe(viewer.m, v)) table.insertRow().append(...[k, val].map((t) => Object.assign(document.createElement("td"), { textContent: t })));
+    const [x, y] = viewer.imagePoint(e.offsetX, e.offsetY), seq = ++viewer.readouts;
+    viewer.readout = viewer.pick(x, y).then((v) => {
+      const table = document.getElementById("info"), rows = v ? describe(viewer.m, v) : [];
+      if (seq !== viewer.readouts) return rows; // a later click's readout owns the table
+      table.innerHTML = "";
+      for (const [k, val] of rows) table.insertRow().append(...[k, val].map((t) => Object.assign(document.createElement("td"), { textContent: t })));
+      return rows;
+    });
   });
   canvas.addEventListener("wheel", (e) => {
     e.preventDefault();
@@ -700,10 +813,8 @@ window.torchspecView = {
       controls(viewer);
       hemisphere(viewer);
       canvasEvents(viewer);
-      if (m.lights.length) {
-        viewer.setLight([0, 0, 1]);
-        viewer.fit(); // to the panel beside the photograph
-      }
+      if (m.lights.length) viewer.setLight([0, 0, 1]);
+      viewer.fit(); // to the layout the controls leave (their labels may wrap the bar) and the photograph's panel
       window.torchspecView.viewer = viewer;
       return viewer;
     })
@@ -715,11 +826,13 @@ window.torchspecView = {
   // (origin: 1:1, the image's top-left pixel at the canvas's); returns the state it shows.
   show(o) {
     const v = this.viewer;
+    v.resize(); // the canvas's size now, not at the last frame's: an origin or panel is placed in it
     for (const key of ["exposure", "snap", "compare", "extended", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
     v.extended = v.extended && v.nodes.length > 0;
     if ("layer" in o) {
       v.layer = LAYERS.indexOf(o.layer);
       [...document.getElementById("layers").children].forEach((b) => b.classList.toggle("on", b.textContent === o.layer));
+      showing(v);
     }
     for (const id of ["snap", "compare", "extended"]) document.getElementById(id).checked = v[id];
     if (o.light) v.setLight(o.light);
@@ -743,6 +856,15 @@ window.torchspecView = {
       gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, one);
     }
     return (count * 1000) / (performance.now() - start);
+  },
+  // The rows of the `count`-th click's readout (counted from the page's load), once they are in
+  // the table: waits for the click to arrive, then for its pixel's tile.
+  readout(count) {
+    const v = this.viewer;
+    return new Promise((resolve) => {
+      const check = () => (v.readouts >= count ? resolve(v.readout) : setTimeout(check, 5));
+      check();
+    });
   },
   settle() {
     const v = this.viewer;

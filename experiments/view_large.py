@@ -1,0 +1,216 @@
+"""``torchspec view`` on a very large fit: how soon it shows, and the server's memory.
+
+Synthesizes a fit's map folder of ``size`` (height, width) pixels, written band by band of
+``band_rows`` rows through OpenEXR's scanline writer (the script never holds a whole map): the maps
+(normal, diffuse, specular, roughness), the extra maps the viewer shows (model, quality, flags, the
+standard deviations) and one it does not read (``residual``), smooth patterns with a fine texture,
+float32, ZIP. Then runs ``python -m torchspec view FOLDER`` as its own process and, in headless
+Chromium, measures:
+
+- the server's start (the process launched until it prints its address: Python's imports, the
+  folder's headers and a sample of its rows);
+- a page opened at the fitted view: its first image (the coarsest level, made by the server's
+  background pass over the rows), from the page's navigation; the view settled (every tile of the
+  level that matches the zoom); then full resolution at 1:1 about ``place`` (every level-0 tile the
+  window shows drawn);
+- a page opened on a new server and sent at once to 1:1 about ``place`` (its tiles read on demand
+  while the background pass runs): from the page's navigation until every level-0 tile is drawn;
+- each server process's peak resident memory (``VmHWM``) and its resident memory.
+
+    python experiments/view_large.py [--config experiments/configs/view_large.yaml] [--output experiments/results]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from _common import ROOT, parse_args
+
+from torchspec.atomic import write_json
+from torchspec.config import load_config
+from torchspec.flags import FLAGS, UNTRUSTED, bit
+from torchspec.pipeline.settings import MODEL_CODES
+from torchspec.view.browser import Browser
+
+
+@dataclass(frozen=True)
+class Settings:
+    size: tuple[int, int]  # height, width of the synthetic fit
+    band_rows: int  # rows written at a time
+    folder: str  # where the maps are written (kept: reused when its svbrdf.json says the same size)
+    viewport: tuple[int, int]
+    place: tuple[float, float]  # the 1:1 view's centre, as fractions of the width and height
+
+
+MAPS = {  # file: channels
+    "normal": ("X", "Y", "Z"),
+    "diffuse": ("R", "G", "B"),
+    "specular": ("R", "G", "B"),
+    "roughness": ("X", "Y"),
+    "model": ("Y",),
+    "quality": ("Y",),
+    "flags": ("Y",),
+    "std_normal_deg": ("Y",),
+    "std_diffuse": ("R", "G", "B"),
+    "std_specular": ("R", "G", "B"),
+    "std_roughness": ("X", "Y"),
+    "residual": ("R", "G", "B"),  # a fit's map that the viewer does not read
+}
+
+
+def band(first: int, rows: int, width: int, height: int) -> dict[str, np.ndarray]:
+    """Every map's channels over rows ``first`` to ``first + rows - 1``, float32 ``(rows, W)``."""
+    y = (np.arange(first, first + rows, dtype=np.float32)[:, None] / height) * np.ones((1, width), np.float32)
+    x = np.arange(width, dtype=np.float32)[None, :] / width * np.ones((rows, 1), np.float32)
+    fine = np.sin(np.float32(2000.0) * x) * np.cos(np.float32(1700.0) * y)  # brush-stroke scale texture
+    gx, gy = 0.3 * np.sin(9 * x + 4 * y) + 0.05 * fine, 0.3 * np.cos(7 * y - 3 * x) + 0.05 * fine
+    norm = np.sqrt(1 + gx * gx + gy * gy)
+    out = {"normal": (-gx / norm, -gy / norm, 1 / norm)}
+    out["diffuse"] = tuple(0.45 + 0.35 * np.sin(f * x + g * y) + 0.05 * fine for f, g in ((5, 2), (3, 6), (8, 1)))
+    out["specular"] = tuple(0.1 + 0.08 * np.cos(3 * x + 5 * y) + 0 * fine for _ in range(3))
+    alpha = 0.15 + 0.1 * np.sin(4 * x * y + 1) + 0.02 * fine
+    out["roughness"] = (alpha, alpha)
+    out["model"] = (np.where(alpha > 0.15, 1.0, 2.0).astype(np.float32),)
+    out["quality"] = (0.5 + 0.5 * np.cos(6 * x) * np.sin(5 * y),)
+    out["flags"] = (np.where(fine > 0.95, float(bit(UNTRUSTED[0])), 0.0).astype(np.float32),)
+    out["std_normal_deg"] = (0.5 + 0.3 * np.abs(fine),)
+    out["std_diffuse"] = tuple(0.01 + 0.005 * np.abs(fine) for _ in range(3))
+    out["std_specular"] = tuple(0.02 + 0.01 * np.abs(fine) for _ in range(3))
+    out["std_roughness"] = (0.01 + 0.005 * np.abs(fine), 0.01 + 0.005 * np.abs(fine))
+    out["residual"] = tuple(0.001 * fine for _ in range(3))
+    return {name: tuple(np.ascontiguousarray(c, dtype=np.float32) for c in value) for name, value in out.items()}
+
+
+def synthesize(folder: Path, height: int, width: int, rows: int) -> float:
+    """Write the maps (band by band) and ``svbrdf.json`` (last); returns the seconds it took."""
+    import Imath
+    import OpenEXR
+
+    meta = folder / "svbrdf.json"
+    if meta.exists() and json.loads(meta.read_text()).get("synthetic_size") == [height, width]:
+        return 0.0
+    folder.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    files = {}
+    for name, channels in MAPS.items():
+        header = OpenEXR.Header(width, height)
+        header["channels"] = {c: Imath.Channel(Imath.PixelType(Imath.PixelType.FLOAT)) for c in channels}
+        header["compression"] = Imath.Compression(Imath.Compression.ZIP_COMPRESSION)
+        files[name] = OpenEXR.OutputFile(str(folder / f"{name}.exr"), header)
+    for first in range(0, height, rows):
+        count = min(rows, height - first)
+        for name, planes in band(first, count, width, height).items():
+            files[name].writePixels({c: p.tobytes() for c, p in zip(MAPS[name], planes, strict=True)}, count)
+    for file in files.values():
+        file.close()
+    document = {
+        "format": "torchspec.svbrdf",
+        "version": 1,
+        "model": "ward",
+        "model_codes": list(MODEL_CODES),
+        "flag_bits": {name: bit(name) for name in FLAGS},
+        "untrusted_flags": list(UNTRUSTED),
+        "synthetic_size": [height, width],
+    }
+    meta.write_text(json.dumps(document))
+    return time.perf_counter() - start
+
+
+def memory(pid: int) -> dict:
+    """The process's peak and current resident memory, MB."""
+    fields = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line)
+    return {key: int(fields[name].split()[0]) / 1024 for key, name in (("peak_rss_mb", "VmHWM"), ("rss_mb", "VmRSS"))}
+
+
+def one_to_one(browser: Browser, settings: Settings) -> float:
+    height, width = settings.size
+    centre = [settings.place[0] * width, settings.place[1] * height]
+    start = time.perf_counter()
+    browser.show(zoom=1, centre=centre)
+    # every level-0 tile of the view drawn (the coarsest level's tile, drawn under them while they
+    # load, may still be on its way: it waits for the server's background pass)
+    browser.evaluate("new Promise(r => { const v = torchspecView.viewer, c = () => v.complete && !v.pending ? "
+                     "r(0) : setTimeout(c, 5); setTimeout(c, 0); })")  # fmt: skip
+    return time.perf_counter() - start
+
+
+@contextmanager
+def server(folder: Path):
+    """``torchspec view FOLDER`` as its own process: ``(url, seconds to start, pid)``."""
+    command = [sys.executable, "-m", "torchspec", "view", str(folder), "--port", "0"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    start = time.perf_counter()
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        line = process.stdout.readline()
+        yield line.split()[2], time.perf_counter() - start, process.pid
+    finally:
+        process.terminate()
+        process.wait(timeout=30)
+
+
+def measure(settings: Settings, folder: Path) -> dict:
+    """Two sessions, each with a server of its own: the page opened at the fitted view (its first
+    image, the view settled, then 1:1), and the page opened straight at 1:1 (during the pass)."""
+    with server(folder) as (url, started, pid), Browser(*settings.viewport, timeout=1800.0) as browser:
+        after_start = memory(pid)
+        opened = time.perf_counter()
+        browser.open(url)
+        browser.evaluate("torchspecView.settle()")
+        fitted = time.perf_counter() - opened
+        first = browser.evaluate("torchspecView.viewer.firstImage") / 1000
+        level = browser.evaluate("torchspecView.viewer.level()")
+        late = one_to_one(browser, settings)
+        fitted_memory = memory(pid)
+    with server(folder) as (url, _, pid), Browser(*settings.viewport, timeout=1800.0) as browser:
+        opened = time.perf_counter()
+        browser.open(url)
+        loaded = time.perf_counter() - opened
+        early = loaded + one_to_one(browser, settings)  # from the page's navigation
+        early_memory = memory(pid)
+    return {
+        "load_average_1min": os.getloadavg()[0],
+        "server_start_s": started,
+        "memory_after_start": after_start,
+        "first_image_s": first,
+        "fit_view_settled_s": fitted,
+        "fit_view_level": level,
+        "one_to_one_after_s": late,
+        "memory_fit_view_session": fitted_memory,
+        "one_to_one_at_once_s": early,
+        "memory_one_to_one_session": early_memory,
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(__doc__, "view_large.yaml", argv)
+    settings = load_config(args.config, Settings)
+    folder = Path(settings.folder)
+    height, width = settings.size
+    written = synthesize(folder, height, width, settings.band_rows)
+    disk = sum(f.stat().st_size for f in folder.glob("*.exr"))
+    print(f"{height}x{width} maps ({disk / 1e9:.2f} GB of EXR) written in {written:.0f} s (0: reused)")
+    timing = measure(settings, folder)
+    print(f"server start {timing['server_start_s']:.2f} s (RSS {timing['memory_after_start']['rss_mb']:.0f} MB); "
+          f"1:1 at once {timing['one_to_one_at_once_s']:.2f} s; first image {timing['first_image_s']:.1f} s; "
+          f"fit view settled {timing['fit_view_settled_s']:.1f} s (level {timing['fit_view_level']}); "
+          f"1:1 after {timing['one_to_one_after_s']:.2f} s; server peak RSS "
+          f"{timing['memory_fit_view_session']['peak_rss_mb']:.0f} MB (opened at 1:1: "
+          f"{timing['memory_one_to_one_session']['peak_rss_mb']:.0f} MB)")  # fmt: skip
+    result = {"settings": asdict(settings), "exr_bytes": disk, "synthesis_s": written, "speed": timing}
+    path = args.output / f"{Path(args.config).stem}.json"
+    write_json(path, result)
+    print(f"wrote {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
