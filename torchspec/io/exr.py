@@ -244,7 +244,12 @@ def exr_size(path: str | Path) -> tuple[int, int]:
     Raises:
         ExrError: the file is missing or not a readable EXR.
     """
-    low, high = _open(Path(path), header_only=True).header()["dataWindow"]
+    return _size(_open(Path(path), header_only=True).header())
+
+
+def _size(header) -> tuple[int, int]:
+    """``(H, W)`` of a header's data window."""
+    low, high = header["dataWindow"]
     return int(high[1] - low[1] + 1), int(high[0] - low[0] + 1)
 
 
@@ -254,7 +259,7 @@ def _read_band(
     """:func:`_read_rows` that also returns the names of the channels read, in order, first."""
     header = _open(path, header_only=True).header()
     low = header["dataWindow"][0]
-    size = exr_size(path)
+    size = _size(header)
     found = {channel.name: channel for channel in header["channels"]}
     if isinstance(channels, str):
         channels = [channels]

@@ -160,7 +160,7 @@ CALIBRATION_GIVE_UP = 2.0
 """``auto`` stops calibrating (:func:`torchspec.lightcal.calibrate_lights`'s ``give_up``) when the
 misfit after two steps exceeds :data:`CALIBRATION_RMS` by this factor: the steps after them change
 it by under 10 %, so the lights would be refused anyway, and the refinement cost most of a small
-capture's fit (on realrti-item3 at a quarter size, 120 of 160 s)."""
+capture's fit (realrti-item3 at a quarter size: 27.2 of 50.1 s before, 8.0 of 33.0 s after)."""
 
 
 def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict | None]:
