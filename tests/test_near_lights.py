@@ -16,7 +16,7 @@ from torchspec.io import Capture, Frame, LightSpec, read_capture, write_capture
 from torchspec.io.capture import CaptureError
 from torchspec.near_lights import block_order, image_points, near_light
 from torchspec.pipeline import FitConfig, fit
-from torchspec.pipeline.tiling import tiling_of
+from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, block_width, tiling_of
 
 D = torch.float64
 
@@ -46,6 +46,30 @@ def test_block_order_is_a_permutation_of_compact_blocks(height, width, block):
     for first, stop in tiling.ranges:  # each tile spans at most a block's rows and columns
         rows, cols = tiling.order[first:stop] // width, tiling.order[first:stop] % width
         assert int(rows.max() - rows.min()) < max(block, 8) and int(cols.max() - cols.min()) < max(block, 8)
+
+
+@given(st.floats(1.2, 40.0), st.integers(8, 48), st.integers(8, 48), st.integers(0, 2**31 - 1))
+@settings(max_examples=40, deadline=None)
+def test_blocks_hold_each_light_within_the_block_angle(radius, height, width, seed):
+    """Brute force over every pixel: under near lights each block's pixels see every light within
+    BLOCK_ANGLE (x sqrt 2, the block's half diagonal against its half side) of the direction at the
+    block's centre, unless the block is LEAST_BLOCK wide; a farther dome takes larger blocks."""
+    generator = torch.Generator().manual_seed(seed)
+    up = torch.rand(12, generator=generator, dtype=D) * 1.3 + 0.2  # elevations 11-86 degrees
+    around = torch.rand(12, generator=generator, dtype=D) * 2 * math.pi
+    positions = radius * torch.stack([up.cos() * around.cos(), up.cos() * around.sin(), up.sin()], 1)
+    tiling = tiling_of(height, width, 4096, positions)
+    worst = 0.0
+    for first, stop in tiling.ranges if block_width(height, width, 4096, positions) > LEAST_BLOCK else []:
+        points = tiling.points[tiling.order[first:stop]]
+        at_centre, _ = near_light(positions, points.mean(0, keepdim=True))
+        at_pixels, _ = near_light(positions, points)
+        cos = (at_pixels * at_centre).sum(-1).clamp(max=1.0)
+        worst = max(worst, float(torch.acos(cos).max()))
+    assert worst <= math.sqrt(2) * BLOCK_ANGLE * 1.01
+    sizes = [stop - first for first, stop in tiling.ranges]
+    farther = tiling_of(height, width, 4096, 4 * positions)
+    assert max(stop - first for first, stop in farther.ranges) >= max(sizes)
 
 
 def _dome(radius: float) -> torch.Tensor:
@@ -104,7 +128,7 @@ def test_a_fit_under_near_lights_recovers_the_normals_that_distant_lights_bend(t
     distant = fit(distant_capture, config=FitConfig(model="diffuse", compile=False))
     error_near = torch.rad2deg(angle(near.svbrdf.normal.double(), truth)).median()
     error_distant = torch.rad2deg(angle(distant.svbrdf.normal.double(), truth)).median()
-    # Within a block (4 pixels of 32: tiling's BLOCKS_ACROSS) the lights' directions vary by up to
+    # Within a block (4 pixels of 32: tiling's LEAST_BLOCK) the lights' directions vary by up to
     # +-1.2 degrees about the block's centre, at which the block is fitted: the normals err by about as
     # much; taken as distant, by the lights' direction's whole variation over the image (+-10 degrees).
     assert float(error_near) < 2.0 and float(error_distant) > 5 * float(error_near)
@@ -125,11 +149,13 @@ def test_positions_must_be_given_for_every_frame_or_none(tmp_path):
         read_capture(capture.root)
 
 
-def _lambertian_with_gains(root, gains: torch.Tensor, scramble: float = 0.0) -> tuple[Capture, torch.Tensor]:
-    """A distant-light Lambertian relief whose frames' intensities are ``gains`` (the manifest lists
-    its irradiance as unknown and writes 1); ``scramble``: a random factor per sample that no
-    reflectance explains."""
-    capture, normal = _lambertian_near_capture(root / "near", radius=1e4, size=24)
+def _lambertian_with_gains(
+    root, gains: torch.Tensor, scramble: float = 0.0, radius: float = 1e4
+) -> tuple[Capture, torch.Tensor]:
+    """A Lambertian relief whose frames' intensities are ``gains``, lit by lights at ``radius``
+    (distant by default) and written as directions only (the manifest lists its irradiance as
+    unknown and writes 1); ``scramble``: a random factor per sample that no reflectance explains."""
+    capture, normal = _lambertian_near_capture(root / "near", radius=radius, size=24)
     frames = capture.read_frames(dtype=D) * gains[:, None, None, None]
     if scramble:
         generator = torch.Generator().manual_seed(1)
@@ -167,6 +193,23 @@ def test_lights_the_photographs_do_not_determine_are_kept_with_a_warning(tmp_pat
     with pytest.warns(FitWarning, match="not calibrated from the photographs"):
         result = fit(capture, config=FitConfig(model="diffuse", compile=False))
     assert result.stats["lights"]["calibrated"] == []
+
+
+def test_auto_keeps_a_dome_radius_the_photographs_show_where_it_refuses_their_gains(tmp_path):
+    """A dome at 3 widths written as directions, with a scramble no reflectance explains: the gains
+    are refused (the misfit is above CALIBRATION_RMS) but the dome's radius, one number that the
+    change of the lights' directions across the image shows, is kept with the irradiance as written;
+    the normals then err far less than under the lights as written."""
+    from torchspec.pipeline import FitWarning
+
+    capture, truth = _lambertian_with_gains(tmp_path, torch.ones(25, dtype=D), scramble=0.3, radius=3.0)
+    with pytest.warns(FitWarning, match="taken at the dome radius 3"):
+        auto = fit(capture, config=FitConfig(model="diffuse", compile=False))
+    record = auto.stats["lights"]
+    assert record["calibrated"] == ["radius"] and record["radius"] == 3.0 and "refused" in record
+    written = fit(capture, config=FitConfig(model="diffuse", compile=False, calibrate="none"))
+    error = torch.rad2deg(angle(auto.svbrdf.normal.double(), truth)).median()
+    assert 3 * float(error) < float(torch.rad2deg(angle(written.svbrdf.normal.double(), truth)).median())
 
 
 def test_a_cluster_fit_refuses_lights_it_cannot_handle(tmp_path):

@@ -182,7 +182,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     unknown = job.capture.unknown
     gains = wanted in ("gains", "positions", "dome") or (wanted == "auto" and bool(unknown))
     near = wanted == "positions" or (wanted == "auto" and "position" in unknown)
-    dome = wanted == "dome" and job.positions is None
+    dome = (wanted == "dome" or (wanted == "auto" and not near)) and job.positions is None
     if not gains:
         return job, None
     from ..lightcal import calibrate_lights  # the stage that estimates lights from photographs
@@ -206,8 +206,11 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
             "the lights are taken as written"
         )
         if wanted == "auto":
-            warnings.warn(message + ".", FitWarning, stacklevel=3)
-            return job, {"calibrated": [], "refused": message, "explained_share": explained, "rms": found.rms.tolist()}
+            refused = {"refused": message, "explained_share": explained, "rms": found.rms.tolist()}
+            if found.radius is None:
+                warnings.warn(message + ".", FitWarning, stacklevel=3)
+                return job, {"calibrated": [], **refused}
+            return _dome_only(job, found, message, refused)
         warnings.warn(
             message.replace("were not calibrated", "are calibrated as asked, but") + ".", FitWarning, stacklevel=3
         )
@@ -215,7 +218,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     calibrated_lights = Lights(found.directions.to(stack), lights.kernel, irradiance, lights.exposure.to(stack))
     positions = found.positions.to(stack) if (near or dome) and found.positions is not None else job.positions
     record = {
-        "calibrated": ["irradiance", "position"] if near else ["irradiance", "radius"] if dome else ["irradiance"],
+        "calibrated": ["irradiance", "position"] if near else ["irradiance"] + (["radius"] if found.radius else []),
         "radius": found.radius,
         "radius_misfit": found.radius_misfit,
         "gains": found.gains.tolist(),
@@ -227,3 +230,22 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         "iterations": found.iterations,
     }
     return replace(job, lights=calibrated_lights, positions=positions, gains=found.gains.to(stack)), record
+
+
+def _dome_only(job: Setup, found, message: str, refused: dict) -> tuple[Setup, dict]:
+    """``auto``'s lights where the gains are refused but one dome radius explains the photographs
+    better than distant lights (:func:`torchspec.lightcal.dome_radius`): the lights at that radius
+    along their written directions, with the irradiance as written."""
+    warnings.warn(
+        message.replace(
+            "the lights are taken as written",
+            f"the lights are taken at the dome radius {found.radius:g} "
+            "(image widths) the photographs show, with the irradiance as written",
+        )
+        + ".",
+        FitWarning,
+        stacklevel=4,
+    )
+    positions = found.radius * job.lights.directions
+    record = {"calibrated": ["radius"], "radius": found.radius, "radius_misfit": found.radius_misfit, **refused}
+    return replace(job, positions=positions), record

@@ -16,16 +16,27 @@ from ..near_lights import block_order, block_sizes, image_points, lights_at
 from .start import LightContext, light_context
 from .tile import TileResult
 
-__all__ = ["Tiling", "tiling_of", "merge_tiles", "sum_counts"]
+__all__ = ["Tiling", "tiling_of", "block_width", "merge_tiles", "sum_counts"]
 
 LEAST_BLOCK = 4
 """Under near lights a block is at least this many pixels wide ..."""
-BLOCKS_ACROSS = 16
-"""... and at most 1 / BLOCKS_ACROSS of the image's width (or of a tile's pixels): under lights 3
-widths away, the light's direction varies by up to 0.6 degrees about a block's centre (on a
-Lambertian relief of ``tests/test_near_lights.py``, 32 pixels wide in blocks of 4, the normals'
-median error is 1.6 degrees against 12.8 with the lights taken as distant, and it shrinks with
-the block)."""
+BLOCK_ANGLE = math.radians(0.6)
+"""... and no wider than lets the nearest light's direction vary by more than this about the
+block's centre along a side (:func:`block_width`; and at most a tile's pixels): 1/16 of the image's
+width under lights 3 widths away. On a Lambertian relief of ``tests/test_near_lights.py``, 32 pixels
+wide in blocks of 4, the normals' median error is 1.6 degrees against 12.8 with the lights taken as
+distant; a farther dome takes larger blocks (fewer, larger batches) for the same error."""
+
+
+def block_width(height: int, width: int, tile: int, positions: Tensor) -> int:
+    """The side (pixels) of :func:`tiling_of`'s blocks under near lights at ``positions (K, 3)``:
+    ``2 tan(BLOCK_ANGLE)`` times the least distance from a light to the image (image widths,
+    :mod:`torchspec.near_lights`), at least :data:`LEAST_BLOCK` and at most ``sqrt(tile)`` pixels."""
+    half = torch.tensor([0.5, 0.5 * height / width], dtype=positions.dtype, device=positions.device)
+    nearest = torch.minimum(positions[:, :2].abs(), half)  # the image's point nearest each light, mirrored
+    reach = float(torch.cat([positions[:, :2].abs() - nearest, positions[:, 2:]], 1).norm(dim=1).min())
+    across = math.floor(2 * math.tan(BLOCK_ANGLE) * reach * width)
+    return max(LEAST_BLOCK, min(math.isqrt(max(tile, 1)), across))
 
 
 @dataclass(frozen=True)
@@ -68,12 +79,11 @@ class Tiling:
 
 def tiling_of(height: int, width: int, tile: int, positions: Tensor | None) -> Tiling:
     """Tiles of ``tile`` pixels in row-major order for distant lights (``positions`` ``None``);
-    square blocks under near lights, at most ``tile`` pixels and :data:`BLOCKS_ACROSS` to the
-    image's width (at least :data:`LEAST_BLOCK` wide)."""
+    square blocks under near lights (:func:`block_width`)."""
     pixels = height * width
     if positions is None:
         return Tiling(ranges=[(first, min(first + tile, pixels)) for first in range(0, pixels, tile)])
-    block = max(LEAST_BLOCK, min(math.isqrt(max(tile, 1)), math.ceil(max(height, width) / BLOCKS_ACROSS)))
+    block = block_width(height, width, tile, positions)
     starts, ranges = 0, []
     for size in block_sizes(height, width, block):
         ranges.append((starts, starts + size))
