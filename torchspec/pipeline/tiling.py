@@ -16,7 +16,7 @@ from ..near_lights import block_order, block_sizes, image_points, lights_at
 from .start import LightContext, light_context
 from .tile import TileResult
 
-__all__ = ["Tiling", "tiling_of", "merge_tiles", "sum_counts"]
+__all__ = ["Tiling", "tiling_of", "near_block", "merge_tiles", "sum_counts"]
 
 LEAST_BLOCK = 4
 """Under near lights a block is at least this many pixels wide ..."""
@@ -73,13 +73,19 @@ def tiling_of(height: int, width: int, tile: int, positions: Tensor | None) -> T
     pixels = height * width
     if positions is None:
         return Tiling(ranges=[(first, min(first + tile, pixels)) for first in range(0, pixels, tile)])
-    block = max(LEAST_BLOCK, min(math.isqrt(max(tile, 1)), math.ceil(max(height, width) / BLOCKS_ACROSS)))
+    block = near_block(height, width, tile)
     starts, ranges = 0, []
     for size in block_sizes(height, width, block):
         ranges.append((starts, starts + size))
         starts += size
     points = image_points(height, width, dtype=positions.dtype, device=positions.device)
     return Tiling(ranges=ranges, order=block_order(height, width, block), positions=positions, points=points)
+
+
+def near_block(height: int, width: int, tile: int) -> int:
+    """The side, in pixels, of :func:`tiling_of`'s square blocks under near lights: at most
+    ``tile`` pixels and :data:`BLOCKS_ACROSS` to the image's width, at least :data:`LEAST_BLOCK`."""
+    return max(LEAST_BLOCK, min(math.isqrt(max(tile, 1)), math.ceil(max(height, width) / BLOCKS_ACROSS)))
 
 
 def merge_tiles(parts: list[TileResult], inverse: Tensor) -> TileResult:
