@@ -16,7 +16,7 @@ from torchspec.io import Capture, Frame, LightSpec, read_capture, write_capture
 from torchspec.io.capture import CaptureError
 from torchspec.near_lights import block_order, image_points, near_light
 from torchspec.pipeline import FitConfig, fit
-from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, block_width, tiling_of
+from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block, tiling_of
 
 D = torch.float64
 
@@ -60,7 +60,7 @@ def test_blocks_hold_each_light_within_the_block_angle(radius, height, width, se
     positions = radius * torch.stack([up.cos() * around.cos(), up.cos() * around.sin(), up.sin()], 1)
     tiling = tiling_of(height, width, 4096, positions)
     worst = 0.0
-    for first, stop in tiling.ranges if block_width(height, width, 4096, positions) > LEAST_BLOCK else []:
+    for first, stop in tiling.ranges if near_block(height, width, 4096, positions) > LEAST_BLOCK else []:
         points = tiling.points[tiling.order[first:stop]]
         at_centre, _ = near_light(positions, points.mean(0, keepdim=True))
         at_pixels, _ = near_light(positions, points)

@@ -19,10 +19,13 @@ import torch
 
 from torchspec.errors import TorchspecError
 from torchspec.export import ExportError, export
-from torchspec.io import Capture, Frame, LightSpec, read_svbrdf, write_capture, write_svbrdf
+from torchspec.io import Capture, Frame, LightSpec, Maps, read_svbrdf, write_capture, write_svbrdf
 from torchspec.io import svbrdf as svbrdf_io
 from torchspec.lights import Kernel, Lights
+from torchspec.near_lights import image_points, near_light
 from torchspec.outputs import OutputError
+from torchspec.pipeline.tiling import near_block
+from torchspec.relight import render_capture, render_near
 from torchspec.rendering import render_image
 from torchspec.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, encode
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
@@ -429,6 +432,137 @@ def test_under_a_kernel_without_a_table_the_term_is_taken_at_the_nodes_mean(brow
             page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
             expected = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel, term=term).astype(int)
             assert np.abs(page - expected).max() <= 1, light
+
+
+def _near_capture(folder, maps, exposure=2.0, irradiance=0.5):
+    """A capture of ``maps`` under 12 point lights 1.2 to 2 image widths away (a dome: each frame's
+    ``position``), its photographs rendered as ``torchspec render`` renders near lights (block by
+    block: torchspec.relight.render_near); and the positions ``(12, 3)``."""
+    height, width = maps.svbrdf.shape
+    directions = torch.tensor(hemisphere_lights(12, 75.0))
+    positions = directions * torch.linspace(1.2, 2.0, 12, dtype=torch.float64)[:, None]
+    frames = [Frame(f"f{k:02d}.exr", tuple(d.tolist()), irradiance, exposure, position=tuple(p.tolist()))
+              for k, (d, p) in enumerate(zip(directions, positions, strict=True))]  # fmt: skip
+    capture = Capture(folder, width, height, ("R", "G", "B"), (0.0, 0.0, 1.0), LightSpec("point"), frames)
+    lights = Lights(directions, Kernel("point"), torch.full((12, 3), irradiance, dtype=torch.float64),
+                    torch.full((12,), exposure, dtype=torch.float64))  # fmt: skip
+    values = render_near(maps.svbrdf.to(torch.float64), lights, positions, torch.tensor([0.0, 0.0, 1.0]).double())
+    return write_capture(folder, capture, values.permute(2, 3, 0, 1).float()), positions
+
+
+def test_the_manifest_gives_the_near_lights_positions(tmp_path):
+    maps = model_maps("ward-iso", 8, 12)
+    capture, positions = _near_capture(tmp_path / "near", maps)
+    manifest = open_site(maps, capture).manifest
+    assert np.allclose(manifest["positions"], positions.numpy()) and manifest["near_block"] == near_block(8, 12, 4096)
+    assert np.isclose(manifest["near_radius"], positions.norm(dim=-1).median().item())
+    assert "the capture's positions" in manifest["near_source"]
+    distant = _capture(tmp_path / "distant", maps)
+    assert open_site(maps, distant).manifest["positions"] == [] and open_site(maps).manifest["near_radius"] is None
+    # A fit that calibrated one dome radius (svbrdf.json's fit.lights): every frame at it along its direction.
+    dome = {"frames": list(range(12)), "lights": {"calibrated": ["irradiance", "radius"], "radius": 2.5, "gains": []}}
+    manifest = open_site(Maps(maps.svbrdf, {"fit": dome}), distant).manifest
+    assert np.allclose(manifest["positions"], 2.5 * distant.directions().numpy()) and manifest["near_radius"] == 2.5
+    assert "dome radius" in manifest["near_source"]
+    # A fit that calibrated the positions of the frames it fitted: those, the others the capture's.
+    found = positions[::2] * 1.1
+    fitted = {"frames": list(range(0, 12, 2)), "lights": {"calibrated": ["irradiance", "position"],
+                                                          "positions": found.tolist()}}  # fmt: skip
+    shown = np.array(open_site(Maps(maps.svbrdf, {"fit": fitted}), capture).manifest["positions"])
+    assert np.allclose(shown[::2], found.numpy()) and np.allclose(shown[1::2], positions[1::2].numpy())
+    fitted["frames"] = list(range(2, 14, 2))  # frame 12: not the capture's
+    with pytest.raises(TorchspecError, match="fit.lights.positions"):
+        open_site(Maps(maps.svbrdf, {"fit": fitted}), capture)
+
+
+NEAR_POSITIONS = ([0.3, 0.2, 1.0], [1.2, 0.0, 0.5], [-1.4, 1.3, 0.35], [0.0, -0.6, 1.9])
+"""Near lights 1.1 to 2 image widths away, 70, 23, 10 and 72 degrees above the horizon (from the centre)."""
+
+
+@needs_browser
+@pytest.mark.parametrize("model", MODEL_TYPES)
+def test_the_page_relights_under_a_near_light_as_render_does(browser, model):
+    maps = model_maps(model, 45, 69, seed=3)
+    site = open_site(maps)
+    assert site.manifest["near_block"] == 5  # render's blocks: 5 pixels, the last column of blocks 4 wide
+    with _page(browser, site):
+        for position in NEAR_POSITIONS:
+            at = np.array(position)
+            direction, distance = at / np.linalg.norm(at), float(np.linalg.norm(at))
+            # as torchspec render: one direction a block of pixels (render_near); and at each pixel
+            for each in (False, True):
+                shown = {"light": direction.tolist(), "distance": distance, "pixel": each, "layer": "relit"}
+                state = browser.show(origin=True, **shown)
+                assert np.allclose(state["position"], position, atol=1e-12)
+                page = browser.read(0, 0, 69, 45)[..., :3].astype(int)
+                expected = reference_srgb(maps.svbrdf, None, position=position, each_pixel=each).astype(int)
+                assert np.abs(page - expected).max() <= 1, (model, position, each)
+            distant = reference_srgb(maps.svbrdf, tuple(direction)).astype(int)
+            assert np.abs(distant - expected).max() > 10  # the position matters
+        state = browser.show(origin=True, distance=None)  # infinite: the distant light of the same direction
+        assert state["position"] is None
+        assert np.abs(browser.read(0, 0, 69, 45)[..., :3].astype(int) - distant).max() <= 1
+
+
+@needs_browser
+def test_under_a_near_light_the_kernel_and_the_term_follow_each_blocks_direction(browser, tmp_path):
+    maps = with_term(model_maps("ward-iso", 24, 32, seed=9, alpha=(0.03, 0.2)), 3, seed=6)
+    capture, _ = _near_capture(tmp_path / "c", maps)
+    site = open_site(maps, capture)
+    kernel = Kernel("gaussian", "projected", DEMO_SIGMA)
+    site.manifest.update(light_quadrature(kernel).describe())  # as a capture with this kernel gives it
+    narrow = lobe_width(maps.svbrdf) / 2 < site.manifest["kernel_spacing"]  # fixed nodes would straddle these
+    assert narrow.mean() > 0.2
+    term = _term(maps)
+    # Where the kernel comes within about 30 degrees of the horizon, render integrates on its
+    # reference nodes (the product of kernel and lobe reaches the horizon) and the page does not,
+    # near or distant (the distant tests above keep within 60 degrees of the zenith): so do these
+    # lights, at every pixel.
+    positions = ([0.3, 0.2, 1.0], [0.6, 0.4, 1.2], [0.0, -0.6, 1.9])
+    directions, _ = near_light(torch.tensor(positions, dtype=torch.float64), image_points(24, 32))
+    assert float(torch.rad2deg(torch.acos(directions[..., 2])).max()) < 60.0
+    with _page(browser, site):
+        for position in positions:
+            direction = (np.array(position) / np.linalg.norm(position)).tolist()
+            state = browser.show(origin=True, light=direction, distance=float(np.linalg.norm(position)), snap=False,
+                                 compare=False, layer="relit")  # fmt: skip
+            assert state["extended"] and np.allclose(state["position"], position, atol=1e-12)
+            page = browser.read(0, 0, 32, 24)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, None, kernel=kernel, term=term, position=position).astype(int)
+            difference = np.abs(page - expected).max(-1)
+            assert difference[~narrow].max() <= 1 and difference[narrow].max() <= 1, position
+            distant = reference_srgb(maps.svbrdf, tuple(direction), kernel=kernel, term=term).astype(int)
+            assert np.abs(distant - expected).max() > 10
+
+
+@needs_browser
+def test_on_a_near_capture_the_light_snaps_to_a_frames_position(browser, tmp_path):
+    maps = model_maps("ward-iso", 24, 32, seed=5)
+    capture, positions = _near_capture(tmp_path / "c", maps, exposure=2.0, irradiance=0.5)
+    write_svbrdf(tmp_path / "maps", maps)
+    predicted = render_capture(tmp_path / "maps", capture.root, None, dtype=torch.float64)["predicted"]
+    site = open_site(maps, capture)
+    with _page(browser, site):
+        target = capture.directions()[7]
+        state = browser.show(origin=True, light=(target[:2] + 0.02).tolist(), layer="relit")
+        assert state["distance"] == site.manifest["near_radius"] != np.linalg.norm(state["position"])
+        assert state["frame"] == 7 and np.allclose(state["position"], positions[7].tolist(), atol=1e-12)
+        relit = browser.read(0, 0, 32, 24)[..., :3].astype(int)
+        photo = browser.read(state["panels"][1]["x"], 0, 32, 24)[..., :3].astype(int)
+        rendered = (predicted[7] / (2.0 * 0.5)).permute(1, 2, 0).clamp(0.0, 1.0)  # torchspec render, at unit light
+        assert np.abs(relit - torch.round(encode(rendered) * 255).numpy()).max() <= 1
+        assert np.abs(photo - relit).max() <= 1  # the photograph (float16, unit light) is the model's
+        assert "frame 7's position (the capture's positions)" in browser.evaluate(
+            "document.getElementById('near').textContent"
+        )
+        distant = reference_srgb(maps.svbrdf, tuple(target.tolist())).astype(int)
+        assert np.abs(distant - relit).max() > 10  # the frame's light taken as distant: another image
+        # The distance control's last step: a distant light, snapped to the frame's direction.
+        browser.evaluate("(() => { const d = document.getElementById('distance'); d.value = d.max; "
+                         "d.dispatchEvent(new Event('input')); })()")  # fmt: skip
+        state = browser.show(origin=True)  # the control's label changed: the canvas may have moved
+        assert state["position"] is None and state["frame"] == 7
+        assert np.abs(browser.read(0, 0, 32, 24)[..., :3].astype(int) - distant).max() <= 1
 
 
 def _lazy_and_in_memory(folder):

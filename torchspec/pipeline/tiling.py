@@ -16,19 +16,19 @@ from ..near_lights import block_order, block_sizes, image_points, lights_at
 from .start import LightContext, light_context
 from .tile import TileResult
 
-__all__ = ["Tiling", "tiling_of", "block_width", "merge_tiles", "sum_counts"]
+__all__ = ["Tiling", "tiling_of", "near_block", "merge_tiles", "sum_counts"]
 
 LEAST_BLOCK = 4
 """Under near lights a block is at least this many pixels wide ..."""
 BLOCK_ANGLE = math.radians(0.6)
 """... and no wider than lets the nearest light's direction vary by more than this about the
-block's centre along a side (:func:`block_width`; and at most a tile's pixels): 1/16 of the image's
+block's centre along a side (:func:`near_block`; and at most a tile's pixels): 1/16 of the image's
 width under lights 3 widths away. On a Lambertian relief of ``tests/test_near_lights.py``, 32 pixels
 wide in blocks of 4, the normals' median error is 1.6 degrees against 12.8 with the lights taken as
 distant; a farther dome takes larger blocks (fewer, larger batches) for the same error."""
 
 
-def block_width(height: int, width: int, tile: int, positions: Tensor) -> int:
+def near_block(height: int, width: int, tile: int, positions: Tensor) -> int:
     """The side (pixels) of :func:`tiling_of`'s blocks under near lights at ``positions (K, 3)``:
     ``2 tan(BLOCK_ANGLE)`` times the least distance from a light to the image (image widths,
     :mod:`torchspec.near_lights`), at least :data:`LEAST_BLOCK` and at most ``sqrt(tile)`` pixels."""
@@ -79,11 +79,11 @@ class Tiling:
 
 def tiling_of(height: int, width: int, tile: int, positions: Tensor | None) -> Tiling:
     """Tiles of ``tile`` pixels in row-major order for distant lights (``positions`` ``None``);
-    square blocks under near lights (:func:`block_width`)."""
+    square blocks under near lights (:func:`near_block`)."""
     pixels = height * width
     if positions is None:
         return Tiling(ranges=[(first, min(first + tile, pixels)) for first in range(0, pixels, tile)])
-    block = block_width(height, width, tile, positions)
+    block = near_block(height, width, tile, positions)
     starts, ranges = 0, []
     for size in block_sizes(height, width, block):
         ranges.append((starts, starts + size))

@@ -1,5 +1,6 @@
 """What the page's relit image should be: :func:`torchspec.render` of the same maps under the same
-light (a point or an extended kernel about the same centre), encoded as the page encodes it (sRGB,
+light (a point or an extended kernel about the same centre; a near light as
+:func:`torchspec.relight.render_near` renders it, or at each pixel), encoded as the page encodes it (sRGB,
 8 bits); the width of each pixel's lobe, to tell where an extended light's fixed nodes fall too far
 apart; and small maps of each model type to compare on (the tests, ``experiments/view.py``).
 """
@@ -18,11 +19,21 @@ from ..geometry import normal_from_angles
 from ..io import Maps
 from ..lights import Kernel, Lights
 from ..lobe import lobe_frame, lobe_moments
+from ..near_lights import image_points, near_light
 from ..pipeline.settings import MODEL_CODES
-from ..rendering import render_image
+from ..relight import render_near
+from ..rendering import render, render_image
 from ..residual_term import MAP_NAME, TERMS, WEIGHT_MAP, ResidualTerm, encode
 
-__all__ = ["MODEL_TYPES", "model_maps", "with_term", "reference_srgb", "hemisphere_lights", "lobe_width"]
+__all__ = [
+    "MODEL_TYPES",
+    "model_maps",
+    "with_term",
+    "reference_srgb",
+    "render_each_pixel",
+    "hemisphere_lights",
+    "lobe_width",
+]
 
 MODEL_TYPES = ("diffuse", "ward-iso", "ward-aniso", "ward-dual")
 """The model types the page shades (``ward-iso-colour`` is ``ward-iso`` with a coloured ``k_s``)."""
@@ -98,19 +109,57 @@ def reference_srgb(
     dtype: torch.dtype = torch.float64,
     kernel: Kernel | None = None,
     term: ResidualTerm | None = None,
+    position=None,
+    each_pixel: bool = False,
 ) -> np.ndarray:
     """``(H, W, 3)`` uint8: :func:`torchspec.rendering.render_image` of ``svbrdf`` under a light
     centred at ``light (3,)`` of unit irradiance (a point, or ``kernel``), with the residual
     ``term`` applied as ``torchspec render`` applies it (:meth:`ResidualTerm.apply`), times ``exposure``,
     sRGB-encoded (clipped to ``[0, 1]``) and rounded to 8 bits as the page shows it (grey
-    replicated to 3 channels)."""
+    replicated to 3 channels). With ``position (3,)`` (image widths; ``light`` is then unused), a
+    near light of unit irradiance at the image's centre, rendered as ``torchspec render`` renders
+    it (:func:`torchspec.relight.render_near`: block by block) or, ``each_pixel``, at each pixel
+    (:func:`render_each_pixel`)."""
     one = torch.ones(1, 1, dtype=dtype)
-    lights = Lights(torch.tensor([light], dtype=dtype), kernel or Kernel("point"), one, one[0])
-    value = render_image(svbrdf.to(dtype), lights, torch.tensor(view, dtype=dtype))
-    value = value if term is None else term.apply(value, lights)
+    view = torch.tensor(view, dtype=dtype)
+    if position is None:
+        lights = Lights(torch.tensor([light], dtype=dtype), kernel or Kernel("point"), one, one[0])
+        value = render_image(svbrdf.to(dtype), lights, view)
+        value = value if term is None else term.apply(value, lights)
+    else:
+        at = torch.tensor([position], dtype=dtype)
+        lights = Lights(at / at.norm(), kernel or Kernel("point"), one, one[0])
+        value = (render_each_pixel if each_pixel else render_near)(svbrdf.to(dtype), lights, at, view, term=term)
     value = (value[:, :, 0] * exposure).clamp(0.0, 1.0)
     value = value.expand(*value.shape[:2], 3) if value.shape[-1] == 1 else value[..., :3]
     return torch.round(encode(value) * 255.0).to(torch.uint8).numpy()
+
+
+def render_each_pixel(
+    svbrdf: SVBRDF, lights: Lights, positions: torch.Tensor, view: torch.Tensor, *, term: ResidualTerm | None = None
+) -> torch.Tensor:
+    """``(H, W, K, C)``: :func:`torchspec.relight.render_near` with every pixel under the lights as
+    seen from its own centre (not its block's): by brute force, a chunk of ``n`` pixels rendered
+    under the ``n K`` lights of its pixels and each pixel's own ``K`` kept (``n`` times the work)."""
+    height, width = svbrdf.shape
+    flat, k = svbrdf.flatten(), positions.shape[0]
+    positions = positions.to(svbrdf.normal)
+    points = image_points(height, width, dtype=positions.dtype, device=positions.device)
+    coefficients = None if term is None else term.coefficients.reshape(height * width, *term.coefficients.shape[-2:])
+    parts, step = [], 64
+    for first in range(0, height * width, step):  # chunks of pixels: a batched render each
+        index = torch.arange(first, min(first + step, height * width), device=points.device)
+        n = index.numel()
+        directions, falloff = near_light(positions, points[index])  # (n, K, 3), (n, K)
+        irradiance = (lights.irradiance.to(falloff)[None] * falloff[..., None]).reshape(n * k, -1)
+        near = Lights(directions.reshape(n * k, 3), lights.kernel, irradiance, lights.exposure.to(falloff).repeat(n))
+        values = render(flat[index], near, view)  # (n, n K, C)
+        if term is not None:
+            weight = None if term.weight is None else term.weight.reshape(-1)[index]
+            part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight)
+            values = part.apply(values, near)
+        parts.append(values.reshape(n, n, k, -1)[torch.arange(n), torch.arange(n)])  # each pixel's own lights
+    return torch.cat(parts).reshape(height, width, k, -1)
 
 
 def hemisphere_lights(count: int = 20, max_zenith_deg: float = 80.0) -> np.ndarray:

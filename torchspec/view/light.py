@@ -1,5 +1,5 @@
 """The page's light: a point, or a capture's extended kernel as a fixed quadrature that the shader
-sums (``manifest.json``'s ``kernel_*`` keys).
+sums (``manifest.json``'s ``kernel_*`` keys); and near lights' positions (:func:`near_lights`).
 
 An extended kernel is shipped as at most :data:`MAX_NODES` nodes, offsets from the light's centre
 with weights (the kernel's mass at each), the same for every centre: the page's relit value is
@@ -38,10 +38,13 @@ import numpy as np
 import torch
 
 from ..errors import TorchspecError
+from ..io import Capture
 from ..lights import Kernel, Lights, diffuse_directions, nodes
+from ..pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block
 from ..quadrature import FAST_ORDER, Quadrature, hermite
+from ..rendering import TILE_PIXELS
 
-__all__ = ["MAX_NODES", "DIFFUSE_ROWS", "DIFFUSE_REACH", "LightQuadrature", "light_quadrature"]
+__all__ = ["MAX_NODES", "DIFFUSE_ROWS", "DIFFUSE_REACH", "LightQuadrature", "light_quadrature", "near_lights"]
 
 MAX_NODES = 64
 """The most nodes of an extended light the page sums (its shader's uniform array)."""
@@ -189,3 +192,60 @@ def light_quadrature(kernel: Kernel | None, order: int = 8) -> LightQuadrature:
         _diffuse_table(kernel) if kernel.kind == "gaussian" else np.zeros((0, 2)),
         torch.cat([points, weight[:, None]], 1).numpy() if gaussian else np.zeros((0, 3)),
     )
+
+
+def near_lights(capture: Capture | None, meta: dict, height: int, width: int) -> dict:
+    """The manifest's keys of near lights (:mod:`torchspec.near_lights`): ``positions``, each of
+    the capture's ``K`` frames' light position ``[x, y, z]`` in image widths from the image's
+    centre (``[]``: distant lights); ``near_radius``, the distance the page's light starts at (the
+    positions' median distance; ``None``: distant); ``near_source``, what the positions come from;
+    ``near_block``, the side in pixels of the square blocks that ``torchspec render`` lights from
+    one direction each under these positions (:func:`torchspec.relight.render_near`,
+    :func:`torchspec.pipeline.tiling.near_block`), for an ``H x W`` image (``None``: no positions);
+    and :func:`block_rule`'s keys, with which the page finds the block of a light of its own.
+
+    The positions are the capture's (``frames[k].position``), as ``torchspec render`` takes them,
+    unless the fit calibrated them from the photographs (``meta``: ``svbrdf.json``'s ``fit.lights``,
+    :func:`torchspec.pipeline.plan.calibrated`): one dome radius (every frame at that distance
+    along its direction), or the positions of the frames it fitted (``fit.frames``; the others keep
+    the capture's, else lie at the calibrated positions' median distance along their direction).
+    Calibrated gains are left out, as ``torchspec render`` leaves them out.
+
+    Raises:
+        TorchspecError: ``fit.lights.positions`` is not one position for each of ``fit.frames``,
+            or names a frame the capture does not have.
+    """
+    none = {"positions": [], "near_radius": None, "near_source": "", "near_block": None, **block_rule(height, width)}
+    if capture is None:
+        return none
+    fit = meta.get("fit") or {}
+    record = fit.get("lights") or {}
+    calibrated = record.get("calibrated") or []
+    directions, positions = capture.directions(), capture.positions()
+    source = "the capture's positions"
+    if "radius" in calibrated and record.get("radius") is not None:
+        radius = float(record["radius"])
+        positions = radius * directions
+        source = f"the fit's dome radius, {radius:g} widths (torchspec render takes the lights as distant)"
+    elif "position" in calibrated and record.get("positions") is not None:
+        frames, found = fit.get("frames") or [], torch.tensor(record["positions"], dtype=torch.float64)
+        if tuple(found.shape) != (len(frames), 3) or not all(0 <= k < len(directions) for k in frames):
+            raise TorchspecError(
+                f"svbrdf.json: fit.lights.positions ({tuple(found.shape)}) is not a position for each of fit.frames "
+                f"of {capture.manifest} ({len(directions)} frames): view a fit with the capture it was fitted from."
+            )
+        base = positions if positions is not None else found.norm(dim=-1).median() * directions
+        positions = base.index_put((torch.tensor(frames, dtype=torch.long),), found)
+        source = "the fit's calibrated positions (torchspec render takes the capture's)"
+    if positions is None:
+        return none
+    radius = float(positions.norm(dim=-1).median())
+    block = near_block(height, width, TILE_PIXELS, positions.to(torch.float64))
+    return {**none, "positions": positions.tolist(), "near_radius": radius, "near_source": source, "near_block": block}
+
+
+def block_rule(height: int, width: int) -> dict:
+    """What the page needs to find ``torchspec render``'s block for a light of its own
+    (:func:`torchspec.pipeline.tiling.near_block` of that one light): ``block_angle`` (radians),
+    ``least_block`` and ``most_block`` (pixels)."""
+    return {"block_angle": BLOCK_ANGLE, "least_block": LEAST_BLOCK, "most_block": math.isqrt(TILE_PIXELS)}

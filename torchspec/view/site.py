@@ -4,7 +4,8 @@ web server can host (``torchspec export --to web``). Both lay the site out the s
 
     index.html, viewer.js, viewer.css   the page (package data: torchspec/view/static/)
     manifest.json                       size, channels, view, levels, textures, layers, lights,
-                                        the light kernel's nodes (:mod:`torchspec.view.light`),
+                                        near lights' positions and the light kernel's nodes
+                                        (:mod:`torchspec.view.light`),
                                         ``term``: the residual term's basis functions (0: none)
     tiles/L/R_C.bin                     the maps' tile at level L, row R, column C
     photo/K/L/R_C.bin                   with a capture: frame K's photograph, the same tiling
@@ -37,7 +38,7 @@ from ..lights import Kernel
 from ..outputs import check_output
 from ..progress import bar
 from ..report import MODEL_COLOURS
-from .light import light_quadrature
+from .light import light_quadrature, near_lights
 from .tiles import EXTRA_MAPS, Pyramid, photo_pyramid
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
@@ -200,6 +201,7 @@ def open_site(
             **{n: _quantile([band.extra[n].numpy() for band in bands]) for n in extra if n.startswith("std_")},
         },
         "lights": [] if capture is None else capture.directions().tolist(),
+        **near_lights(capture, meta, height, width),
         "term": terms,
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),

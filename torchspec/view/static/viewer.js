@@ -9,6 +9,10 @@
 // "relit" layer, as torchspec.residual_term.ResidualTerm.apply adds it at unit light:
 // decode(w encode(value) + sum_j c_j H_j(d)), d the light's direction (an extended kernel's
 // effective direction); the "physical" layer leaves it off.
+// A near light (manifest positions, near_radius; the distance control) lights each texel as
+// torchspec/near_lights.py does: from (p - x) / |p - x| with the falloff (|p| / |p - x|)^2, x the
+// centre of the texel's block of torchspec.relight.render_near (or, asked, of the pixel itself);
+// an extended kernel about that direction, and the residual term at it.
 "use strict";
 
 const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", "quality", "flags", "std", "photo", "physical"];
@@ -52,6 +56,11 @@ uniform vec4 uDiffuse[64]; // rows 2i and 2i + 1: (a, b) of d = (a l_xy / |l_xy|
 uniform sampler2D tTerm0, tTerm1, tTerm2, tTerm3, tTerm4, tTerm5, tTerm6;
 #endif
 uniform vec3 uLight, uView, uModelColours[8];
+uniform vec4 uNear; // a near light: its position (image widths from the image's centre) and w = 1; w = 0: distant
+uniform vec3 uPlace; // the tile's first texel in level-0 pixels (x, y) and a texel's size in them (z)
+uniform ivec2 uSize; // the image's width and height (level-0 pixels)
+uniform int uBlock; // a near light's direction is taken at the centre of blocks of this many pixels a side
+vec3 gLight; // the light's (centre) direction at this texel: uLight, or towards a near light (lightAt)
 uniform float uExposure, uGain;
 in vec2 vTex;
 out vec4 outColour;
@@ -66,13 +75,13 @@ float ward(vec3 l, vec3 n, vec3 s, vec3 t, float ax, float ay, float ci, float c
 }
 
 #if EXTENDED
-// The product of the kernel N(uLight.xy, uSigma^2) and a Gaussian N(b, B) in the l-plane: its mean
+// The product of the kernel N(gLight.xy, uSigma^2) and a Gaussian N(b, B) in the l-plane: its mean
 // (returned) and covariance (cov).
 vec2 product(vec2 b, mat2 B, out mat2 cov) {
   float s2 = uSigma * uSigma;
   mat2 gain = s2 * inverse(mat2(s2) + B);
   cov = gain * B;
-  return uLight.xy + gain * (b - uLight.xy);
+  return gLight.xy + gain * (b - gLight.xy);
 }
 
 // A lobe under a projected Gaussian kernel, on render's Gauss-Hermite points placed on the
@@ -113,7 +122,7 @@ float lobeUnderKernel(vec3 n, vec3 s, vec3 t, float ax, float ay, float co) {
     float r2 = dot(p, p);
     if (r2 >= 1.0) continue; // at or beyond the horizon: no light
     vec3 l = vec3(p, sqrt(1.0 - r2));
-    vec2 d = (p - uLight.xy) / uSigma;
+    vec2 d = (p - gLight.xy) / uSigma;
     // weight / the standard normal density at xi, times the kernel's density at p and det L
     sum += uLobeRule[q].z * area * exp(0.5 * (dot(xi, xi) - dot(d, d))) * ward(l, n, s, t, ax, ay, dot(n, l), co);
   }
@@ -125,23 +134,39 @@ vec3 nodeDirection(int q, vec3 e1, vec3 e2) {
   vec3 node = uNode[q];
   if (uAngular != 0) {
     float g = length(node.xy);
-    return g > 0.0 ? cos(g) * uLight + (sin(g) / g) * (node.x * e1 + node.y * e2) : uLight;
+    return g > 0.0 ? cos(g) * gLight + (sin(g) / g) * (node.x * e1 + node.y * e2) : gLight;
   }
-  vec2 p = uLight.xy + node.xy;
+  vec2 p = gLight.xy + node.xy;
   float r2 = dot(p, p);
   return vec3(p, r2 < 1.0 ? sqrt(1.0 - r2) : 0.0);
 }
 
 // The kernel's effective diffuse direction at the light's centre, interpolated in its table.
 vec3 effective() {
-  float rho = length(uLight.xy), f = clamp(rho / uDiffuseReach, 0.0, 1.0) * float(uDiffuseRows - 1);
+  float rho = length(gLight.xy), f = clamp(rho / uDiffuseReach, 0.0, 1.0) * float(uDiffuseRows - 1);
   int i = min(int(f), uDiffuseRows - 2);
   vec4 a = uDiffuse[i / 2], b = uDiffuse[(i + 1) / 2];
   vec2 lo = i % 2 == 0 ? a.xy : a.zw, hi = i % 2 == 0 ? b.zw : b.xy;
   vec2 d = mix(lo, hi, f - float(i));
-  return vec3(rho > 0.0 ? d.x * uLight.xy / rho : vec2(0.0), d.y);
+  return vec3(rho > 0.0 ? d.x * gLight.xy / rho : vec2(0.0), d.y);
 }
 #endif
+
+// The near light at texel ij (torchspec/near_lights.py): sets gLight to its direction from the
+// centre of the texel's block (the square blocks of uBlock pixels of torchspec.relight.render_near,
+// the last ones narrower; 1: the pixel's own centre) and returns its falloff (|p| / |p - x|)^2.
+// A distant light: uLight, 1.
+float lightAt(ivec2 ij) {
+  gLight = uLight;
+  if (uNear.w == 0.0) return 1.0;
+  ivec2 pixel = min(ivec2(floor(uPlace.xy + (vec2(ij) + 0.5) * uPlace.z)), uSize - 1); // the level-0 pixel at the texel's centre
+  ivec2 first = pixel / uBlock * uBlock, stop = min(first + uBlock, uSize);
+  vec2 centre = 0.5 * vec2(first + stop); // the mean of the block's pixel centres
+  vec3 x = vec3(centre.x / float(uSize.x) - 0.5, (0.5 * float(uSize.y) - centre.y) / float(uSize.x), 0.0);
+  vec3 d = uNear.xyz - x;
+  gLight = normalize(d);
+  return dot(uNear.xyz, uNear.xyz) / dot(d, d);
+}
 
 vec3 srgb(vec3 v) {
   v = clamp(v, 0.0, 1.0);
@@ -160,16 +185,16 @@ vec3 relit(ivec2 ij) {
   float co = dot(n, uView);
   vec3 kd = texelFetch(tKd, ij, 0).rgb / PI, ks = texelFetch(tKs, ij, 0).rgb, ks2 = texelFetch(tKs2, ij, 0).rgb;
 #if !EXTENDED
-  float ci = dot(n, uLight);
-  return kd * max(ci, 0.0) + ks * ward(uLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(uLight, n, s2, t2, r.z, r.w, ci, co);
+  float ci = dot(n, gLight);
+  return kd * max(ci, 0.0) + ks * ward(gLight, n, s2, t2, r.x, r.y, ci, co) + ks2 * ward(gLight, n, s2, t2, r.z, r.w, ci, co);
 #else
-  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1);
+  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - gLight.x * gLight), e2 = cross(gLight, e1);
   vec3 value = vec3(0.0);
   float front = 0.0, behind = 0.0; // the nodes' cosine in front of the normal's horizon and behind it
   // With the table and render's rule for the lobes, the nodes matter only where the normal's
   // horizon passes within HORIZON_MARGIN kernel widths of the centre (torchspec/diffuse.py).
-  vec2 slope = n.xy - n.z * uLight.xy / uLight.z; // the gradient of <n, w(l)> at the centre
-  bool clear = uDiffuseRows > 0 && uSigma > 0.0 && dot(n, uLight) > 5.5 * uSigma * length(slope);
+  vec2 slope = n.xy - n.z * gLight.xy / gLight.z; // the gradient of <n, w(l)> at the centre
+  bool clear = uDiffuseRows > 0 && uSigma > 0.0 && dot(n, gLight) > 5.5 * uSigma * length(slope);
   for (int q = 0; q < 64; q++) {
     if (q >= uNodes || clear) break;
     vec3 l = nodeDirection(q, e1, e2);
@@ -195,10 +220,10 @@ vec3 relit(ivec2 ij) {
 // (torchspec.lights.diffuse_directions; not of unit length).
 vec3 termDirection() {
 #if !EXTENDED
-  return uLight;
+  return gLight;
 #else
   if (uDiffuseRows > 0) return effective();
-  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - uLight.x * uLight), e2 = cross(uLight, e1), d = vec3(0.0);
+  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - gLight.x * gLight), e2 = cross(gLight, e1), d = vec3(0.0);
   for (int q = 0; q < 64; q++) {
     if (q >= uNodes) break;
     vec3 l = nodeDirection(q, e1, e2);
@@ -261,12 +286,13 @@ void main() {
   ivec2 ij = ivec2(floor(vTex));
   if (ij.x >= uValid.x || ij.y >= uValid.y) discard;
   vec3 colour;
+  float falloff = lightAt(ij); // the value at unit irradiance (the term's too) times the irradiance here
 #if TERM
-  if (uLayer == 0) colour = srgb(withTerm(ij, relit(ij)) * uExposure);
+  if (uLayer == 0) colour = srgb(withTerm(ij, relit(ij)) * falloff * uExposure);
 #else
-  if (uLayer == 0) colour = srgb(relit(ij) * uExposure);
+  if (uLayer == 0) colour = srgb(relit(ij) * falloff * uExposure);
 #endif
-  else if (uLayer == 10) colour = srgb(relit(ij) * uExposure);
+  else if (uLayer == 10) colour = srgb(relit(ij) * falloff * uExposure);
   else if (uLayer == 1) colour = texelFetch(tGeo, ij, 0).xyz * 0.5 + 0.5;
   else if (uLayer == 2) colour = srgb(texelFetch(tKd, ij, 0).rgb);
   else if (uLayer == 3) colour = srgb(texelFetch(tKs, ij, 0).rgb * uGain);
@@ -312,7 +338,10 @@ class Viewer {
     this.fetching = 0;
     this.frames = 0;
     this.drawMs = 0;
-    this.light = [0, 0, 1];
+    this.light = [0, 0, 1]; // the light's direction (a near light's from the image's centre)
+    this.distance = manifest.near_radius ?? Infinity; // a light's distance in image widths (Infinity: distant)
+    this.position = null; // a near light's position (image widths from the image's centre), or null: distant
+    this.perPixel = false; // a near light's direction at each pixel (else at each of render's blocks)
     this.frame = -1; // the captured frame nearest the light
     this.layer = 0;
     this.exposure = 1;
@@ -362,6 +391,7 @@ class Viewer {
     for (const name of this.m.untrusted_flags) untrusted |= this.m.flag_bits[name] || 0;
     gl.uniform1i(this.u.uUntrusted, untrusted);
     gl.uniform3fv(this.u.uView, this.m.view);
+    gl.uniform2i(this.u.uSize, this.m.width, this.m.height);
     const nodes = this.m.kernel_nodes || [];
     if (nodes.length) gl.uniform3fv(this.u.uNode, nodes.flat());
     gl.uniform1i(this.u.uAngular, this.m.kernel_angular ? 1 : 0);
@@ -532,6 +562,8 @@ class Viewer {
     gl.clear(gl.COLOR_BUFFER_BIT);
     this.use(this.extended);
     gl.uniform3fv(this.u.uLight, this.light);
+    gl.uniform4fv(this.u.uNear, this.position ? [...this.position, 1] : [0, 0, 0, 0]);
+    gl.uniform1i(this.u.uBlock, this.perPixel ? 1 : this.m.near_block || 1);
     gl.uniform1f(this.u.uExposure, this.exposure);
     gl.uniform1i(this.u.uStd, this.std);
     const target = this.level(), top = this.m.levels.length - 1;
@@ -603,6 +635,7 @@ class Viewer {
       gl.bindTexture(gl.TEXTURE_2D, x);
     });
     gl.uniform2i(this.u.uValid, Math.min(n, w - c * n), Math.min(n, h - r * n));
+    gl.uniform3f(this.u.uPlace, c * span, r * span, 2 ** level);
     const sx = (x) => ((x - this.centre[0]) * this.zoom + p.w / 2) / p.w * 2 - 1;
     const sy = (y) => 1 - ((y - this.centre[1]) * this.zoom + p.h / 2) / p.h * 2;
     gl.uniform4f(this.u.uRect, sx(c * span), sy(r * span), sx((c + 1) * span), sy((r + 1) * span));
@@ -620,9 +653,20 @@ class Viewer {
       if (c > best) [best, k] = [c, i];
     });
     this.frame = k;
-    this.light = this.snap && k >= 0 ? this.m.lights[k].slice() : light;
+    const snapped = this.snap && k >= 0;
+    this.light = snapped ? this.m.lights[k].slice() : light;
+    this.position = this.place(snapped ? k : -1);
+    if (this.position) this.light = this.position.map((x) => x / Math.hypot(...this.position));
     this.onLight();
     this.request();
+  }
+
+  // A near light's position at this.distance along this.light, or captured frame k's own position
+  // (the capture's, or the fit's calibrated: manifest positions); null for a distant light.
+  place(k) {
+    if (!Number.isFinite(this.distance)) return null;
+    const own = k >= 0 ? (this.m.positions || [])[k] : null;
+    return own ? own.slice() : this.light.map((x) => x * this.distance);
   }
 
   // Image point (level-0 pixel coordinates) under a canvas point (CSS pixels).
@@ -698,6 +742,9 @@ function hemisphere(viewer) {
     const frame = viewer.frame >= 0 ? `, frame ${viewer.frame}` : "";
     document.getElementById("light").textContent = `light ${x.toFixed(3)} ${y.toFixed(3)} ${z.toFixed(3)} (elevation ${el.toFixed(1)} deg${frame})`;
     document.getElementById("kernel").textContent = viewer.extended ? viewer.m.kernel_label : "point light";
+    document.getElementById("near").textContent = nearText(viewer);
+    document.getElementById("pixel-label").hidden = !viewer.position;
+    document.getElementById("distance-value").textContent = Number.isFinite(viewer.distance) ? `${viewer.distance.toPrecision(3)} widths` : "infinite";
   };
   const move = (e) => {
     viewer.lastInput = performance.now();
@@ -711,6 +758,21 @@ function hemisphere(viewer) {
   viewer.onLight = drawHemi;
   drawHemi();
 }
+
+// What the page says of the light's distance: a distant light, or a near one: how far, from where
+// its position comes, and where its direction is taken.
+function nearText(v) {
+  if (!v.position) return "distant light: one direction for every pixel";
+  const m = v.m, own = v.snap && v.frame >= 0 && (m.positions || [])[v.frame];
+  const from = own ? `frame ${v.frame}'s position (${m.near_source})` : "along the light's direction";
+  const where = v.perPixel ? "at each pixel" : `at the centre of each block of ${m.near_block} x ${m.near_block} pixels, as torchspec render takes it`;
+  return `near light ${Math.hypot(...v.position).toFixed(3)} widths away, ${from}; its direction and falloff ${where}`;
+}
+
+// The distance slider's steps: 0.25 image widths times 2^(step / 10); its last step, infinite.
+const FAR_STEP = 80;
+const distanceOf = (step) => (step >= FAR_STEP ? Infinity : 0.25 * 2 ** (step / 10));
+const stepOf = (distance) => (Number.isFinite(distance) ? Math.max(0, Math.min(FAR_STEP - 1, Math.round(10 * Math.log2(distance / 0.25)))) : FAR_STEP);
 
 // What the relit layers show: the fit's model with its residual term, or the physical maps alone.
 function showing(viewer) {
@@ -742,6 +804,10 @@ function controls(viewer) {
     document.getElementById("exposure-value").textContent = viewer.exposure.toPrecision(3);
     viewer.request();
   };
+  const distance = document.getElementById("distance");
+  distance.value = stepOf(viewer.distance);
+  distance.oninput = () => ((viewer.distance = distanceOf(Number(distance.value))), viewer.setLight(viewer.light));
+  document.getElementById("pixel").onchange = (e) => ((viewer.perPixel = e.target.checked), viewer.onLight(), viewer.request());
   document.getElementById("std").onchange = (e) => ((viewer.std = Number(e.target.value)), viewer.request());
   document.getElementById("fit").onclick = () => viewer.fit();
   document.getElementById("one").onclick = () => ((viewer.zoom = 1 / devicePixelRatio), viewer.request());
@@ -822,8 +888,9 @@ window.torchspecView = {
       document.getElementById("status").textContent = `cannot show the maps: ${e.message}`;
       throw e;
     }),
-  // Set the view: {light: [x, y(, z)], layer, exposure, snap, compare, extended, zoom, centre, origin}
-  // (origin: 1:1, the image's top-left pixel at the canvas's); returns the state it shows.
+  // Set the view: {light: [x, y(, z)], distance (image widths; null: infinite), pixel, layer, exposure,
+  // snap, compare, extended, zoom, centre, origin} (origin: 1:1, the image's top-left pixel at the
+  // canvas's; pixel: a near light's direction at each pixel); returns the state it shows.
   show(o) {
     const v = this.viewer;
     v.resize(); // the canvas's size now, not at the last frame's: an origin or panel is placed in it
@@ -834,15 +901,20 @@ window.torchspecView = {
       [...document.getElementById("layers").children].forEach((b) => b.classList.toggle("on", b.textContent === o.layer));
       showing(v);
     }
+    if ("distance" in o) v.distance = o.distance ?? Infinity; // JSON has no Infinity: null
+    if ("pixel" in o) v.perPixel = o.pixel;
     for (const id of ["snap", "compare", "extended"]) document.getElementById(id).checked = v[id];
-    if (o.light) v.setLight(o.light);
+    document.getElementById("pixel").checked = v.perPixel;
+    document.getElementById("distance").value = stepOf(v.distance);
+    if (o.light || "distance" in o || "snap" in o) v.setLight(o.light || v.light);
     if (o.origin) {
       v.zoom = 1;
       v.centre = [v.panels()[0].w / 2, v.canvas.height / 2];
     }
     v.request();
     v.onLight();
-    return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light, extended: v.extended };
+    return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light, extended: v.extended,
+             position: v.position, distance: Number.isFinite(v.distance) ? v.distance : null };
   },
   // Frames per second of `count` relit frames, the light circling at `zenith` radians: each
   // frame drawn and finished (one pixel read back) before the next.
