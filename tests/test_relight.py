@@ -82,3 +82,35 @@ def test_cli_simulate_and_render(tmp_path, capsys):
     assert "PSNR" in capsys.readouterr().out
     assert main(["render", str(tmp_path / "nope"), "--capture", str(tmp_path / "cap"), "-o", str(tmp_path / "x")]) == 2
     assert "torchspec render: error:" in capsys.readouterr().err
+
+
+def test_render_takes_the_dome_radius_or_positions_the_fit_calibrated(painting, tmp_path):
+    """A fit that calibrated a dome radius (svbrdf.json's fit.lights) is rendered under near lights
+    at that radius along the capture's directions, as render_near renders them; calibrated positions
+    replace the fitted frames' own; a record that does not match the capture is refused by name."""
+    from torchspec.errors import TorchspecError
+    from torchspec.io import read_svbrdf, write_svbrdf
+    from torchspec.relight import render_near
+
+    maps = read_svbrdf(painting / "truth")
+    capture = read_capture(painting)
+    lights = capture.lights(dtype=torch.float32)
+    view = torch.tensor(capture.view)
+    distant = render_capture(painting / "truth", painting, None)["predicted"]
+    dome = {"frames": list(range(12)), "lights": {"calibrated": ["irradiance", "radius"], "radius": 2.0}}
+    write_svbrdf(tmp_path / "dome", maps, meta={**maps.meta, "fit": dome})
+    near = render_capture(tmp_path / "dome", painting, None)["predicted"]
+    expected = render_near(maps.svbrdf, lights, 2.0 * capture.directions().float(), view).permute(2, 3, 0, 1)
+    assert torch.allclose(near, expected) and float((near - distant).abs().max()) > 1e-3
+    found = 1.5 * capture.directions()[::3]
+    placed = {"frames": list(range(0, 12, 3)), "lights": {"calibrated": ["irradiance", "position"],
+                                                          "positions": found.tolist()}}  # fmt: skip
+    write_svbrdf(tmp_path / "placed", maps, meta={**maps.meta, "fit": placed})
+    shown = render_capture(tmp_path / "placed", painting, None)["predicted"]
+    positions = (found.norm(dim=-1).median() * capture.directions()).index_put((torch.arange(0, 12, 3),), found)
+    expected = render_near(maps.svbrdf, lights, positions.float(), view).permute(2, 3, 0, 1)
+    assert torch.allclose(shown, expected)
+    placed["frames"] = [0, 3, 6, 12]  # frame 12: not the capture's
+    write_svbrdf(tmp_path / "wrong", maps, meta={**maps.meta, "fit": placed})
+    with pytest.raises(TorchspecError, match=r"fit\.lights\.positions"):
+        render_capture(tmp_path / "wrong", painting, None)

@@ -2,7 +2,8 @@
 
 Reads the maps (a fit, or a capture's ``truth/``) and the capture's light list, renders each frame
 with :func:`torchspec.rendering.render_image` (memory is bounded by a chunk of rows; near lights,
-frames with a ``position``, block by block as the fit sees them: :func:`render_near`), and
+frames with a ``position`` or a fit that calibrated them (:func:`fit_positions`), block by block
+as the fit sees them: :func:`render_near`), and
 writes the predicted frames under the manifest's file names with a copy of the manifest, so the
 output is itself a capture. Against the capture's own frames it reports the PSNR (peak: the
 capture's maximum) and the relative RMS error.
@@ -16,7 +17,8 @@ from pathlib import Path
 import torch
 
 from .brdf import SVBRDF
-from .io import CaptureError, read_capture, read_svbrdf, write_capture
+from .errors import TorchspecError
+from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
 from .lights import Lights
 from .near_lights import lights_at
 from .outputs import check_output
@@ -25,7 +27,7 @@ from .quadrature import Quadrature
 from .rendering import TILE_PIXELS, render, render_image
 from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["render_capture", "render_near", "psnr"]
+__all__ = ["render_capture", "render_near", "fit_positions", "psnr"]
 
 
 def render_near(
@@ -60,6 +62,38 @@ def render_near(
         out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
         out[index] = values
     return out.reshape(height, width, *out.shape[1:])
+
+
+def fit_positions(capture: Capture, meta: dict) -> tuple[torch.Tensor | None, str]:
+    """The near lights' positions ``(K, 3)`` (float64; ``None``: distant lights) under which maps
+    predict ``capture``'s frames, and what they come from: the capture's (``frames[k].position``),
+    unless the fit calibrated them from the photographs (``meta``: ``svbrdf.json``, its
+    ``fit.lights``: :func:`torchspec.pipeline.plan.calibrated`): one dome radius (every frame at
+    that distance along its direction), or the positions of the frames it fitted (``fit.frames``;
+    the others keep the capture's, else lie at the calibrated positions' median distance along
+    their direction). Calibrated gains are not used: a frame the fit left out has none.
+
+    Raises:
+        TorchspecError: ``fit.lights.positions`` is not one position for each of ``fit.frames``,
+            or names a frame the capture does not have.
+    """
+    fit = meta.get("fit") or {}
+    record = fit.get("lights") or {}
+    calibrated = record.get("calibrated") or []
+    directions, positions = capture.directions(), capture.positions()
+    if "radius" in calibrated and record.get("radius") is not None:
+        radius = float(record["radius"])
+        return radius * directions, f"the fit's dome radius, {radius:g} widths"
+    if "position" in calibrated and record.get("positions") is not None:
+        frames, found = fit.get("frames") or [], torch.tensor(record["positions"], dtype=torch.float64)
+        if tuple(found.shape) != (len(frames), 3) or not all(0 <= k < len(directions) for k in frames):
+            raise TorchspecError(
+                f"svbrdf.json: fit.lights.positions ({tuple(found.shape)}) is not a position for each of fit.frames "
+                f"of {capture.manifest} ({len(directions)} frames): use the maps with the capture they were fitted from"
+            )
+        base = positions if positions is not None else found.norm(dim=-1).median() * directions
+        return base.index_put((torch.tensor(frames, dtype=torch.long),), found), "the fit's calibrated positions"
+    return positions, "the capture's positions"
 
 
 def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:
@@ -115,9 +149,11 @@ def render_capture(
     if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
         source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
         found = ResidualTerm.from_map(maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(WEIGHT_MAP))
-    positions = capture.positions()
+    positions = fit_positions(capture, maps.meta)[0]
     if positions is not None:  # near lights: block by block, as the fit saw them
-        values = render_near(svbrdf.to(dtype), lights, positions, view, quadrature=quadrature, lobe=lobe, term=found)
+        values = render_near(
+            svbrdf.to(dtype), lights, positions.to(dtype), view, quadrature=quadrature, lobe=lobe, term=found
+        )
     else:
         values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
         if found is not None:

@@ -42,6 +42,7 @@ from ..io import Capture
 from ..lights import Kernel, Lights, diffuse_directions, nodes
 from ..pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block
 from ..quadrature import FAST_ORDER, Quadrature, hermite
+from ..relight import fit_positions
 from ..rendering import TILE_PIXELS
 
 __all__ = ["MAX_NODES", "DIFFUSE_ROWS", "DIFFUSE_REACH", "LightQuadrature", "light_quadrature", "near_lights"]
@@ -204,39 +205,16 @@ def near_lights(capture: Capture | None, meta: dict, height: int, width: int) ->
     :func:`torchspec.pipeline.tiling.near_block`), for an ``H x W`` image (``None``: no positions);
     and :func:`block_rule`'s keys, with which the page finds the block of a light of its own.
 
-    The positions are the capture's (``frames[k].position``), as ``torchspec render`` takes them,
-    unless the fit calibrated them from the photographs (``meta``: ``svbrdf.json``'s ``fit.lights``,
-    :func:`torchspec.pipeline.plan.calibrated`): one dome radius (every frame at that distance
-    along its direction), or the positions of the frames it fitted (``fit.frames``; the others keep
-    the capture's, else lie at the calibrated positions' median distance along their direction).
-    Calibrated gains are left out, as ``torchspec render`` leaves them out.
+    The positions are those ``torchspec render`` takes (:func:`torchspec.relight.fit_positions`:
+    the capture's, or the fit's calibrated dome radius or positions; ``meta`` is ``svbrdf.json``).
 
     Raises:
-        TorchspecError: ``fit.lights.positions`` is not one position for each of ``fit.frames``,
-            or names a frame the capture does not have.
+        TorchspecError: as :func:`torchspec.relight.fit_positions`.
     """
     none = {"positions": [], "near_radius": None, "near_source": "", "near_block": None, **block_rule(height, width)}
     if capture is None:
         return none
-    fit = meta.get("fit") or {}
-    record = fit.get("lights") or {}
-    calibrated = record.get("calibrated") or []
-    directions, positions = capture.directions(), capture.positions()
-    source = "the capture's positions"
-    if "radius" in calibrated and record.get("radius") is not None:
-        radius = float(record["radius"])
-        positions = radius * directions
-        source = f"the fit's dome radius, {radius:g} widths (torchspec render takes the lights as distant)"
-    elif "position" in calibrated and record.get("positions") is not None:
-        frames, found = fit.get("frames") or [], torch.tensor(record["positions"], dtype=torch.float64)
-        if tuple(found.shape) != (len(frames), 3) or not all(0 <= k < len(directions) for k in frames):
-            raise TorchspecError(
-                f"svbrdf.json: fit.lights.positions ({tuple(found.shape)}) is not a position for each of fit.frames "
-                f"of {capture.manifest} ({len(directions)} frames): view a fit with the capture it was fitted from."
-            )
-        base = positions if positions is not None else found.norm(dim=-1).median() * directions
-        positions = base.index_put((torch.tensor(frames, dtype=torch.long),), found)
-        source = "the fit's calibrated positions (torchspec render takes the capture's)"
+    positions, source = fit_positions(capture, meta)
     if positions is None:
         return none
     radius = float(positions.norm(dim=-1).median())
