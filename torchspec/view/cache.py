@@ -29,8 +29,8 @@ import hashlib
 import json
 import os
 import sys
-import threading
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -170,13 +170,14 @@ class LevelCache:
             return None
         return out
 
-    def save(self, levels: dict[int, torch.Tensor], stop: threading.Event | None = None) -> Path | None:
+    def save(self, levels: dict[int, torch.Tensor], pause: Callable[[], None] | None = None) -> Path | None:
         """Write ``levels`` (``{level: (P, h, w)}``) to the first folder that can take them; the
         folder, or ``None`` (and a line on stderr when no folder could) when not written: also when
         a map file changed since the levels were read (they may mix its old and new rows).
+        ``pause`` is called before each plane is written: it may wait (for tile requests), or stop.
 
         Raises:
-            Stopped: ``stop`` was set (the file being written is removed).
+            Stopped: raised by ``pause`` (the file being written is removed).
         """
         if sources(self.maps) != self.sources:
             return None
@@ -184,7 +185,7 @@ class LevelCache:
         for folder in self.folders:
             try:
                 _claim(folder)
-                files = {str(level): self._write(folder / f"level_{level}.bin", planes, stop)
+                files = {str(level): self._write(folder / f"level_{level}.bin", planes, pause)
                          for level, planes in levels.items()}  # fmt: skip
                 index = {**self.key, "maps": str(self.maps.resolve()), "sources": self.sources, "files": files}
                 write_json(folder / INDEX, index)
@@ -198,13 +199,13 @@ class LevelCache:
         _note(f"the coarse levels of {self.maps} are not cached ({'; '.join(why)}): they are made again at every view.")
         return None
 
-    def _write(self, path: Path, planes: torch.Tensor, stop: threading.Event | None) -> dict:
+    def _write(self, path: Path, planes: torch.Tensor, pause: Callable[[], None] | None) -> dict:
         """One level's file; its bytes and CRC-32."""
         crc, size = 0, 0
         with atomic_path(path) as tmp, open(tmp, "wb") as handle:
             for plane, dtype in zip(planes, self.dtypes, strict=True):
-                if stop is not None and stop.is_set():
-                    raise Stopped(path)
+                if pause is not None:
+                    pause()
                 with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf, as in the tile
                     data = np.ascontiguousarray(plane.numpy().astype(dtype))
                 crc, size = zlib.crc32(data, crc), size + data.nbytes

@@ -248,7 +248,7 @@ class Pyramid:
             return
         if self.store is not None:
             try:
-                self.store.save({level: self.reduced[level] for level in self.store.shapes}, self.closing)
+                self.store.save({level: self.reduced[level] for level in self.store.shapes}, self._pause)
             except Stopped:
                 pass
 
@@ -271,16 +271,21 @@ class Pyramid:
         out = torch.empty(len(self.names), height, width)
         band = 2**level * max(1, self.tile_size // 2**level)
         for start in range(0, self.size[0], band):
-            while self.urgent:
-                time.sleep(0.005)
-            if self.closing.is_set():
-                raise Stopped("the pyramid is closed")
+            self._pause()
             with self.io:
                 block = self.read(start, min(self.size[0], start + band))
             for _ in range(level):
                 block = _reduce(block, self.names)
             out[:, start // 2**level : start // 2**level + block.shape[1]] = block
         return out
+
+    def _pause(self) -> None:
+        """Between two steps of the background work: wait while tile requests wait to read; raise
+        :class:`~torchspec.view.cache.Stopped` once :meth:`close` is called."""
+        while self.urgent:
+            time.sleep(0.005)
+        if self.closing.is_set():
+            raise Stopped("the pyramid is closed")
 
     def rows(self, start: int, stop: int) -> torch.Tensor:
         """Level 0's rows ``start`` to ``stop - 1``, ``(P, stop - start, W)``, from the bands of
