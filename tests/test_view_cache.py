@@ -7,6 +7,8 @@ from __future__ import annotations
 import os
 import threading
 
+import numpy as np
+import OpenEXR
 import pytest
 
 from torchspec import cli
@@ -91,6 +93,26 @@ def test_a_changed_map_file_is_never_shown_from_the_cache(maps, pass_reads):
     assert pass_reads and _tiles(changed, [2, 3]) == whole and whole != old
     pass_reads.clear()
     assert _tiles(_view(maps), [2, 3]) == _tiles(changed, [2, 3]) and pass_reads == []  # cached again
+
+
+def _quality(path, value: np.ndarray) -> None:
+    """``quality.exr`` uncompressed: its size depends on its shape only."""
+    header = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"Y": OpenEXR.Channel(np.ascontiguousarray(value, dtype=np.float32))}).write(str(path))
+
+
+def test_a_map_rewritten_with_its_size_and_time_kept_is_never_shown_from_the_cache(maps, pass_reads):
+    path = maps / "quality.exr"
+    _quality(path, np.full((200, 300), 0.25))
+    first = _tiles(_view(maps), [2, 3])
+    stat = path.stat()
+    _quality(path, np.full((200, 300), 0.75))  # in place: same name, same size
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))  # and the same modification time
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+    pass_reads.clear()
+    again = _view(maps)
+    whole = _tiles(Pyramid.of_maps(read_svbrdf(maps), tile=64), [2, 3])
+    assert pass_reads and _tiles(again, [2, 3]) == whole and whole != first
 
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped", "index"])

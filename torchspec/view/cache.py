@@ -8,13 +8,13 @@ without ``XDG_CACHE_HOME``; ``<hash>``: of the maps folder's resolved path); whe
 written, nowhere (one line on stderr): the view works as without a cache. Deleting either folder
 is always safe.
 
-What: ``level_L.bin`` for each level the pyramid holds in memory (``Pyramid.kept`` to the
-coarsest): every plane of the tile's textures ``(h, w)`` in its texture's dtype (float32 or
-float16, the tile's own rounding), little-endian, one after the other; and ``levels.json``, written
-last, which names what they were made from: the maps folder's ``.exr`` and ``.json`` files (name,
-size, modification time in ns), the pyramid (tile size, textures, size, held level),
-:data:`VERSION` and torchspec's version, and each level file's bytes and CRC-32. Every file is
-written atomically (a temporary name, then a rename).
+What: ``level_L.bin`` for each level the pyramid holds in memory but level 0 (``Pyramid.kept``,
+or 1, to the coarsest; none for maps that fit in one tile): every plane of the tile's textures
+``(h, w)`` in its texture's dtype (float32 or float16, the tile's own rounding), little-endian,
+one after the other; and ``levels.json``, written last, which names what they were made from: the
+maps folder's ``.exr`` and ``.json`` files (name, size, modification and change times in ns), the
+pyramid (tile size, textures, the levels' sizes), :data:`VERSION` and torchspec's version, and each
+level file's bytes and CRC-32. Every file is written atomically (a temporary name, then a rename).
 
 Trust: the levels are read only when all of that matches now and a level's file has those bytes and
 that CRC; otherwise they are made again from the maps (and written again), so a changed map file
@@ -60,12 +60,14 @@ class Stopped(Exception):
 
 
 def sources(folder: Path) -> list[list]:
-    """``[name, bytes, mtime_ns]`` of the map folder's ``.exr`` and ``.json`` files, by name."""
+    """``[name, bytes, mtime_ns, ctime_ns]`` of the map folder's ``.exr`` and ``.json`` files, by
+    name. The change time too: a file rewritten in place with its size and modification time kept
+    (``cp -p``, ``touch -d``) has a new one (it cannot be set back)."""
     found = []
     for path in sorted(Path(folder).iterdir()):
         if path.suffix.lower() in (".exr", ".json") and path.is_file():
             stat = path.stat()
-            found.append([path.name, stat.st_size, stat.st_mtime_ns])
+            found.append([path.name, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns])
     return found
 
 
