@@ -13,9 +13,15 @@ Chromium, measures:
   background pass over the rows), from the page's navigation; the view settled (every tile of the
   level that matches the zoom); then full resolution at 1:1 about ``place`` (every level-0 tile the
   window shows drawn);
-- a page opened on a new server and sent at once to 1:1 about ``place`` (its tiles read on demand
-  while the background pass runs): from the page's navigation until every level-0 tile is drawn;
-- each server process's peak resident memory (``VmHWM``) and its resident memory.
+- a page opened on a new server (``--no-cache``) and sent at once to 1:1 about ``place`` (its
+  tiles read on demand while the background pass runs): from the page's navigation until every
+  level-0 tile is drawn;
+- reopening: a third server on the same maps once the first has cached the coarse levels
+  (``FOLDER/.torchspec-view/``, removed before the first): its start, the overview (the coarsest
+  level's tile) served, from the process's launch, then a page's first image of the whole painting
+  and the fitted view settled, from its navigation;
+- each server process's peak resident memory (``VmHWM``) and its resident memory, and the load
+  average (1, 5, 15 min) at the start and end of each session.
 
     python experiments/view_large.py [--config experiments/configs/view_large.yaml] [--output experiments/results]
 """
@@ -24,9 +30,12 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,7 +47,9 @@ from torchspec.atomic import write_json
 from torchspec.config import load_config
 from torchspec.flags import FLAGS, UNTRUSTED, bit
 from torchspec.pipeline.settings import MODEL_CODES
+from torchspec.view import cache
 from torchspec.view.browser import Browser
+from torchspec.view.tiles import levels_for
 
 
 @dataclass(frozen=True)
@@ -143,24 +154,55 @@ def one_to_one(browser: Browser, settings: Settings) -> float:
 
 
 @contextmanager
-def server(folder: Path):
-    """``torchspec view FOLDER`` as its own process: ``(url, seconds to start, pid)``."""
-    command = [sys.executable, "-m", "torchspec", "view", str(folder), "--port", "0"]
+def server(folder: Path, *options: str):
+    """``torchspec view FOLDER [options]`` as its own process: ``(url, seconds to start, pid,
+    launch time)``."""
+    command = [sys.executable, "-m", "torchspec", "view", str(folder), "--port", "0", *options]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     start = time.perf_counter()
     process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env)
     try:
         line = process.stdout.readline()
-        yield line.split()[2], time.perf_counter() - start, process.pid
+        yield line.split()[2], time.perf_counter() - start, process.pid, start
     finally:
         process.terminate()
         process.wait(timeout=30)
 
 
+def wait_for(path: Path, timeout: float = 900.0) -> bool:
+    """Whether ``path`` exists within ``timeout`` seconds (polled)."""
+    end = time.perf_counter() + timeout
+    while not path.exists() and time.perf_counter() < end:
+        time.sleep(0.1)
+    return path.exists()
+
+
+def overview(url: str, settings: Settings) -> bytes:
+    """The coarsest level's tile, asked again while the server answers 503 (not made yet)."""
+    level = levels_for(*settings.size) - 1
+    while True:
+        try:
+            with urllib.request.urlopen(f"{url}tiles/{level}/0_0.bin", timeout=600) as answer:
+                return answer.read()
+        except urllib.error.HTTPError as error:
+            if error.code != 503:
+                raise
+            time.sleep(0.05)
+
+
+def load() -> list[float]:
+    return [round(value, 2) for value in os.getloadavg()]
+
+
 def measure(settings: Settings, folder: Path) -> dict:
-    """Two sessions, each with a server of its own: the page opened at the fitted view (its first
-    image, the view settled, then 1:1), and the page opened straight at 1:1 (during the pass)."""
-    with server(folder) as (url, started, pid), Browser(*settings.viewport, timeout=1800.0) as browser:
+    """Three sessions, each with a server of its own: the page opened at the fitted view (its first
+    image, the view settled, then 1:1; the server then caches the coarse levels), the page opened
+    straight at 1:1 (during the pass, ``--no-cache``), and the reopening (with the cache)."""
+    index = folder / cache.FOLDER / cache.INDEX
+    if (folder / cache.FOLDER).exists():  # torchspec's own cache, made again below
+        shutil.rmtree(folder / cache.FOLDER)
+    loads = {"cold_start": load()}
+    with server(folder) as (url, started, pid, launched), Browser(*settings.viewport, timeout=1800.0) as browser:
         after_start = memory(pid)
         opened = time.perf_counter()
         browser.open(url)
@@ -170,14 +212,38 @@ def measure(settings: Settings, folder: Path) -> dict:
         level = browser.evaluate("torchspecView.viewer.level()")
         late = one_to_one(browser, settings)
         fitted_memory = memory(pid)
-    with server(folder) as (url, _, pid), Browser(*settings.viewport, timeout=1800.0) as browser:
+        if not wait_for(index):
+            raise RuntimeError(f"the server did not write {index}")
+        cached = time.perf_counter() - launched
+    cache_bytes = sum(path.stat().st_size for path in index.parent.iterdir())
+    loads["cold_end"] = load()
+    with server(folder, "--no-cache") as (url, _, pid, _), Browser(*settings.viewport, timeout=1800.0) as browser:
         opened = time.perf_counter()
         browser.open(url)
         loaded = time.perf_counter() - opened
         early = loaded + one_to_one(browser, settings)  # from the page's navigation
         early_memory = memory(pid)
+    loads["reopen_start"] = load()
+    with server(folder) as (url, restarted, pid, launched):
+        overview(url, settings)  # asked as soon as the server prints its address
+        overview_s = time.perf_counter() - launched
+        with Browser(*settings.viewport, timeout=1800.0) as browser:
+            opened = time.perf_counter()
+            browser.open(url)
+            browser.evaluate("torchspecView.settle()")
+            reopen = {
+                "server_start_s": restarted,
+                "overview_tile_from_launch_s": overview_s,
+                "overview_tile_after_start_s": overview_s - restarted,
+                "first_image_s": browser.evaluate("torchspecView.viewer.firstImage") / 1000,
+                "fit_view_settled_s": time.perf_counter() - opened,
+                "fit_view_level": browser.evaluate("torchspecView.viewer.level()"),
+                "memory": memory(pid),
+            }
+    loads["reopen_end"] = load()
     return {
-        "load_average_1min": os.getloadavg()[0],
+        "load_average_1min": loads["cold_start"][0],
+        "load_average_1_5_15min": loads,
         "server_start_s": started,
         "memory_after_start": after_start,
         "first_image_s": first,
@@ -187,6 +253,9 @@ def measure(settings: Settings, folder: Path) -> dict:
         "memory_fit_view_session": fitted_memory,
         "one_to_one_at_once_s": early,
         "memory_one_to_one_session": early_memory,
+        "cache_written_after_launch_s": cached,
+        "cache_bytes": cache_bytes,
+        "reopen": reopen,
     }
 
 
@@ -205,6 +274,13 @@ def main(argv: list[str] | None = None) -> dict:
           f"1:1 after {timing['one_to_one_after_s']:.2f} s; server peak RSS "
           f"{timing['memory_fit_view_session']['peak_rss_mb']:.0f} MB (opened at 1:1: "
           f"{timing['memory_one_to_one_session']['peak_rss_mb']:.0f} MB)")  # fmt: skip
+    reopen = timing["reopen"]
+    print(f"reopen (cache of {timing['cache_bytes'] / 1e6:.0f} MB, written "
+          f"{timing['cache_written_after_launch_s']:.1f} s after the first launch): server start "
+          f"{reopen['server_start_s']:.2f} s; overview tile "
+          f"{reopen['overview_tile_from_launch_s']:.2f} s from launch; first image {reopen['first_image_s']:.2f} s, "
+          f"fit view settled {reopen['fit_view_settled_s']:.2f} s (level {reopen['fit_view_level']}); peak RSS "
+          f"{reopen['memory']['peak_rss_mb']:.0f} MB; load {timing['load_average_1_5_15min']}")  # fmt: skip
     result = {"settings": asdict(settings), "exr_bytes": disk, "synthesis_s": written, "speed": timing}
     path = args.output / f"{Path(args.config).stem}.json"
     write_json(path, result)

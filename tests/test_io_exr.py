@@ -1,5 +1,9 @@
 from __future__ import annotations
 
+import os
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -141,6 +145,34 @@ def test_truncated_file_raises_and_keeps_stdout_clean(tmp_path, capsys, keep):
     with pytest.raises(ExrError, match=r"cut\.exr is truncated or corrupt"):
         read_exr(tmp_path / "cut.exr")
     assert capsys.readouterr().out == ""
+
+
+def test_reads_from_many_threads_at_once_are_right_and_restore_the_outputs(tmp_path):
+    """Descriptor 2 and ``sys.stdout`` are redirected around OpenEXR's calls: threads reading at
+    once (good files, and truncated ones whose library lines the error keeps) each get their own
+    answer, and both are what they were afterwards."""
+    images = [_image(16, 12, seed=seed) for seed in range(4)]
+    for i, image in enumerate(images):
+        write_exr(tmp_path / f"{i}.exr", image, ["R", "G", "B"])
+    data = (tmp_path / "0.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) * 3 // 4])
+    before, stdout = os.fstat(2), sys.stdout
+
+    def read(job: int) -> bool:
+        if job % 5 == 4:
+            with pytest.raises(ExrError, match=r"cut\.exr is truncated or corrupt"):
+                read_exr(tmp_path / "cut.exr")
+            return True
+        i = job % 4
+        rows = (job % 7, 16 - job % 3)
+        whole = np.array_equal(read_exr(tmp_path / f"{i}.exr"), images[i])
+        return whole and np.array_equal(read_exr(tmp_path / f"{i}.exr", rows=rows), images[i][rows[0] : rows[1]])
+
+    with ThreadPoolExecutor(8) as pool:
+        results = list(pool.map(read, range(8 * 20)))
+    after = os.fstat(2)
+    assert all(results) and len(results) == 160
+    assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino) and sys.stdout is stdout
 
 
 def test_missing_channel_lists_the_file_channels(tmp_path):

@@ -214,6 +214,9 @@ def _add_map_commands(commands) -> None:
     view.add_argument("--capture", type=Path, default=None,
                       help="the capture the maps were fitted from: its photographs beside the relit fit")
     view.add_argument("--port", type=int, default=8000, help="the port on 127.0.0.1 (default: 8000; 0: any free)")
+    view.add_argument("--no-cache", action="store_true",
+                      help="neither read nor write the coarse levels' cache (MAPS/.torchspec-view/, or the user's "
+                           "cache folder when MAPS is read-only): the pass over every row at each view")
 
 
 def _add_capture_commands(commands) -> None:
@@ -451,7 +454,7 @@ def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _view(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .view import open_site, serve
 
-    site = open_site(args.svbrdf, args.capture, title=args.svbrdf.name)
+    site = open_site(args.svbrdf, args.capture, title=args.svbrdf.name, cache=not args.no_cache)
     server = serve(site, args.port)
     print(f"torchspec view: http://127.0.0.1:{server.server_address[1]}/ (Ctrl-C to stop)", flush=True)
     try:
@@ -460,6 +463,7 @@ def _view(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         pass
     finally:
         server.server_close()
+        site.close()
     return 0
 
 

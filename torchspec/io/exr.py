@@ -6,7 +6,10 @@ OpenEXR's Python binding (``import OpenEXR``, version 3) has traps this module h
   on stdout), so the part count is checked here;
 - its writer ignores numpy strides, so a transposed or sliced array is written scrambled:
   every channel is passed through :func:`numpy.ascontiguousarray`;
-- it cannot write float64: images are written as 32-bit float channels.
+- it cannot write float64: images are written as 32-bit float channels;
+- its reports go to ``sys.stdout`` and the C library's to file descriptor 2: both are redirected
+  around each call to keep them for the error, and the redirection is process-wide, so it is held
+  by one thread at a time (:data:`_REDIRECT`): reading from several threads at once is safe.
 
 Corrupted bytes inside a compressed block may still decode without an error (EXR has no
 checksum): readers further up check what they can (finite values, sizes).
@@ -20,6 +23,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -32,6 +36,10 @@ from ..errors import TorchspecError
 __all__ = ["ExrError", "exr_size", "read_exr", "write_exr"]
 
 _GROUPS = (("R", "G", "B"), ("X", "Y", "Z"))
+_REDIRECT = threading.RLock()
+"""Held while ``sys.stdout`` or descriptor 2 is redirected: another thread's redirection in
+between would restore the wrong target (descriptor 2 left on a closed file, ``sys.stdout`` on a
+buffer), and two threads' library lines would mix."""
 
 
 class ExrError(TorchspecError):
@@ -71,7 +79,7 @@ def _open(path: Path, header_only: bool = False) -> OpenEXR.File:
     # them for the error instead of showing the user a library's raw lines.
     printed = io.StringIO()
     try:
-        with contextlib.redirect_stdout(printed), _library_stderr() as library:
+        with _REDIRECT, contextlib.redirect_stdout(printed), _library_stderr() as library:
             file = OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except Exception as error:
         raise ExrError(
@@ -129,23 +137,25 @@ class _Captured:
 def _library_stderr():
     """Capture what C code writes on file descriptor 2 (OpenEXR's ``EXR_ERR_...`` lines) while the
     block runs; ``.text`` holds it after. Where descriptor 2 cannot be redirected (no such
-    descriptor), nothing is captured."""
+    descriptor), nothing is captured. Holds :data:`_REDIRECT` throughout (other threads' writes
+    on descriptor 2 meanwhile are captured too)."""
     captured = _Captured()
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
-        yield captured
-        return
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
+    with _REDIRECT:
         try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError):
             yield captured
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            captured.text = sink.read().decode("utf-8", "replace")
+            return
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield captured
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                sink.seek(0)
+                captured.text = sink.read().decode("utf-8", "replace")
 
 
 def _detail(path: Path, text: str) -> str:

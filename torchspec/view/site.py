@@ -129,6 +129,10 @@ class Site:
             self.photos.move_to_end(k)
             return self.photos[k]
 
+    def close(self) -> None:
+        """Stop the maps' background pass and cache write (:meth:`Pyramid.close`)."""
+        self.pyramid.close()
+
 
 def _sample(folder: Path) -> tuple[list[Maps], tuple[int, int]]:
     """Bands of a map folder's rows spread over it (:data:`SAMPLE_BANDS`), and its ``(H, W)``."""
@@ -141,7 +145,12 @@ def _sample(folder: Path) -> tuple[list[Maps], tuple[int, int]]:
 
 
 def open_site(
-    maps: Maps | SVBRDF | str | Path, capture: Capture | str | Path | None = None, *, title: str = "", **options
+    maps: Maps | SVBRDF | str | Path,
+    capture: Capture | str | Path | None = None,
+    *,
+    title: str = "",
+    cache: bool = False,
+    **options,
 ) -> Site:
     """The viewer data of maps (a folder or :class:`~torchspec.io.Maps`) and, optionally, the
     capture they were fitted from.
@@ -150,7 +159,10 @@ def open_site(
     threads, one a core, when the process has none): at start its headers and a sample of its
     rows (the display ranges); then each tile's rows when it is asked for, and the coarse levels in
     a background pass; a bad value (NaN, a normal off unit length) is found in the tile that holds
-    it (its request fails, naming the file and row). ``options`` go to the :class:`Pyramid`
+    it (its request fails, naming the file and row). ``cache``: a folder's coarse levels are read
+    from the cache of :mod:`torchspec.view.cache` when it holds them for the maps as they are now
+    (the whole painting shows at once), else written there once the pass has made them
+    (``torchspec view`` without ``--no-cache``). ``options`` go to the :class:`Pyramid`
     (``tile``; for a folder also ``keep_texels``, ``cache_bytes``).
 
     Raises:
@@ -164,7 +176,7 @@ def open_site(
         if OpenEXR.global_thread_count() == 0:  # decode the files' blocks on every core (process-wide)
             OpenEXR.set_global_thread_count(os.cpu_count() or 1)
         bands, (height, width) = _sample(folder)
-        pyramid = Pyramid.of_folder(folder, bands[0], (height, width), **options)
+        pyramid = Pyramid.of_folder(folder, bands[0], (height, width), cache=cache, **options)
     else:
         bands = [Maps(maps) if isinstance(maps, SVBRDF) else maps]
         height, width = bands[0].svbrdf.shape

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from ..io import Maps
 from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
+from .cache import LevelCache, Stopped
 
 __all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid", "term_textures", "term_planes", "textures_of"]
 
@@ -181,15 +182,23 @@ class Pyramid:
     before the pass has read level 0 when that is the level held. Both give the same tiles, bit
     for bit: the bands and tiles are aligned on the ``2 x 2`` blocks of every level.
 
+    With ``cache`` (the map folder, when read lazily): the held levels other than level 0 are read
+    from the cache of :mod:`torchspec.view.cache` when it holds them for the folder's files as they
+    are now, coarsest first (each served as soon as it is read: the whole painting at once), and
+    there is no pass (level 0's tiles are then read on demand even when it is the level held); else
+    the pass makes them and writes them there after. The tiles are the same, bit for bit.
+
     Attributes:
         textures: ``(name, dtype, planes)`` of a tile's textures, in file order.
         size: level 0's ``(H, W)``.
         tile_size: texels on a tile's side.
         kept: the finest level held in memory (0 in memory).
+        store: the levels' :class:`~torchspec.view.cache.LevelCache` (``None``: none).
+        worker: the background thread (it ends once the levels are made, and written to the cache).
     """
 
     def __init__(self, textures, size, planes=None, read=None, *, tile=TILE, keep_texels=KEEP_TEXELS,
-                 cache_bytes=CACHE_BYTES):  # fmt: skip
+                 cache_bytes=CACHE_BYTES, cache=None):  # fmt: skip
         self.textures, self.size, self.tile_size = tuple(textures), tuple(size), tile
         self.names = tuple(name for _, _, names in self.textures for name in names)
         self.read = read if planes is None else (lambda a, b: torch.stack([p[a:b] for p in planes]))
@@ -204,14 +213,28 @@ class Pyramid:
         self.bands: OrderedDict = OrderedDict()
         self.band_count = max(2, cache_bytes // max(1, 4 * len(self.names) * tile * size[1]))
         self.lock = threading.Lock()  # the band cache
-        # EXR reads one at a time: torchspec.io.exr redirects descriptor 2 around OpenEXR's calls (not
-        # thread-safe), and two threads reading at once aborted the process here once
+        # EXR reads one at a time: each decodes its blocks on OpenEXR's threads, one a core (torchspec.io.exr
+        # is safe from several threads, but two reads at once would only share the cores)
         self.io = threading.Lock()
         self.urgent = 0  # tile requests waiting to read: the background pass lets them go first
-        threading.Thread(target=self._make_all, name="torchspec-view-pyramid", daemon=True).start()
+        self.store = None
+        if cache is not None and planes is None and len(sizes) > 1:  # level 0 never: read on demand
+            shapes = {level: sizes[level] for level in range(max(1, self.kept), len(sizes))}
+            self.store = LevelCache(cache, self.textures, shapes, {"tile": tile, "size": list(self.size)})
+        self.closing = threading.Event()
+        self.worker = threading.Thread(target=self._make_all, name="torchspec-view-pyramid", daemon=True)
+        self.worker.start()
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the background pass and the cache's write (its temporary file removed); wait up to
+        ``timeout`` seconds for them. Tiles of levels not made are then never made."""
+        self.closing.set()
+        self.worker.join(timeout)
 
     def _make_all(self) -> None:
         try:
+            if self.store is not None and self._load():
+                return
             if self.reduced[self.kept] is None:
                 self.reduced[self.kept] = self._stream(self.kept)
                 self.made[self.kept].set()
@@ -222,6 +245,25 @@ class Pyramid:
             self.error = error
             for made in self.made:
                 made.set()
+            return
+        if self.store is not None:
+            try:
+                self.store.save({level: self.reduced[level] for level in self.store.shapes}, self._pause)
+            except Stopped:
+                pass
+
+    def _load(self) -> bool:
+        """The held levels from the cache, coarsest first, each published once read; false when
+        the cache has none for these maps or one is damaged (the pass then makes them all)."""
+        if not self.store.find():
+            return False
+        for level in sorted(self.store.shapes, reverse=True):
+            planes = self.store.load(level)
+            if planes is None:
+                return False
+            self.reduced[level] = planes
+            self.made[level].set()
+        return True
 
     def _stream(self, level: int) -> torch.Tensor:
         """Level ``level`` from level 0's rows, read in bands (a multiple of ``2^level`` rows)."""
@@ -229,14 +271,21 @@ class Pyramid:
         out = torch.empty(len(self.names), height, width)
         band = 2**level * max(1, self.tile_size // 2**level)
         for start in range(0, self.size[0], band):
-            while self.urgent:
-                time.sleep(0.005)
+            self._pause()
             with self.io:
                 block = self.read(start, min(self.size[0], start + band))
             for _ in range(level):
                 block = _reduce(block, self.names)
             out[:, start // 2**level : start // 2**level + block.shape[1]] = block
         return out
+
+    def _pause(self) -> None:
+        """Between two steps of the background work: wait while tile requests wait to read; raise
+        :class:`~torchspec.view.cache.Stopped` once :meth:`close` is called."""
+        while self.urgent:
+            time.sleep(0.005)
+        if self.closing.is_set():
+            raise Stopped("the pyramid is closed")
 
     def rows(self, start: int, stop: int) -> torch.Tensor:
         """Level 0's rows ``start`` to ``stop - 1``, ``(P, stop - start, W)``, from the bands of
@@ -270,10 +319,10 @@ class Pyramid:
         return cls.build({**_planes(maps), **term_planes(maps)}, textures_of(maps), tile)
 
     @classmethod
-    def of_folder(cls, folder, head: Maps, size: tuple[int, int], **options) -> Pyramid:
+    def of_folder(cls, folder, head: Maps, size: tuple[int, int], cache: bool = False, **options) -> Pyramid:
         """The pyramid of the map folder ``folder`` of ``size`` ``(H, W)``, read lazily (``head``:
         a band of its rows, for the textures; ``options``: ``tile``, ``keep_texels``,
-        ``cache_bytes``)."""
+        ``cache_bytes``; ``cache=True``: its held levels cached, :mod:`torchspec.view.cache`)."""
         from ..io import read_svbrdf
 
         textures = textures_of(head)
@@ -284,7 +333,7 @@ class Pyramid:
             planes = {**_planes(band), **term_planes(band)}
             return torch.stack([planes[name] for name in names])
 
-        return cls(textures, size, read=read, **options)
+        return cls(textures, size, read=read, cache=folder if cache else None, **options)
 
     @property
     def height(self) -> int:
