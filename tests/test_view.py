@@ -7,6 +7,7 @@ import contextlib
 import functools
 import http.server
 import json
+import math
 import subprocess
 import sys
 import threading
@@ -24,14 +25,14 @@ from torchspec.io import svbrdf as svbrdf_io
 from torchspec.lights import Kernel, Lights
 from torchspec.near_lights import image_points, near_light
 from torchspec.outputs import OutputError
-from torchspec.pipeline.tiling import near_block
+from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block
 from torchspec.relight import render_capture, render_near
-from torchspec.rendering import render_image
+from torchspec.rendering import TILE_PIXELS, render_image
 from torchspec.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, encode
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
 from torchspec.view.browser import Browser, find_chromium
 from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb, with_term
-from torchspec.view.light import MAX_NODES, light_quadrature
+from torchspec.view.light import MAX_NODES, light_quadrature, near_lights
 from torchspec.view.tiles import levels_for
 
 CHROMIUM, WHY = find_chromium()
@@ -434,13 +435,14 @@ def test_under_a_kernel_without_a_table_the_term_is_taken_at_the_nodes_mean(brow
             assert np.abs(page - expected).max() <= 1, light
 
 
-def _near_capture(folder, maps, exposure=2.0, irradiance=0.5):
-    """A capture of ``maps`` under 12 point lights 1.2 to 2 image widths away (a dome: each frame's
-    ``position``), its photographs rendered as ``torchspec render`` renders near lights (block by
-    block: torchspec.relight.render_near); and the positions ``(12, 3)``."""
+def _near_capture(folder, maps, exposure=2.0, irradiance=0.5, last=2.0):
+    """A capture of ``maps`` under 12 point lights 1.2 to 2 image widths away (the last ``last``
+    away; each frame's ``position``), its photographs rendered as ``torchspec render`` renders near
+    lights (block by block: torchspec.relight.render_near); and the positions ``(12, 3)``."""
     height, width = maps.svbrdf.shape
     directions = torch.tensor(hemisphere_lights(12, 75.0))
-    positions = directions * torch.linspace(1.2, 2.0, 12, dtype=torch.float64)[:, None]
+    radii = torch.cat([torch.linspace(1.2, 2.0, 12, dtype=torch.float64)[:11], torch.tensor([last]).double()])
+    positions = directions * radii[:, None]
     frames = [Frame(f"f{k:02d}.exr", tuple(d.tolist()), irradiance, exposure, position=tuple(p.tolist()))
               for k, (d, p) in enumerate(zip(directions, positions, strict=True))]  # fmt: skip
     capture = Capture(folder, width, height, ("R", "G", "B"), (0.0, 0.0, 1.0), LightSpec("point"), frames)
@@ -454,16 +456,28 @@ def test_the_manifest_gives_the_near_lights_positions(tmp_path):
     maps = model_maps("ward-iso", 8, 12)
     capture, positions = _near_capture(tmp_path / "near", maps)
     manifest = open_site(maps, capture).manifest
-    assert np.allclose(manifest["positions"], positions.numpy()) and manifest["near_block"] == near_block(8, 12, 4096)
+    assert np.allclose(manifest["positions"], positions.numpy())
+    assert manifest["near_block"] == near_block(8, 12, TILE_PIXELS, positions)  # render_capture's, all the lights'
+    rule = {"block_angle": BLOCK_ANGLE, "least_block": LEAST_BLOCK, "most_block": math.isqrt(TILE_PIXELS)}
+    assert {key: manifest[key] for key in rule} == rule  # for the page's own light
     assert np.isclose(manifest["near_radius"], positions.norm(dim=-1).median().item())
     assert "the capture's positions" in manifest["near_source"]
     distant = _capture(tmp_path / "distant", maps)
-    assert open_site(maps, distant).manifest["positions"] == [] and open_site(maps).manifest["near_radius"] is None
+    for shown in (open_site(maps, distant).manifest, open_site(maps).manifest):  # no positions: no block
+        assert shown["positions"] == [] and shown["near_radius"] is None and shown["near_block"] is None
+        assert {key: shown[key] for key in rule} == rule
     # A fit that calibrated one dome radius (svbrdf.json's fit.lights): every frame at it along its direction.
     dome = {"frames": list(range(12)), "lights": {"calibrated": ["irradiance", "radius"], "radius": 2.5, "gains": []}}
     manifest = open_site(Maps(maps.svbrdf, {"fit": dome}), distant).manifest
     assert np.allclose(manifest["positions"], 2.5 * distant.directions().numpy()) and manifest["near_radius"] == 2.5
+    assert manifest["near_block"] == near_block(8, 12, TILE_PIXELS, 2.5 * distant.directions())
     assert "dome radius" in manifest["near_source"]
+    # On a larger image the block grows with the nearest light's distance: the capture's block is
+    # its nearest light's, smaller than its farthest light's alone.
+    large = near_lights(capture, {}, 450, 690)["near_block"]
+    alone = [near_block(450, 690, TILE_PIXELS, positions[k : k + 1]) for k in range(12)]
+    assert large == near_block(450, 690, TILE_PIXELS, positions) == min(alone) < max(alone)
+    assert large > LEAST_BLOCK
     # A fit that calibrated the positions of the frames it fitted: those, the others the capture's.
     found = positions[::2] * 1.1
     fitted = {"frames": list(range(0, 12, 2)), "lights": {"calibrated": ["irradiance", "position"],
@@ -475,8 +489,15 @@ def test_the_manifest_gives_the_near_lights_positions(tmp_path):
         open_site(Maps(maps.svbrdf, {"fit": fitted}), capture)
 
 
-NEAR_POSITIONS = ([0.3, 0.2, 1.0], [1.2, 0.0, 0.5], [-1.4, 1.3, 0.35], [0.0, -0.6, 1.9])
-"""Near lights 1.1 to 2 image widths away, 70, 23, 10 and 72 degrees above the horizon (from the centre)."""
+NEAR_POSITIONS = ([0.3, 0.2, 1.0], [1.2, 0.0, 0.5], [-1.4, 1.3, 0.35], [0.0, -0.6, 1.9], [0.6, -0.4, 4.4])
+"""Near lights 1.1 to 2 image widths away, 70, 23, 10 and 72 degrees above the horizon (from the
+centre), and one 4.4 widths away, 81 degrees above it, whose blocks in render are wider than
+LEAST_BLOCK over a 69 pixel wide image (``near_block``) and do not divide it."""
+
+
+def _block(height, width, position):
+    """render_near's block for one light at ``position`` (torchspec.pipeline.tiling.near_block)."""
+    return near_block(height, width, TILE_PIXELS, torch.tensor([position], dtype=torch.float64))
 
 
 @needs_browser
@@ -484,21 +505,25 @@ NEAR_POSITIONS = ([0.3, 0.2, 1.0], [1.2, 0.0, 0.5], [-1.4, 1.3, 0.35], [0.0, -0.
 def test_the_page_relights_under_a_near_light_as_render_does(browser, model):
     maps = model_maps(model, 45, 69, seed=3)
     site = open_site(maps)
-    assert site.manifest["near_block"] == 5  # render's blocks: 5 pixels, the last column of blocks 4 wide
+    assert site.manifest["near_block"] is None  # no capture: the page takes render's block of its own light
+    blocks = [_block(45, 69, position) for position in NEAR_POSITIONS]
+    assert max(blocks) > LEAST_BLOCK and 69 % max(blocks) and 45 % max(blocks)  # narrower last blocks
     with _page(browser, site):
-        for position in NEAR_POSITIONS:
+        for position, block in zip(NEAR_POSITIONS, blocks, strict=True):
             at = np.array(position)
             direction, distance = at / np.linalg.norm(at), float(np.linalg.norm(at))
             # as torchspec render: one direction a block of pixels (render_near); and at each pixel
             for each in (False, True):
                 shown = {"light": direction.tolist(), "distance": distance, "pixel": each, "layer": "relit"}
                 state = browser.show(origin=True, **shown)
-                assert np.allclose(state["position"], position, atol=1e-12)
+                assert np.allclose(state["position"], position, atol=1e-12) and state["block"] == (1 if each else block)
                 page = browser.read(0, 0, 69, 45)[..., :3].astype(int)
                 expected = reference_srgb(maps.svbrdf, None, position=position, each_pixel=each).astype(int)
                 assert np.abs(page - expected).max() <= 1, (model, position, each)
             distant = reference_srgb(maps.svbrdf, tuple(direction)).astype(int)
-            assert np.abs(distant - expected).max() > 10  # the position matters
+            # the position matters (more than the tolerance: over a Lambertian surface, the farthest
+            # light's falloff varies by 9 % over the image)
+            assert np.abs(distant - expected).max() > (10 if distance < 4 else 1)
         state = browser.show(origin=True, distance=None)  # infinite: the distant light of the same direction
         assert state["position"] is None
         assert np.abs(browser.read(0, 0, 69, 45)[..., :3].astype(int) - distant).max() <= 1
@@ -538,7 +563,7 @@ def test_under_a_near_light_the_kernel_and_the_term_follow_each_blocks_direction
 @needs_browser
 def test_on_a_near_capture_the_light_snaps_to_a_frames_position(browser, tmp_path):
     maps = model_maps("ward-iso", 24, 32, seed=5)
-    capture, positions = _near_capture(tmp_path / "c", maps, exposure=2.0, irradiance=0.5)
+    capture, positions = _near_capture(tmp_path / "c", maps, exposure=2.0, irradiance=0.5, last=12.0)
     write_svbrdf(tmp_path / "maps", maps)
     predicted = render_capture(tmp_path / "maps", capture.root, None, dtype=torch.float64)["predicted"]
     site = open_site(maps, capture)
@@ -547,6 +572,7 @@ def test_on_a_near_capture_the_light_snaps_to_a_frames_position(browser, tmp_pat
         state = browser.show(origin=True, light=(target[:2] + 0.02).tolist(), layer="relit")
         assert state["distance"] == site.manifest["near_radius"] != np.linalg.norm(state["position"])
         assert state["frame"] == 7 and np.allclose(state["position"], positions[7].tolist(), atol=1e-12)
+        assert state["block"] == site.manifest["near_block"] == near_block(24, 32, TILE_PIXELS, positions)
         relit = browser.read(0, 0, 32, 24)[..., :3].astype(int)
         photo = browser.read(state["panels"][1]["x"], 0, 32, 24)[..., :3].astype(int)
         rendered = (predicted[7] / (2.0 * 0.5)).permute(1, 2, 0).clamp(0.0, 1.0)  # torchspec render, at unit light
@@ -563,6 +589,61 @@ def test_on_a_near_capture_the_light_snaps_to_a_frames_position(browser, tmp_pat
         state = browser.show(origin=True)  # the control's label changed: the canvas may have moved
         assert state["position"] is None and state["frame"] == 7
         assert np.abs(browser.read(0, 0, 32, 24)[..., :3].astype(int) - distant).max() <= 1
+        # The farthest frame, 12 widths away: render_capture lights it in the capture's blocks (its
+        # nearest light's), not in the wider ones of that light alone; which the page's own light
+        # there takes.
+        far = capture.directions()[11].tolist()
+        alone = near_block(24, 32, TILE_PIXELS, positions[11:])
+        state = browser.show(origin=True, light=far, distance=2.0, snap=True)
+        assert state["frame"] == 11 and np.allclose(state["position"], positions[11].tolist(), atol=1e-12)
+        assert state["block"] == site.manifest["near_block"] < alone
+        rendered = (predicted[11] / (2.0 * 0.5)).permute(1, 2, 0).clamp(0.0, 1.0)
+        relit = browser.read(0, 0, 32, 24)[..., :3].astype(int)
+        assert np.abs(relit - torch.round(encode(rendered) * 255).numpy()).max() <= 1
+        block = state["block"]
+        assert f"block of {block} x {block} pixels, as torchspec render takes it for the capture's lights" in (
+            browser.evaluate("document.getElementById('near').textContent")
+        )
+        state = browser.show(origin=True, light=far, distance=12.0, snap=False)
+        assert np.allclose(state["position"], positions[11].tolist(), atol=1e-12) and state["block"] == alone
+
+
+@needs_browser
+def test_the_pages_block_for_its_own_light_is_renders(browser, tmp_path):
+    """The block the page lights a light of its own in (torchspec view's JavaScript) is
+    ``near_block`` of that one light, in landscape and portrait images: at LEAST_BLOCK, in between,
+    and at a tile's side; a frame's direction at a chosen distance, in a capture without positions,
+    is such a light too."""
+    # [0, 2.13, 3] and [0, 2.5, 5]: the image's half height (not half its width) puts them on the
+    # floor's other side, in landscape and in portrait
+    free = ([0.3, 0.2, 1.0], [0.6, -0.4, 4.4], [0.0, 2.13, 3.0], [0.0, 2.5, 5.0], [-2.0, 0.3, 9.0], [1.5, 1.0, 25.0],
+            [3.0, -2.0, 80.0])  # fmt: skip
+    for height, width in ((45, 69), (69, 45)):
+        maps = model_maps("ward-iso", height, width, seed=2)
+        blocks = []
+        with _page(browser, open_site(maps)):
+            for position in free:
+                at = np.array(position)
+                shown = {
+                    "light": (at / np.linalg.norm(at)).tolist(),
+                    "distance": float(np.linalg.norm(at)),
+                    "pixel": False,
+                }
+                state = browser.show(**shown)
+                assert np.allclose(state["position"], position, atol=1e-12)
+                blocks.append(_block(height, width, state["position"]))
+                assert state["block"] == blocks[-1], (height, width, position)
+                assert f"block of {blocks[-1]} x {blocks[-1]} pixels" in browser.evaluate(
+                    "document.getElementById('near').textContent"
+                )
+            assert browser.show(distance=None)["block"] is None and browser.show(distance=2.0, pixel=True)["block"] == 1
+        assert blocks[0] == LEAST_BLOCK and blocks[-1] == math.isqrt(TILE_PIXELS)  # the least, a tile's side
+        assert len({block for block in blocks if LEAST_BLOCK < block < math.isqrt(TILE_PIXELS)}) >= 2  # between
+    distant = _capture(tmp_path / "c", maps)  # 69 x 45, directions without positions
+    with _page(browser, open_site(maps, distant)):
+        state = browser.show(light=distant.directions()[3].tolist(), distance=30.0, snap=True, pixel=False)
+        assert state["frame"] == 3 and np.allclose(state["position"], 30.0 * distant.directions()[3].numpy())
+        assert state["block"] == _block(69, 45, state["position"]) > LEAST_BLOCK
 
 
 def _lazy_and_in_memory(folder):

@@ -11,7 +11,9 @@
 // effective direction); the "physical" layer leaves it off.
 // A near light (manifest positions, near_radius; the distance control) lights each texel as
 // torchspec/near_lights.py does: from (p - x) / |p - x| with the falloff (|p| / |p - x|)^2, x the
-// centre of the texel's block of torchspec.relight.render_near (or, asked, of the pixel itself);
+// centre of the texel's block of torchspec.relight.render_near (or, asked, of the pixel itself):
+// render's block of the capture's positions (manifest near_block) for a frame's own position, else
+// render's block of that one light (Viewer.renderBlock, the rule torchspec.pipeline.tiling.near_block);
 // an extended kernel about that direction, and the residual term at it.
 "use strict";
 
@@ -341,6 +343,7 @@ class Viewer {
     this.light = [0, 0, 1]; // the light's direction (a near light's from the image's centre)
     this.distance = manifest.near_radius ?? Infinity; // a light's distance in image widths (Infinity: distant)
     this.position = null; // a near light's position (image widths from the image's centre), or null: distant
+    this.own = false; // the position is the snapped frame's own (the capture's, or the fit's calibrated)
     this.perPixel = false; // a near light's direction at each pixel (else at each of render's blocks)
     this.frame = -1; // the captured frame nearest the light
     this.layer = 0;
@@ -563,7 +566,7 @@ class Viewer {
     this.use(this.extended);
     gl.uniform3fv(this.u.uLight, this.light);
     gl.uniform4fv(this.u.uNear, this.position ? [...this.position, 1] : [0, 0, 0, 0]);
-    gl.uniform1i(this.u.uBlock, this.perPixel ? 1 : this.m.near_block || 1);
+    gl.uniform1i(this.u.uBlock, this.block() || 1);
     gl.uniform1f(this.u.uExposure, this.exposure);
     gl.uniform1i(this.u.uStd, this.std);
     const target = this.level(), top = this.m.levels.length - 1;
@@ -656,6 +659,7 @@ class Viewer {
     const snapped = this.snap && k >= 0;
     this.light = snapped ? this.m.lights[k].slice() : light;
     this.position = this.place(snapped ? k : -1);
+    this.own = Boolean(this.position && snapped && (this.m.positions || [])[k]);
     if (this.position) this.light = this.position.map((x) => x / Math.hypot(...this.position));
     this.onLight();
     this.request();
@@ -667,6 +671,27 @@ class Viewer {
     if (!Number.isFinite(this.distance)) return null;
     const own = k >= 0 ? (this.m.positions || [])[k] : null;
     return own ? own.slice() : this.light.map((x) => x * this.distance);
+  }
+
+  // The side (pixels) of the blocks whose centre a near light's direction and falloff are taken at:
+  // 1 at each pixel (asked), else torchspec render's (renderBlock); null for a distant light.
+  block() {
+    return this.position ? (this.perPixel ? 1 : this.renderBlock()) : null;
+  }
+
+  // torchspec render's block for the near light at this.position: a frame's own position, the
+  // block render_capture lights every frame with (manifest near_block, of all the capture's
+  // positions); a light of the page's own (or a frame's direction at the chosen distance), render_near's
+  // for that one light (torchspec.pipeline.tiling.near_block): 2 tan(block_angle) times its least
+  // distance from the image (|x| <= 1/2, |y| <= H / 2W, z = 0, image widths) in pixels, floored,
+  // within least_block .. most_block.
+  renderBlock() {
+    const m = this.m;
+    if (this.own && m.near_block != null) return m.near_block;
+    const [x, y, z] = this.position;
+    const dx = Math.max(Math.abs(x) - 0.5, 0), dy = Math.max(Math.abs(y) - (0.5 * m.height) / m.width, 0);
+    const across = Math.floor(2 * Math.tan(m.block_angle) * Math.sqrt(dx * dx + dy * dy + z * z) * m.width);
+    return Math.max(m.least_block, Math.min(m.most_block, across));
   }
 
   // Image point (level-0 pixel coordinates) under a canvas point (CSS pixels).
@@ -763,9 +788,10 @@ function hemisphere(viewer) {
 // its position comes, and where its direction is taken.
 function nearText(v) {
   if (!v.position) return "distant light: one direction for every pixel";
-  const m = v.m, own = v.snap && v.frame >= 0 && (m.positions || [])[v.frame];
-  const from = own ? `frame ${v.frame}'s position (${m.near_source})` : "along the light's direction";
-  const where = v.perPixel ? "at each pixel" : `at the centre of each block of ${m.near_block} x ${m.near_block} pixels, as torchspec render takes it`;
+  const m = v.m, block = v.block();
+  const from = v.own ? `frame ${v.frame}'s position (${m.near_source})` : "along the light's direction";
+  const whose = v.own && m.near_block != null ? "the capture's lights" : "this light";
+  const where = v.perPixel ? "at each pixel" : `at the centre of each block of ${block} x ${block} pixels, as torchspec render takes it for ${whose}`;
   return `near light ${Math.hypot(...v.position).toFixed(3)} widths away, ${from}; its direction and falloff ${where}`;
 }
 
@@ -890,10 +916,10 @@ window.torchspecView = {
     }),
   // Set the view: {light: [x, y(, z)], distance (image widths; null: infinite), pixel, layer, exposure,
   // snap, compare, extended, zoom, centre, origin} (origin: 1:1, the image's top-left pixel at the
-  // canvas's; pixel: a near light's direction at each pixel); returns the state it shows.
+  // canvas's; pixel: a near light's direction at each pixel); returns the state it shows (block: the
+  // side in pixels of the blocks a near light's direction is taken at, 1 at each pixel, null: distant).
   show(o) {
     const v = this.viewer;
-    v.resize(); // the canvas's size now, not at the last frame's: an origin or panel is placed in it
     for (const key of ["exposure", "snap", "compare", "extended", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
     v.extended = v.extended && v.nodes.length > 0;
     if ("layer" in o) {
@@ -907,14 +933,15 @@ window.torchspecView = {
     document.getElementById("pixel").checked = v.perPixel;
     document.getElementById("distance").value = stepOf(v.distance);
     if (o.light || "distance" in o || "snap" in o) v.setLight(o.light || v.light);
+    v.onLight(); // the light's text as set: the layout it leaves
+    v.resize(); // the canvas's size in that layout, not at the last frame's: an origin or panel is placed in it
     if (o.origin) {
       v.zoom = 1;
       v.centre = [v.panels()[0].w / 2, v.canvas.height / 2];
     }
     v.request();
-    v.onLight();
     return { width: v.canvas.width, height: v.canvas.height, panels: v.panels(), frame: v.frame, light: v.light, extended: v.extended,
-             position: v.position, distance: Number.isFinite(v.distance) ? v.distance : null };
+             position: v.position, distance: Number.isFinite(v.distance) ? v.distance : null, block: v.block() };
   },
   // Frames per second of `count` relit frames, the light circling at `zenith` radians: each
   // frame drawn and finished (one pixel read back) before the next.
