@@ -155,8 +155,9 @@ def _add_fit_command(commands) -> None:
                           "or one forced on every pixel")
     fit.add_argument("--calibrate", default=None, choices=["auto", "none", "gains", "positions", "dome"],
                      help="estimate the lights from the photographs with the maps: auto (default: what the capture's "
-                          "manifest lists as unknown, e.g. an imported capture's irradiance), none, gains (one per "
-                          "frame and channel) or positions (near lights' positions, and gains)")
+                          "manifest lists as unknown, e.g. an imported capture's irradiance, with a dome radius "
+                          "where the photographs show one), none, gains (one per frame and channel), positions "
+                          "(near lights' positions, and gains) or dome (one radius for every light, and gains)")
     fit.add_argument("--residual-term", type=int, default=None, choices=[0, 2, 3], metavar="{0,2,3}",
                      help="fit a smooth per-pixel residual term (hemispherical harmonics of order 2 or 3) where it "
                           "predicts left-out frames better, for relighting what the physical model cannot (cast "

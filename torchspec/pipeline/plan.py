@@ -172,8 +172,10 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     and ``positions`` force them (``positions`` with gains), ``dome`` estimates gains and one dome
     radius for lights written as directions (:func:`torchspec.lightcal.dome_radius`; distant where
     no radius explains the photographs better), ``none`` takes the lights as written.
-    ``auto`` keeps the estimate only where the photographs determine it (:data:`CALIBRATION_RMS`,
-    :data:`CALIBRATION_EXPLAINED`; else a :class:`FitWarning` and the lights as written).
+    ``auto`` estimates a dome radius as ``dome`` does where it calibrates gains of lights written
+    as directions, and keeps the estimate only where the photographs determine it
+    (:data:`CALIBRATION_RMS`, :data:`CALIBRATION_EXPLAINED`; else a :class:`FitWarning` and the
+    lights as written, at the dome radius if one was found: :func:`_dome_only`).
     Gains multiply the frames' irradiance (normalised to a geometric mean of 1 per channel: the
     capture's overall brightness stays in the diffuse map). ``stack (K, C, H, W)`` are the
     frames, ``usable (K, H, W)`` the samples to calibrate from (not saturated, finite).

@@ -104,7 +104,8 @@ class FitConfig:
             in one batch: about ``folds`` times the cost of the fits).
         calibrate: the lights estimated from the photographs with the maps
             (:func:`torchspec.pipeline.plan.calibrated`): ``auto`` (what the capture's manifest
-            lists as ``unknown``: its irradiance, a gain per frame and channel; its lights'
+            lists as ``unknown``: its irradiance, a gain per frame and channel, with a dome radius
+            for lights written as directions, kept where the gains are refused; its lights'
             positions), ``gains``, ``positions`` (near lights' positions and gains), ``dome`` (gains
             and one dome radius for every light, or distant lights where none explains the
             photographs better: :func:`torchspec.lightcal.dome_radius`) or ``none``.
