@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
-import torch
 
 from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
@@ -38,8 +37,9 @@ from ..lights import Kernel
 from ..outputs import check_output
 from ..progress import bar
 from ..report import MODEL_COLOURS
+from .cache import Stopped
 from .light import light_quadrature, near_lights
-from .tiles import EXTRA_MAPS, Pyramid, photo_pyramid
+from .tiles import EXTRA_MAPS, KEEP_TEXELS, Pyramid, frame_pyramid
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
 
@@ -52,7 +52,8 @@ _TILE = re.compile(r"^/(?:tiles|photo/(\d+))/(\d+)/(\d+)_(\d+)\.bin$")
 WAIT = 0.5
 """Seconds a tile request waits for its level before the server answers 503 (asked again later)."""
 PHOTO_CACHE = 4
-"""Photographs whose pyramids the server keeps (the frames last asked for)."""
+"""Photographs whose pyramids the server keeps (the frames last asked for; the others' background
+passes are stopped)."""
 
 
 SAMPLE_BANDS = (16, 16)
@@ -81,13 +82,16 @@ class NotMade(Exception):
 @dataclass
 class Site:
     """A fit's viewer data: the maps' pyramid, the manifest, and the capture whose photographs
-    show beside the relit fit (``None`` for none). Photographs' pyramids are made on demand."""
+    show beside the relit fit (``None`` for none). Photographs' pyramids are made on demand, with
+    the maps' tiling (:func:`~torchspec.view.tiles.frame_pyramid`: a frame of more than
+    ``keep_texels`` pixels is read lazily, in bands of rows, as a map folder is)."""
 
     pyramid: Pyramid
     manifest: dict
     capture: Capture | None = None
     photos: OrderedDict = field(default_factory=OrderedDict)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    keep_texels: int = KEEP_TEXELS
 
     def file(self, path: str, wait: bool = True) -> bytes | None:
         """The bytes of the site's file at URL path ``path``; ``None`` for no such file.
@@ -113,6 +117,12 @@ class Site:
             return pyramid.tile(int(level), int(row), int(column)) if pyramid is not None else None
         except IndexError:
             return None
+        except Stopped:  # a photograph dropped from the kept ones before its level was made
+            if frame is None or self.photos.get(int(frame)) is pyramid:  # the site is closed
+                raise
+            if not wait:
+                raise NotMade(path) from None
+            return self.file(path, wait)  # its pyramid made again
 
     def photo(self, k: int) -> Pyramid | None:
         """Frame ``k``'s photograph as a pyramid (``None`` without a capture or such a frame)."""
@@ -120,18 +130,21 @@ class Site:
             return None
         with self.lock:
             if k not in self.photos:
-                frame = self.capture.read_frames([k], nonfinite="keep")[0]
-                frame = torch.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
-                scale = self.capture.exposure()[k] * self.capture.irradiance()[k]
-                self.photos[k] = photo_pyramid(frame, scale)
+                tile = self.pyramid.tile_size
+                self.photos[k] = frame_pyramid(self.capture, k, tile=tile, keep_texels=self.keep_texels)
                 while len(self.photos) > PHOTO_CACHE:
-                    self.photos.popitem(last=False)
+                    self.photos.popitem(last=False)[1].close(timeout=0)  # its pass stops after its band
             self.photos.move_to_end(k)
             return self.photos[k]
 
     def close(self) -> None:
-        """Stop the maps' background pass and cache write (:meth:`Pyramid.close`)."""
+        """Stop the maps' background pass and cache write, and the photographs' passes
+        (:meth:`Pyramid.close`)."""
         self.pyramid.close()
+        with self.lock:
+            photos = list(self.photos.values())
+        for photo in photos:
+            photo.close()
 
 
 def _sample(folder: Path) -> tuple[list[Maps], tuple[int, int]]:
@@ -162,8 +175,10 @@ def open_site(
     it (its request fails, naming the file and row). ``cache``: a folder's coarse levels are read
     from the cache of :mod:`torchspec.view.cache` when it holds them for the maps as they are now
     (the whole painting shows at once), else written there once the pass has made them
-    (``torchspec view`` without ``--no-cache``). ``options`` go to the :class:`Pyramid`
-    (``tile``; for a folder also ``keep_texels``, ``cache_bytes``).
+    (``torchspec view`` without ``--no-cache``). A capture's frame is read when its photograph is
+    first asked for: whole, or lazily as a folder (not cached on disk) when it has more than
+    ``keep_texels`` pixels (:class:`Site`). ``options`` go to the :class:`Pyramid` (``tile``; for a
+    folder also ``keep_texels``, ``cache_bytes``); ``tile`` and ``keep_texels`` to the photographs'.
 
     Raises:
         SVBRDFError, CaptureError: a folder that is not a valid map folder or capture.
@@ -218,7 +233,7 @@ def open_site(
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
     }
-    return Site(pyramid, manifest, capture)
+    return Site(pyramid, manifest, capture, keep_texels=options.get("keep_texels", KEEP_TEXELS))
 
 
 def export_web(

@@ -33,7 +33,17 @@ from ..io import Maps
 from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 from .cache import LevelCache, Stopped
 
-__all__ = ["TILE", "TEXTURES", "Pyramid", "levels_for", "photo_pyramid", "term_textures", "term_planes", "textures_of"]
+__all__ = [
+    "TILE",
+    "TEXTURES",
+    "Pyramid",
+    "frame_pyramid",
+    "levels_for",
+    "photo_pyramid",
+    "term_textures",
+    "term_planes",
+    "textures_of",
+]
 
 TILE = 256
 """Texels on a tile's side."""
@@ -410,11 +420,49 @@ class Pyramid:
 
 
 PHOTO_TEXTURES = (("photo", "float16", ("r", "g", "b", "a")),)
+PHOTO_BYTES = CACHE_BYTES // 4
+"""The bands of level-0 rows a lazily read photograph's pyramid keeps, in bytes of planes (the
+server keeps a few photographs: ``torchspec.view.site.PHOTO_CACHE``)."""
 
 
-def photo_pyramid(frame: torch.Tensor, scale: torch.Tensor) -> Pyramid:
-    """The pyramid of a photograph ``frame (C, H, W)`` divided by ``scale (C,)`` (its exposure
-    times irradiance, per channel)."""
+def _photo_planes(frame: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """The planes ``r, g, b, a`` ``(4, H, W)`` float32 of ``frame (C, H, W)`` divided by ``scale (C,)``
+    (grey replicated, more than 3 channels cut to 3; ``a`` is 1)."""
     value = _rgb((frame / scale.to(frame)[:, None, None]).permute(1, 2, 0)).float()
-    planes = {"r": value[..., 0], "g": value[..., 1], "b": value[..., 2], "a": torch.ones_like(value[..., 0])}
-    return Pyramid.build(planes, PHOTO_TEXTURES)
+    return torch.stack([value[..., 0], value[..., 1], value[..., 2], torch.ones_like(value[..., 0])])
+
+
+def photo_pyramid(frame: torch.Tensor, scale: torch.Tensor, tile: int = TILE) -> Pyramid:
+    """The pyramid of a photograph ``frame (C, H, W)`` divided by ``scale (C,)`` (its exposure
+    times irradiance, per channel), in memory."""
+    planes = _photo_planes(frame, scale)
+    return Pyramid(PHOTO_TEXTURES, planes.shape[1:], tuple(planes), tile=tile)
+
+
+def frame_pyramid(capture, k: int, *, tile: int = TILE, keep_texels: int = KEEP_TEXELS,
+                  cache_bytes: int = PHOTO_BYTES) -> Pyramid:  # fmt: skip
+    """The pyramid of frame ``k`` of ``capture`` (a :class:`~torchspec.io.Capture`) as
+    :func:`photo_pyramid` makes it: divided by its exposure times irradiance, NaN and Inf made 0.
+
+    A frame of at most ``keep_texels`` pixels is read whole (NaN, Inf and negative values kept,
+    with a warning: :meth:`~torchspec.io.Capture.read_frames`), as the pyramid of a map folder
+    holds its level 0 whole. A larger one is read lazily as a map folder is
+    (:meth:`Pyramid.of_folder`): bands of its EXR's rows, read when a tile of a fine level asks
+    for them (``cache_bytes`` of them kept) and by the background pass that makes the coarse
+    levels (without the warning). The tiles are the same, bit for bit.
+
+    Raises:
+        CaptureError: the frame (read whole) is unreadable or not of the capture's size; read
+            lazily, the tile whose rows are asked for raises it.
+    """
+    scale = capture.exposure()[k] * capture.irradiance()[k]
+    size = (capture.height, capture.width)
+    if size[0] * size[1] <= keep_texels:
+        frame = capture.read_frames([k], nonfinite="keep")[0]
+        return photo_pyramid(torch.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0), scale, tile)
+
+    def read(start: int, stop: int) -> torch.Tensor:
+        frame = capture.read_frames([k], rows=(start, stop), nonfinite="ignore")[0]
+        return _photo_planes(torch.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0), scale)
+
+    return Pyramid(PHOTO_TEXTURES, size, read=read, tile=tile, keep_texels=keep_texels, cache_bytes=cache_bytes)
