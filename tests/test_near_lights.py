@@ -212,6 +212,23 @@ def test_auto_keeps_a_dome_radius_the_photographs_show_where_it_refuses_their_ga
     assert 3 * float(error) < float(torch.rad2deg(angle(written.svbrdf.normal.double(), truth)).median())
 
 
+def test_auto_keeps_no_dome_radius_that_only_refitted_gains_show(tmp_path):
+    """The same dome with frame intensities spread as a real dome's (log-normal, sigma 0.8): with the
+    gains refitted a dome radius shows, but under the irradiance as written none does;
+    where auto refuses the gains it takes the lights as written, distant, not at that radius."""
+    from torchspec.lightcal import calibrate_lights
+    from torchspec.pipeline import FitWarning
+
+    gains = (0.8 * torch.randn(25, generator=torch.Generator().manual_seed(4), dtype=D)).exp()
+    capture, _ = _lambertian_with_gains(tmp_path, gains, scramble=0.3, radius=3.0)
+    frames = read_capture(capture.root).read_frames(dtype=D)
+    found = calibrate_lights(frames, read_capture(capture.root).directions(), dome=True)
+    assert found.radius is not None and found.radius_as_written is None
+    with pytest.warns(FitWarning, match="taken as written"):
+        auto = fit(capture, config=FitConfig(model="diffuse", compile=False))
+    assert auto.stats["lights"]["calibrated"] == [] and auto.stats["lights"].get("radius") is None
+
+
 def test_a_cluster_fit_refuses_lights_it_cannot_handle(tmp_path):
     """Near lights and lights to calibrate are fitted in one process: a cluster fit says so
     before any work (the client is not touched)."""

@@ -97,7 +97,9 @@ class LightCalibration:
             samples of the explained pixels (highlights included).
         iterations: the iterations run.
         radius: ``dome``'s radius (image widths), else ``None`` (also for distant lights);
-            ``radius_misfit``: ``dome``'s median pixel misfit of ``"distant"`` and each of :data:`RADII`.
+            ``radius_misfit``: ``dome``'s median pixel misfit of ``"distant"`` and each of :data:`RADII`;
+            ``radius_as_written``, ``radius_misfit_as_written``: the same under the gains as
+            written (all 1), for a caller that refuses the gains (``None`` without ``dome``).
     """
 
     gains: Tensor
@@ -110,6 +112,8 @@ class LightCalibration:
     iterations: int
     radius: float | None = None
     radius_misfit: dict | None = None
+    radius_as_written: float | None = None
+    radius_misfit_as_written: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -176,20 +180,21 @@ def _ratio_gains(values, ok, points, directions, positions, gains, options, roun
     return gains, rms_level
 
 
-def _dome_misfit(values, ok, points, directions, radius, gains, options) -> float:
-    """The median pixel misfit of lights at ``radius`` along ``directions`` (``None``: distant), gains refitted."""
+def _dome_misfit(values, ok, points, directions, radius, gains, options, refit: bool = True) -> float:
+    """The median pixel misfit of lights at ``radius`` along ``directions`` (``None``: distant),
+    gains refitted (else under ``gains``: the first round's misfit is that of the gains given)."""
     positions = None if radius is None else radius * directions
-    return float(_ratio_gains(values, ok, points, directions, positions, gains, options, 3)[1])
+    return float(_ratio_gains(values, ok, points, directions, positions, gains, options, 3 if refit else 1)[1])
 
 
-def dome_radius(values, ok, points, directions, gains, options) -> tuple[float | None, dict]:
+def dome_radius(values, ok, points, directions, gains, options, refit: bool = True) -> tuple[float | None, dict]:
     """The dome radius of :data:`RADII` (all lights at it along their ``directions``) whose median
-    pixel misfit (:func:`_dome_misfit`) is the least, or ``None`` (distant lights)
-    unless that misfit is below ``1 - DOME_MARGIN`` of the distant lights': ``(radius, misfit of
-    each candidate)``."""
-    misfit = {"distant": _dome_misfit(values, ok, points, directions, None, gains, options)}
+    pixel misfit (:func:`_dome_misfit`, with the gains refitted or, ``refit`` false, as given) is
+    the least, or ``None`` (distant lights) unless that misfit is below ``1 - DOME_MARGIN`` of the
+    distant lights': ``(radius, misfit of each candidate)``."""
+    misfit = {"distant": _dome_misfit(values, ok, points, directions, None, gains, options, refit)}
     for r in RADII:
-        misfit[str(r)] = _dome_misfit(values, ok, points, directions, r, gains, options)
+        misfit[str(r)] = _dome_misfit(values, ok, points, directions, r, gains, options, refit)
     best = min(RADII, key=lambda r: misfit[str(r)])
     return (best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None), misfit
 
@@ -257,7 +262,7 @@ def calibrate_lights(
     points = image_points(height, width, dtype=work, device=device)[index]
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     gains = torch.ones(k, c, dtype=work, device=device)
-    positions, chosen, misfit = None, None, None
+    positions, chosen, misfit, written = None, None, None, (None, None)
     if near:
         if radius is None:  # the start: the radius of RADII whose lights leave the least misfit
             few = _sample(values.shape[0], RADIUS_SAMPLE, device)
@@ -266,6 +271,7 @@ def calibrate_lights(
     elif dome:
         few = _sample(values.shape[0], RADIUS_SAMPLE, device)
         chosen, misfit = dome_radius(values[few], ok[few], points[few], dirs, gains, options)
+        written = dome_radius(values[few], ok[few], points[few], dirs, gains, options, refit=False)
         positions = None if chosen is None else chosen * dirs
     gains = _ratio_gains(values, ok, points, dirs, positions, gains, options, 8)[0]
     gains, positions, covariance, level, done = _alternate(
@@ -287,6 +293,8 @@ def calibrate_lights(
         iterations=done,
         radius=chosen,
         radius_misfit=misfit,
+        radius_as_written=written[0],
+        radius_misfit_as_written=written[1],
     )
 
 

@@ -209,7 +209,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         )
         if wanted == "auto":
             refused = {"refused": message, "explained_share": explained, "rms": found.rms.tolist()}
-            if found.radius is None:
+            if found.radius_as_written is None:
                 warnings.warn(message + ".", FitWarning, stacklevel=3)
                 return job, {"calibrated": [], **refused}
             return _dome_only(job, found, message, refused)
@@ -236,18 +236,19 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
 
 def _dome_only(job: Setup, found, message: str, refused: dict) -> tuple[Setup, dict]:
     """``auto``'s lights where the gains are refused but one dome radius explains the photographs
-    better than distant lights (:func:`torchspec.lightcal.dome_radius`): the lights at that radius
-    along their written directions, with the irradiance as written."""
+    better than distant lights with the irradiance as written (:func:`torchspec.lightcal.dome_radius`,
+    ``refit=False``): the lights at that radius along their written directions, that irradiance."""
     warnings.warn(
         message.replace(
             "the lights are taken as written",
-            f"the lights are taken at the dome radius {found.radius:g} "
+            f"the lights are taken at the dome radius {found.radius_as_written:g} "
             "(image widths) the photographs show, with the irradiance as written",
         )
         + ".",
         FitWarning,
         stacklevel=4,
     )
-    positions = found.radius * job.lights.directions
-    record = {"calibrated": ["radius"], "radius": found.radius, "radius_misfit": found.radius_misfit, **refused}
+    radius = found.radius_as_written
+    positions = radius * job.lights.directions
+    record = {"calibrated": ["radius"], "radius": radius, "radius_misfit": found.radius_misfit_as_written, **refused}
     return replace(job, positions=positions), record
