@@ -75,8 +75,9 @@ __all__ = [
 RADII = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 12.0, 25.0)
 """Dome radii (image widths) tried for the starting point of near lights when no radius is given."""
 RADIUS_SAMPLE = 4096
-"""Pixels of the sample (a fixed random subset) a dome radius is chosen from: a median misfit per
-candidate radius, which this many pixels give as well as the whole sample, at a quarter of the cost."""
+"""Pixels of the sample (a fixed random subset) the start is made from: a dome radius (a median
+misfit per candidate radius) and the first gains (medians of ratios), which this many pixels give
+as well as the whole sample, at a quarter of the cost; the alternation then uses the whole sample."""
 DOME_MARGIN = 0.1
 """``dome`` takes near lights only where they lower the median pixel misfit by this fraction of
 the distant lights' (:func:`dome_radius`)."""
@@ -263,17 +264,17 @@ def calibrate_lights(
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     gains = torch.ones(k, c, dtype=work, device=device)
     positions, chosen, misfit, written = None, None, None, (None, None)
+    few = _sample(values.shape[0], RADIUS_SAMPLE, device)  # the start's pixels
+    start = (values[few], ok[few], points[few], dirs)
     if near:
         if radius is None:  # the start: the radius of RADII whose lights leave the least misfit
-            few = _sample(values.shape[0], RADIUS_SAMPLE, device)
-            radius = min(RADII, key=lambda r: _dome_misfit(values[few], ok[few], points[few], dirs, r, gains, options))
+            radius = min(RADII, key=lambda r: _dome_misfit(*start, r, gains, options))
         positions = radius * dirs
     elif dome:
-        few = _sample(values.shape[0], RADIUS_SAMPLE, device)
-        chosen, misfit = dome_radius(values[few], ok[few], points[few], dirs, gains, options)
-        written = dome_radius(values[few], ok[few], points[few], dirs, gains, options, refit=False)
+        chosen, misfit = dome_radius(*start, gains, options)
+        written = dome_radius(*start, gains, options, refit=False)
         positions = None if chosen is None else chosen * dirs
-    gains = _ratio_gains(values, ok, points, dirs, positions, gains, options, 8)[0]
+    gains = _ratio_gains(*start, positions, gains, options, 8)[0]
     gains, positions, covariance, level, done = _alternate(
         values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up
     )
