@@ -161,16 +161,20 @@ def _sample(count: int, sample: int, device) -> Tensor:
     return chosen.sort().values.to(device)
 
 
-def _ratio_gains(values, ok, points, directions, positions, gains, options, rounds: int) -> tuple[Tensor, Tensor]:
+def _ratio_gains(
+    values, ok, points, directions, positions, gains, options, rounds: int
+) -> tuple[Tensor, Tensor, Tensor]:
     """Gains from the median over explained pixels of each frame's ``value / prediction`` (robust to
     a frame's gain being far off, which a per-pixel cut would take for an outlier in every pixel),
-    repeated ``rounds`` times or until they change by less than 1e-4: ``(gains, median pixel rms)``."""
-    rms_level = values.new_tensor(math.inf)
-    for _ in range(rounds):
+    repeated ``rounds`` times or until they change by less than 1e-4: ``(gains, median pixel rms of
+    the last round, of the first: under the gains given)``."""
+    rms_level = first = values.new_tensor(math.inf)
+    for round_ in range(rounds):
         b, _, lit, rms, sel, _ = _explained_pass(
             values, ok, points, directions, positions, gains, **options, shift=True
         )
         rms_level = rms[sel].median()
+        first = rms_level if round_ == 0 else first
         pred = _Design.of(_lighting(points[sel], directions, positions)[1], gains).predict(b[sel])
         use = lit[sel] & (pred > 0.1 * pred.amax(1, keepdim=True))
         ratio = torch.where(use, values[sel] / pred.clamp_min(1e-300), torch.nan).nanmedian(0).values
@@ -178,26 +182,29 @@ def _ratio_gains(values, ok, points, directions, positions, gains, options, roun
         gains = _normalised(gains * ratio)
         if float((ratio - 1).abs().max()) < 1e-4:
             break
-    return gains, rms_level
+    return gains, rms_level, first
 
 
-def _dome_misfit(values, ok, points, directions, radius, gains, options, refit: bool = True) -> float:
-    """The median pixel misfit of lights at ``radius`` along ``directions`` (``None``: distant),
-    gains refitted (else under ``gains``: the first round's misfit is that of the gains given)."""
+def _dome_misfit(values, ok, points, directions, radius, gains, options) -> tuple[float, float]:
+    """The median pixel misfit of lights at ``radius`` along ``directions`` (``None``: distant):
+    ``(gains refitted, under the gains given)``."""
     positions = None if radius is None else radius * directions
-    return float(_ratio_gains(values, ok, points, directions, positions, gains, options, 3 if refit else 1)[1])
+    _, refitted, given = _ratio_gains(values, ok, points, directions, positions, gains, options, 3)
+    return float(refitted), float(given)
 
 
-def dome_radius(values, ok, points, directions, gains, options, refit: bool = True) -> tuple[float | None, dict]:
+def dome_radius(values, ok, points, directions, gains, options) -> tuple[tuple[float | None, dict], ...]:
     """The dome radius of :data:`RADII` (all lights at it along their ``directions``) whose median
-    pixel misfit (:func:`_dome_misfit`, with the gains refitted or, ``refit`` false, as given) is
-    the least, or ``None`` (distant lights) unless that misfit is below ``1 - DOME_MARGIN`` of the
-    distant lights': ``(radius, misfit of each candidate)``."""
-    misfit = {"distant": _dome_misfit(values, ok, points, directions, None, gains, options, refit)}
-    for r in RADII:
-        misfit[str(r)] = _dome_misfit(values, ok, points, directions, r, gains, options, refit)
-    best = min(RADII, key=lambda r: misfit[str(r)])
-    return (best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None), misfit
+    pixel misfit (:func:`_dome_misfit`) is the least, or ``None`` (distant lights) unless that
+    misfit is below ``1 - DOME_MARGIN`` of the distant lights': ``((radius, misfit of each
+    candidate) with the gains refitted, the same under the gains given)``, from one pass."""
+    both = [_dome_misfit(values, ok, points, directions, r, gains, options) for r in (None, *RADII)]
+    out = []
+    for way in (0, 1):
+        misfit = {"distant": both[0][way], **{str(r): m[way] for r, m in zip(RADII, both[1:], strict=True)}}
+        best = min(RADII, key=lambda r: misfit[str(r)])
+        out.append((best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None, misfit))
+    return tuple(out)
 
 
 def calibrate_lights(
@@ -268,11 +275,10 @@ def calibrate_lights(
     start = (values[few], ok[few], points[few], dirs)
     if near:
         if radius is None:  # the start: the radius of RADII whose lights leave the least misfit
-            radius = min(RADII, key=lambda r: _dome_misfit(*start, r, gains, options))
+            radius = min(RADII, key=lambda r: _dome_misfit(*start, r, gains, options)[0])
         positions = radius * dirs
     elif dome:
-        chosen, misfit = dome_radius(*start, gains, options)
-        written = dome_radius(*start, gains, options, refit=False)
+        (chosen, misfit), written = dome_radius(*start, gains, options)
         positions = None if chosen is None else chosen * dirs
     gains = _ratio_gains(*start, positions, gains, options, 8)[0]
     gains, positions, covariance, level, done = _alternate(

@@ -236,8 +236,9 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
 
 def _dome_only(job: Setup, found, message: str, refused: dict) -> tuple[Setup, dict]:
     """``auto``'s lights where the gains are refused but one dome radius explains the photographs
-    better than distant lights with the irradiance as written (:func:`torchspec.lightcal.dome_radius`,
-    ``refit=False``): the lights at that radius along their written directions, that irradiance."""
+    better than distant lights with the irradiance as written (:func:`torchspec.lightcal.dome_radius`'s
+    choice under the gains given): the lights at that radius along their written directions, that
+    irradiance."""
     warnings.warn(
         message.replace(
             "the lights are taken as written",
