@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..io import Maps
+from ..io import Maps, read_svbrdf
 from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 from .cache import LevelCache, Stopped
 
@@ -333,8 +333,6 @@ class Pyramid:
         """The pyramid of the map folder ``folder`` of ``size`` ``(H, W)``, read lazily (``head``:
         a band of its rows, for the textures; ``options``: ``tile``, ``keep_texels``,
         ``cache_bytes``; ``cache=True``: its held levels cached, :mod:`torchspec.view.cache`)."""
-        from ..io import read_svbrdf
-
         textures = textures_of(head)
         names = [name for _, _, names in textures for name in names]
 
