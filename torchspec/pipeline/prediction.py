@@ -24,7 +24,6 @@ import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
-from ..jacobian import jacobian
 from ..lm import bounded
 from ..models import Model, get_model
 from ..rendering import render
@@ -40,7 +39,6 @@ __all__ = [
     "held_out_refit",
     "predicts_better",
     "second_lobe_held_out",
-    "anisotropy_held_out",
 ]
 
 CHUNK_SAMPLES = 1 << 24
@@ -225,84 +223,19 @@ def second_lobe_held_out(
     parameters on the frames of the other folds, as in :func:`held_out`, without the bound
     ``k_s2 >= 0``. What ``ward-dual`` could predict, to first order in its second lobe, at the cost
     of one Jacobian and ``G`` renders per pixel instead of a fit (``auto`` tries ``ward-dual``
-    only where this predicts better: :attr:`FitConfig.gate`).
+    only where this predicts better: :attr:`FitConfig.dual_gate`).
     """
-    g = roughness.shape[0]
-
-    def columns(maps: SVBRDF) -> Tensor:  # the second lobe's height, per roughness: (n, G, K, C, 1)
-        n, c = maps.shape[0], len(data.channels)
-        unit = SVBRDF(
-            maps.normal[:, None].expand(n, g, 3),
-            maps.diffuse.new_zeros((n, g, c)),
-            maps.diffuse.new_ones((n, g, 1)),
-            roughness.to(maps.diffuse)[None, :, None].expand(n, g, 2),
-            None,
-            data.channels,
-        )
-        return render(unit, data.lights, data.view, quadrature=replace(config.rule, compile=False))[..., None]
-
-    return _extended_held_out(get_model("ward-iso"), columns, g, svbrdf, index, data, inverse_noise, folds, config)
-
-
-def anisotropy_held_out(
-    svbrdf: SVBRDF,
-    index: Tensor,
-    data: TileSamples,
-    inverse_noise: Tensor,
-    folds: Tensor,
-    config: FitConfig,
-) -> Tensor:
-    """:func:`held_out`'s residuals of an isotropic lobe made anisotropic, linearised at isotropy:
-    ``(m, 1, S, K, C)``.
-
-    The model is ``ward-iso-colour`` at ``svbrdf`` (its roughness averaged over the axes), and two
-    columns: the derivatives of the rendering in ``e`` where ``alpha_x = alpha exp(e)``, ``alpha_y
-    = alpha exp(-e)``, at rotations 0 and 45 degrees (at isotropy the rotation moves nothing, and a
-    stretch at any rotation ``A`` is to first order ``cos 2A`` of the first plus ``sin 2A`` of the
-    second). Each fold's refit is one Gauss-Newton step, as in :func:`held_out`. What
-    ``ward-aniso`` could predict to first order in its anisotropy, at the cost of three Jacobians
-    per pixel instead of a fit (``auto`` tries ``ward-aniso`` only where this predicts better:
-    :attr:`FitConfig.gate`)."""
-
-    def columns(maps: SVBRDF) -> Tensor:  # (n, 1, K, C, 2)
-        n = maps.shape[0]
-        alpha = maps.roughness.mean(-1, keepdim=True).expand(n, 2)
-        out = []
-        for angle in (0.0, math.pi / 4):
-            turned = SVBRDF(maps.normal, maps.diffuse, maps.specular, alpha, alpha.new_full((n,), angle), data.channels)
-            full = jacobian(turned, data.lights, data.view, quadrature=replace(config.rule, compile=False))[1]
-            at = full.shape[-1] - 3  # alpha_x, alpha_y, rotation
-            out.append((full[..., at] - full[..., at + 1]) * alpha[:, :1, None])
-        return torch.stack(out, -1)[:, None]
-
-    return _extended_held_out(
-        get_model("ward-iso-colour"), columns, 1, svbrdf, index, data, inverse_noise, folds, config
-    )
-
-
-def _extended_held_out(
-    model: Model,
-    columns,
-    g: int,
-    svbrdf: SVBRDF,
-    index: Tensor,
-    data: TileSamples,
-    inverse_noise: Tensor,
-    folds: Tensor,
-    config: FitConfig,
-) -> Tensor:
-    """:func:`held_out`'s residuals ``(m, G, S, K, C)`` of ``model`` at ``svbrdf`` extended by
-    ``columns(maps) -> (n, G, K, C, E)``: ``G`` alternative sets of ``E`` columns of the rendering's
-    derivatives (unweighted), each fitted with the model's own parameters."""
+    model = get_model("ward-iso")
     m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
+    g = roughness.shape[0]
     schemes, count = folds.shape[0], int(folds.max()) + 1
     out = data.observed.new_zeros((m, g, schemes, k, c))
     if m == 0:
         return out
     bounds = model.bounds(c, config.least_roughness(data.lights))
     rule = config.rule
-    p = model.size(c)
-    chunk = max(1, CHUNK_SAMPLES // (k * c * (p + 2) * g))
+    p = model.size(c) + 1
+    chunk = max(1, CHUNK_SAMPLES // (k * c * p * g))
     member = (folds[:, None, :] == torch.arange(count, device=folds.device)[None, :, None]).to(data.observed.dtype)
     for start in range(0, m, chunk):
         rows = slice(start, start + chunk)
@@ -320,16 +253,27 @@ def _extended_held_out(
 
         r, jac = compiled_or_eager(run, config.compile)
         n = r.shape[0]
-        r, jac = r.view(n, k, c), jac.view(n, k, c, p)
-        extra = columns(maps) * weight[:, None, :, None, None]  # weighted as r
-        full = torch.cat([jac[:, None].expand(n, g, k, c, p), extra], -1)  # (n, G, K, C, P + E)
+        r, jac = r.view(n, k, c), jac.view(n, k, c, p - 1)
+        # The second lobe's column per roughness: its rendering at height 1, weighted as r.
+        alpha = roughness.to(r)[None, :, None].expand(n, g, 2)
+        unit = SVBRDF(
+            maps.normal[:, None].expand(n, g, 3),
+            maps.diffuse.new_zeros((n, g, c)),
+            maps.diffuse.new_ones((n, g, 1)),
+            alpha,
+            None,
+            data.channels,
+        )
+        lobe = render(unit, data.lights, data.view, quadrature=replace(rule, compile=False))  # (n, G, K, C)
+        column = lobe * weight[:, None, :, None]
+        full = torch.cat([jac[:, None].expand(n, g, k, c, p - 1), column[..., None]], -1)  # (n, G, K, C, P)
         jj = torch.einsum("ngkcp,ngkcq->ngkpq", full, full)
         jr = torch.einsum("ngkcp,nkc->ngkp", full, r)
         fold_jj = torch.einsum("sfk,ngkpq->ngsfpq", member, jj)
         fold_jr = torch.einsum("sfk,ngkp->ngsfp", member, jr)
         rest_jj = jj.sum(2)[:, :, None, None] - fold_jj
         rest_jr = jr.sum(2)[:, :, None, None] - fold_jr
-        step = _damped_solve(rest_jj, -rest_jr)  # (n, G, S, F, P + E)
+        step = _damped_solve(rest_jj, -rest_jr)  # (n, G, S, F, P)
         per_frame = torch.einsum("sfk,ngsfp->ngskp", member, step)
         predicted = r[:, None, None] + torch.einsum("ngkcp,ngskp->ngskc", full, per_frame)
         scale = data.level[at, None, None, None, None] * inverse_noise[rows, None, None]

@@ -20,25 +20,18 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..layout import lobe_support
 from ..lm import DIVERGED, LMResult
-from ..models import ALPHA_BOUNDS, Model, get_model
-from .prediction import (
-    anisotropy_held_out,
-    held_out,
-    held_out_refit,
-    light_folds,
-    predicts_better,
-    second_lobe_held_out,
-)
+from ..models import ALPHA_BOUNDS, get_model
+from .prediction import held_out, held_out_refit, light_folds, predicts_better, second_lobe_held_out
 from .samples import TileSamples
 from .settings import AUTO, MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
 from .start import StartingPoint
 from .uncertainty import PeakSamples, sensor_noise, uncertainty
 
-__all__ = ["GATE_ROUGHNESS", "ModelFit", "Choice", "assess", "gate", "resolved", "supported", "select_models"]
+__all__ = ["GATE_ROUGHNESS", "ModelFit", "Choice", "assess", "resolved", "supported", "select_models"]
 
 GATE_ROUGHNESS = 6
-"""Second lobes' roughnesses ``auto``'s gate of ``ward-dual`` tries (:func:`gate`)."""
+"""Second lobes' roughnesses ``auto``'s gate of ``ward-dual`` tries (:attr:`FitConfig.dual_gate`)."""
 
 
 @dataclass(frozen=True)
@@ -240,12 +233,10 @@ def _climb(
     A pixel without a detected peak whose fit leaves a misfit is fitted with the ladder's first
     model too (from the specular start and from a broad lobe about the photometric-stereo normal:
     a broad lobe leaves no peak to detect); each next model is tried, from the previous one's
-    solution, where that leaves a misfit (``ward-aniso`` and ``ward-dual`` only where :func:`gate`
-    lets them: a pixel it stops goes on to the next model from the same solution). A model is
-    kept where it predicts the left-out frames better than the one kept so far
-    (:func:`~torchspec.pipeline.prediction.predicts_better`), the first lobe than the pixel's fit
-    without one (for a detected peak, one step from the photometric-stereo fit; where the lobe is
-    not kept, that fit is then made)."""
+    solution, where that leaves a misfit. A model is kept where it predicts the left-out frames
+    better than the one kept so far (:func:`~torchspec.pipeline.prediction.predicts_better`),
+    the first lobe than the pixel's fit without one (for a detected peak, one step from the
+    photometric-stereo fit; where the lobe is not kept, that fit is then made)."""
     ladder, channels = config.ladder, data.channels
     if folds is None:
         folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
@@ -287,75 +278,36 @@ def _climb(
         choice.take(assess(solve_pixels("diffuse", rejected, plain[rejected], data, config), data, sensor, config))
     index, init = fit.index[fit.unexplained], fit.svbrdf[fit.unexplained]
     for name in ladder[1:]:  # each from the previous one's solution, where it leaves a misfit
-        model = get_model(name)
-        if model.dual:  # where one lobe leaves a misfit as large as a second lobe's
+        if get_model(name).dual:  # where one lobe leaves a misfit as large as a second lobe's
             keep = data.relative_rms(choice.cost[index], index) > config.dual_rms
             index, init = index[keep], init[keep]
-        passed = torch.ones_like(index, dtype=torch.bool)
-        if config.gate is not None and index.numel() and (model.dual or model.anisotropic):
-            passed = gate(model, init, index, data, sensor, folds, heldout[index], config)
-        if not bool(passed.any()):
-            continue
-        fit = assess(solve_pixels(name, index[passed], init[passed], data, config), data, sensor, config)
+            if config.dual_gate is not None and index.numel():  # and a second lobe would predict better
+                keep = _second_lobe_gate(init, index, data, sensor, folds, heldout[index], config)
+                index, init = index[keep], init[keep]
+        if index.numel() == 0:
+            break
+        fit = assess(solve_pixels(name, index, init, data, config), data, sensor, config)
         compare(fit)
-        # the next model from this one's solution where it leaves a misfit, from the previous one's where not tried
-        index = torch.cat([index[~passed], fit.index[fit.unexplained]])
-        init = _stacked(init[~passed], fit.svbrdf[fit.unexplained])
+        index, init = index[fit.unexplained], fit.svbrdf[fit.unexplained]
 
 
-def gate(
-    model: Model,
-    init: SVBRDF,
-    index: Tensor,
-    data: TileSamples,
-    sensor: Tensor,
-    folds: Tensor,
-    current: Tensor,
-    config: FitConfig,
+def _second_lobe_gate(
+    init: SVBRDF, index: Tensor, data: TileSamples, sensor: Tensor, folds: Tensor, current: Tensor, config: FitConfig
 ) -> Tensor:
-    """``(m,)`` bool: what ``model`` adds to the fit ``init`` of pixels ``index``, to first order,
-    predicts the left-out frames better than the model kept so far (``current``, its held-out
-    residuals) by more than ``FitConfig.gate`` noise deviations: ``ward-dual``'s second lobe
+    """``(m,)`` bool: a second lobe, linearised at the one-lobe fit ``init`` of pixels ``index``
     (:func:`~torchspec.pipeline.prediction.second_lobe_held_out`, at :data:`GATE_ROUGHNESS`
-    roughnesses from twice the least the lights resolve to half the largest, at one of them at
-    least), ``ward-aniso``'s anisotropy (:func:`~torchspec.pipeline.prediction.anisotropy_held_out`)."""
-    inverse = data.inverse_noise(sensor, index, config.noise_floor)
-    if model.dual:
-        low, high = ALPHA_BOUNDS
-        least = max(config.least_roughness(data.lights), low)
-        roughness = torch.logspace(
-            math.log10(2 * least), math.log10(high / 2), GATE_ROUGHNESS, dtype=data.observed.dtype, device=index.device
-        )
-        linear = second_lobe_held_out(init, index, data, inverse, folds, config, roughness)  # (m, G, S, K, C)
-    else:
-        linear = anisotropy_held_out(init, index, data, inverse, folds, config)
-    better = [predicts_better(linear[:, j], current, config.gate) for j in range(linear.shape[1])]
-    return torch.stack(better, -1).any(-1)
-
-
-def _stacked(first: SVBRDF, second: SVBRDF) -> SVBRDF:
-    """Two flat fits (of models with and without a rotation, grey or coloured ``k_s``) as one:
-    a missing rotation is 0, a grey ``k_s`` is repeated per channel."""
-    if first.shape[0] == 0:
-        return second
-    if second.shape[0] == 0:
-        return first
-    width = max(first.specular.shape[-1], second.specular.shape[-1])
-    rotated = first.rotation is not None or second.rotation is not None
-
-    def rotation(maps: SVBRDF) -> Tensor | None:
-        if not rotated:
-            return None
-        return maps.rotation if maps.rotation is not None else torch.zeros_like(maps.roughness[:, 0])
-
-    return SVBRDF(
-        torch.cat([first.normal, second.normal]),
-        torch.cat([first.diffuse, second.diffuse]),
-        torch.cat([first.specular.expand(-1, width), second.specular.expand(-1, width)]),
-        torch.cat([first.roughness, second.roughness]),
-        rotation(first) if not rotated else torch.cat([rotation(first), rotation(second)]),
-        first.channels,
+    roughnesses from twice the least the lights resolve to half the largest), predicts the left-out
+    frames better than the model kept so far (``current``, its held-out residuals) by more than
+    ``FitConfig.dual_gate`` noise deviations at one of them at least."""
+    low, high = ALPHA_BOUNDS
+    least = max(config.least_roughness(data.lights), low)
+    roughness = torch.logspace(
+        math.log10(2 * least), math.log10(high / 2), GATE_ROUGHNESS, dtype=data.observed.dtype, device=index.device
     )
+    inverse = data.inverse_noise(sensor, index, config.noise_floor)
+    linear = second_lobe_held_out(init, index, data, inverse, folds, config, roughness)  # (m, G, S, K, C)
+    better = [predicts_better(linear[:, j], current, config.dual_gate) for j in range(roughness.shape[0])]
+    return torch.stack(better, -1).any(-1)
 
 
 def _placed(svbrdf: SVBRDF, index: Tensor, values: SVBRDF) -> SVBRDF:
