@@ -158,12 +158,12 @@ CALIBRATION_RMS = 0.05
 shadow, gains and positions take up what the model lacks (``experiments/results/light_calibration.json``)."""
 CALIBRATION_GIVE_UP = 1.5
 """``auto`` stops calibrating (:func:`torchspec.lightcal.calibrate_lights`'s ``give_up``) when the
-misfit after two steps exceeds :data:`CALIBRATION_RMS` by this factor: the lights would be refused
-anyway, and the refinement cost most of a small capture's calibration. On the six captures of
-``../shared/data/rti`` at half size (``scratch``: ``calibrate_lights(dome=True)`` stopped after two
-steps and run to the end), the misfit after two steps was 0.91-1.39 times the converged one
-(realrti-item7 8.8 % then 9.7 %, realrti-item3 17.4 % then 12.6 %); the captures whose lights are
-kept converge to 1.3 % and 2.3 %. At 2.0, item7 (8.8 %) ran all ten steps to be refused:
+sample's misfit after two steps exceeds :data:`CALIBRATION_RMS` by this factor: the lights would
+be refused anyway, and the refinement cost most of a capture's calibration. On the six captures of
+``../shared/data/rti`` at half size (``dome=True``, every step run), that misfit was 0.90-1.57
+times the converged one that ``auto`` judges (SynthRTI m8: 3.5 % then 2.3 %; realrti-item3: 16.2 %
+then 12.6 %; realrti-item7: 8.7 % then 9.7 %), so only a capture converging within 4.8-5 % could be
+refused that the whole calibration would keep. At 2.0, item7 ran all ten steps to be refused:
 calibrating it at full size took 35-50 s, 14.6 s with this bound."""
 
 
