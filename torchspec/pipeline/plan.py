@@ -202,7 +202,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     found = calibrate_lights(
         stack / scale[:, :, None, None], directions.to(stack), valid=valid, near=near, dome=dome, give_up=give_up
     )
-    explained, misfit = float(found.explained.double().mean()), float(found.rms.double().median())
+    explained, misfit = float(found.explained[found.judged].double().mean()), float(found.rms.double().median())
     if explained < CALIBRATION_EXPLAINED or misfit > CALIBRATION_RMS:
         message = (
             f"{job.capture.root}: the lights were not calibrated from the photographs: the Lambertian model they are "
@@ -231,7 +231,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         "gain_std": found.gain_std.tolist(),
         "positions": None if found.positions is None else found.positions.tolist(),
         "position_std": None if found.position_std is None else found.position_std.tolist(),
-        "explained_share": float(found.explained.double().mean()),
+        "explained_share": explained,
         "rms": found.rms.tolist(),
         "iterations": found.iterations,
     }
