@@ -255,11 +255,10 @@ def calibrate_lights(
             are left out (highlights, cast shadows).
         explain: a pixel is explained when its relative RMS is within ``explain`` times the median.
         damping: Levenberg-Marquardt damping of each step (relative to the diagonal).
-        give_up: stop after two steps when the sample's median per-frame misfit (as ``rms``)
-            then exceeds it (``iterations`` is then 2, and ``explained`` and ``rms`` judge the
-            sample's pixels only: ``judged``): a caller that refuses lights above a misfit need not
-            pay for their refinement (two steps leave the misfit within 1.1x of the converged one
-            on a simulated capture: tests/test_lightcal.py).
+        give_up: stop after two steps when the sample's median per-frame misfit (as ``rms``) then
+            exceeds it (``iterations`` 2; ``explained``, ``rms`` of the sample only: ``judged``): a
+            caller that refuses lights above a misfit need not pay for their refinement (two steps
+            leave it within 1.1x of the converged one on a simulation: tests/test_lightcal.py).
 
     Returns:
         :class:`LightCalibration` in the dtype and on the device of ``frames``.
@@ -295,10 +294,8 @@ def calibrate_lights(
     )
     std = covariance.diagonal().clamp_min(0).sqrt().reshape(k, -1)
     gain_std = std[:, :c]
-    judged = torch.ones(height * width, dtype=torch.bool, device=device)
     if stopped:  # refused anyway: judged on the sample (a pass over every pixel cost realrti-item3 10 of 24 s)
         final = _sample_pass(values, ok, points, dirs, positions, gains, options, level, index, height, width)
-        judged = torch.zeros_like(judged).index_fill_(0, index, True)
     else:
         final = _full_pass(frames, valid, dirs, positions, gains, options, level)
     out = {"dtype": frames.dtype, "device": device}
@@ -316,7 +313,16 @@ def calibrate_lights(
         radius_misfit=misfit,
         radius_as_written=written[0],
         radius_misfit_as_written=written[1],
-        judged=judged.reshape(height, width),
+        judged=_judged(index if stopped else None, height, width, device),
+    )
+
+
+def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
+    """``(H, W)`` bool: the flat pixels ``index``, or every pixel (``None``)."""
+    if index is None:
+        return torch.ones((height, width), dtype=torch.bool, device=device)
+    return (
+        torch.zeros(height * width, dtype=torch.bool, device=device).index_fill_(0, index, True).reshape(height, width)
     )
 
 
