@@ -212,7 +212,13 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
             "the lights are taken as written"
         )
         if wanted == "auto":
-            refused = {"refused": message, "explained_share": explained, "rms": found.rms.tolist()}
+            judged = int(found.judged.sum())
+            refused = {
+                "refused": message,
+                "explained_share": explained,
+                "judged_pixels": judged,
+                "rms": found.rms.tolist(),
+            }
             if found.radius_as_written is None:
                 warnings.warn(message + ".", FitWarning, stacklevel=3)
                 return job, {"calibrated": [], **refused}
@@ -232,6 +238,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         "positions": None if found.positions is None else found.positions.tolist(),
         "position_std": None if found.position_std is None else found.position_std.tolist(),
         "explained_share": explained,
+        "judged_pixels": int(found.judged.sum()),
         "rms": found.rms.tolist(),
         "iterations": found.iterations,
     }
