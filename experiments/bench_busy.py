@@ -1,6 +1,7 @@
 """A fit on a shared machine (issue 21, item 5): the same fit quiet and beside a neighbour that
 keeps every core busy, for several thread settings; and, in the same run, the pixel-frames per
-second of the default fit of each real RTI capture beside the synthetic benchmark's.
+second of the default fit of each real RTI capture beside the synthetic benchmark's (fitted before
+and after each capture: the ratio is against the mean of those two).
 
 Every fit runs in a fresh process (``OMP_WAIT_POLICY`` and ``GOMP_SPINCOUNT`` are read as torch
 loads its OpenMP runtime). The neighbour is ``neighbours`` processes each spinning a Python loop
@@ -193,11 +194,14 @@ def busy_table(settings: Settings, capture: Path) -> list[dict]:
 
 
 def real_rates(settings: Settings, synthetic: Path, scratch: Path) -> list[dict]:
-    """The default fit of the synthetic benchmark and of each real capture (imported at full size)."""
+    """The default fit of the synthetic benchmark and of each real capture (imported at full size),
+    interleaved: the synthetic fit before the first capture and after each, so that each capture's
+    ``rate_over_synthetic`` is against the mean rate of the synthetic fits just before and after it
+    (the host's speed drifts by up to 1.4x within minutes). Rows: the synthetic fits and the
+    captures, in the order run."""
     from torchspec.io.rti import import_rti
 
-    rows = []
-    targets = [("synthetic", synthetic)]
+    targets = []
     for name in settings.captures:
         folder = scratch / f"{name}-import"
         if not (folder / "capture.json").exists():
@@ -207,18 +211,28 @@ def real_rates(settings: Settings, synthetic: Path, scratch: Path) -> list[dict]
         if settings.real_crop:
             folder = crop(folder, Crop(settings.real_crop, "all"), scratch / f"{name}-{settings.real_crop}")
         targets.append((name, folder))
+    rows = [_rate_row("synthetic", synthetic)]
     for name, folder in targets:
-        capture = read_capture(folder)
-        run = timed_fit(folder, {})
-        row = {"capture": name, "size": [capture.width, capture.height], **run}
-        rows.append(row)
-        print(
-            f"  {name:16s} {capture.width:4d} x {capture.height:<4d} x {run['frames']:3d}  {run['seconds']:7.1f} s  "
-            f"{run['pixel_frames_per_second'] / 1e3:7.1f} k pixel-frames/s  load {run['load_before']:4.2f}  "
-            f"others {run['others_cores']:4.2f} cores",
-            flush=True,
-        )
+        row = _rate_row(name, folder)
+        after = _rate_row("synthetic", synthetic)
+        around = [rows[-1]["pixel_frames_per_second"], after["pixel_frames_per_second"]]
+        row["synthetic_around"] = around
+        row["rate_over_synthetic"] = row["pixel_frames_per_second"] / statistics.mean(around)
+        rows += [row, after]
     return rows
+
+
+def _rate_row(name: str, folder: Path) -> dict:
+    """One default fit of the capture in ``folder``, printed."""
+    capture = read_capture(folder)
+    run = timed_fit(folder, {})
+    print(
+        f"  {name:16s} {capture.width:4d} x {capture.height:<4d} x {run['frames']:3d}  {run['seconds']:7.1f} s  "
+        f"{run['pixel_frames_per_second'] / 1e3:7.1f} k pixel-frames/s  load {run['load_before']:4.2f}  "
+        f"others {run['others_cores']:4.2f} cores",
+        flush=True,
+    )
+    return {"capture": name, "size": [capture.width, capture.height], **run}
 
 
 def _print_busy(rows: list[dict]) -> None:
@@ -257,10 +271,13 @@ def main(argv: list[str] | None = None) -> dict:
         synthetic = crop(source, settings.synthetic, scratch / name)
         print("\nthe default fit, no neighbour:")
         real = real_rates(settings, synthetic, scratch)
-        rate = real[0]["pixel_frames_per_second"]
-        for row in real[1:]:
-            row["rate_over_synthetic"] = row["pixel_frames_per_second"] / rate
-            print(f"  {row['capture']:16s} {row['rate_over_synthetic']:.2f}x the synthetic benchmark's pixel-frames/s")
+        for row in real:
+            if "rate_over_synthetic" in row:
+                print(
+                    f"  {row['capture']:16s} {row['rate_over_synthetic']:.2f}x the synthetic benchmark's "
+                    f"pixel-frames/s (the fits before and after it: {row['synthetic_around'][0] / 1e3:.1f} and "
+                    f"{row['synthetic_around'][1] / 1e3:.1f} k)"
+                )
         out["real"] = real
         write_json(target, out)
     if "busy" in parts:

@@ -125,6 +125,12 @@ def test_give_up_stops_after_two_steps_only_above_its_misfit(near):
     assert stopped.iterations == 2 and not torch.equal(stopped.gains, full.gains)
     assert float(stopped.rms.median()) < 1.1 * float(full.rms.median())
     assert bool(torch.isfinite(stopped.gain_std).all())
+    assert bool(full.judged.all()) and bool(kept.judged.all())
+    # Stopped, it judges the sample's pixels only (the pass over every pixel skipped): a sample of
+    # 200 of them judges those 200, and explains none outside them.
+    small = calibrate_lights(frames, directions, give_up=1e-4, sample=200, **options)
+    assert int(small.judged.sum()) == 200 and not bool((small.explained & ~small.judged).any())
+    assert float(small.explained[small.judged].double().mean()) > 0.5 and small.rms.shape == full.rms.shape
 
 
 def test_highlights_left_out():

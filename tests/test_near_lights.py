@@ -179,6 +179,7 @@ def test_unknown_irradiance_is_calibrated_from_the_photographs(tmp_path):
     nominal = fit(capture, config=FitConfig(model="diffuse", compile=False, calibrate="none"))
     record = calibrated.stats["lights"]
     assert record["calibrated"] == ["irradiance"] and nominal.stats["lights"] is None
+    assert record["judged_pixels"] == capture.width * capture.height and record["explained_share"] > 0.8
     found = torch.tensor(record["gains"], dtype=D)[:, 0]
     expected = gains / gains.log().mean().exp()  # the estimate's gauge: geometric mean 1
     assert float(((found - expected) / expected).abs().max()) < 0.01  # noise-free: the clamp's edge only

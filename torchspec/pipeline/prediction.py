@@ -25,7 +25,7 @@ from torch import Tensor
 
 from ..brdf import SVBRDF
 from ..lm import bounded
-from ..models import Model
+from ..models import Model, get_model
 from ..rendering import render
 from .samples import TileSamples
 from .settings import FitConfig
@@ -38,6 +38,7 @@ __all__ = [
     "held_out",
     "held_out_refit",
     "predicts_better",
+    "second_lobe_held_out",
 ]
 
 CHUNK_SAMPLES = 1 << 24
@@ -201,6 +202,83 @@ def held_out_refit(
     # Each frame takes its own fold's refit.
     pick = folds[:, None, None, :, None].expand(schemes, 1, m, k, c)
     return residual.gather(1, pick)[:, 0].permute(1, 0, 2, 3)
+
+
+def second_lobe_held_out(
+    svbrdf: SVBRDF,
+    index: Tensor,
+    data: TileSamples,
+    inverse_noise: Tensor,
+    folds: Tensor,
+    config: FitConfig,
+    roughness: Tensor,
+) -> Tensor:
+    """:func:`held_out`'s residuals of one lobe plus a second, grey lobe of roughness
+    ``roughness (G,)`` on the same normal, linearised at height 0: ``(m, G, S, K, C)``.
+
+    The model is ``ward-iso`` at ``svbrdf`` (its roughness averaged over the axes), where the
+    Jacobian is taken, and the column of the second lobe's ``k_s2``: the rendered lobe of height 1,
+    exact (the rendering is linear in ``k_s2``; its roughness moves nothing at height 0, so it is
+    held at each value of ``roughness``). Each fold's refit is one Gauss-Newton step of all these
+    parameters on the frames of the other folds, as in :func:`held_out`, without the bound
+    ``k_s2 >= 0``. What ``ward-dual`` could predict, to first order in its second lobe, at the cost
+    of one Jacobian and ``G`` renders per pixel instead of a fit (``auto`` tries ``ward-dual``
+    only where this predicts better: :attr:`FitConfig.dual_gate`).
+    """
+    model = get_model("ward-iso")
+    m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
+    g = roughness.shape[0]
+    schemes, count = folds.shape[0], int(folds.max()) + 1
+    out = data.observed.new_zeros((m, g, schemes, k, c))
+    if m == 0:
+        return out
+    bounds = model.bounds(c, config.least_roughness(data.lights))
+    rule = config.rule
+    p = model.size(c) + 1
+    chunk = max(1, CHUNK_SAMPLES // (k * c * p * g))
+    member = (folds[:, None, :] == torch.arange(count, device=folds.device)[None, :, None]).to(data.observed.dtype)
+    for start in range(0, m, chunk):
+        rows = slice(start, start + chunk)
+        at = index[rows]
+        weight = data.weight[at]
+        maps = svbrdf[rows]
+        free = bounds.to_free(model.pack(maps))
+
+        def run(fused: bool, at=at, weight=weight, free=free):
+            quadrature = replace(rule, compile=fused)
+            fn = model.residuals(
+                data.observed[at], weight, data.lights, data.view, data.channels, quadrature=quadrature
+            )
+            return bounded(fn, bounds)(free, torch.arange(free.shape[0], device=free.device))
+
+        r, jac = compiled_or_eager(run, config.compile)
+        n = r.shape[0]
+        r, jac = r.view(n, k, c), jac.view(n, k, c, p - 1)
+        # The second lobe's column per roughness: its rendering at height 1, weighted as r.
+        alpha = roughness.to(r)[None, :, None].expand(n, g, 2)
+        unit = SVBRDF(
+            maps.normal[:, None].expand(n, g, 3),
+            maps.diffuse.new_zeros((n, g, c)),
+            maps.diffuse.new_ones((n, g, 1)),
+            alpha,
+            None,
+            data.channels,
+        )
+        lobe = render(unit, data.lights, data.view, quadrature=replace(rule, compile=False))  # (n, G, K, C)
+        column = lobe * weight[:, None, :, None]
+        full = torch.cat([jac[:, None].expand(n, g, k, c, p - 1), column[..., None]], -1)  # (n, G, K, C, P)
+        jj = torch.einsum("ngkcp,ngkcq->ngkpq", full, full)
+        jr = torch.einsum("ngkcp,nkc->ngkp", full, r)
+        fold_jj = torch.einsum("sfk,ngkpq->ngsfpq", member, jj)
+        fold_jr = torch.einsum("sfk,ngkp->ngsfp", member, jr)
+        rest_jj = jj.sum(2)[:, :, None, None] - fold_jj
+        rest_jr = jr.sum(2)[:, :, None, None] - fold_jr
+        step = _damped_solve(rest_jj, -rest_jr)  # (n, G, S, F, P)
+        per_frame = torch.einsum("sfk,ngsfp->ngskp", member, step)
+        predicted = r[:, None, None] + torch.einsum("ngkcp,ngskp->ngskc", full, per_frame)
+        scale = data.level[at, None, None, None, None] * inverse_noise[rows, None, None]
+        out[rows] = predicted * scale
+    return out
 
 
 def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:

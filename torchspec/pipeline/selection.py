@@ -20,15 +20,18 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..layout import lobe_support
 from ..lm import DIVERGED, LMResult
-from ..models import get_model
-from .prediction import held_out, held_out_refit, light_folds, predicts_better
+from ..models import ALPHA_BOUNDS, get_model
+from .prediction import held_out, held_out_refit, light_folds, predicts_better, second_lobe_held_out
 from .samples import TileSamples
 from .settings import AUTO, MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
 from .start import StartingPoint
 from .uncertainty import PeakSamples, sensor_noise, uncertainty
 
-__all__ = ["ModelFit", "Choice", "assess", "resolved", "supported", "select_models"]
+__all__ = ["GATE_ROUGHNESS", "ModelFit", "Choice", "assess", "resolved", "supported", "select_models"]
+
+GATE_ROUGHNESS = 6
+"""Second lobes' roughnesses ``auto``'s gate of ``ward-dual`` tries (:attr:`FitConfig.dual_gate`)."""
 
 
 @dataclass(frozen=True)
@@ -278,11 +281,33 @@ def _climb(
         if get_model(name).dual:  # where one lobe leaves a misfit as large as a second lobe's
             keep = data.relative_rms(choice.cost[index], index) > config.dual_rms
             index, init = index[keep], init[keep]
+            if config.dual_gate is not None and index.numel():  # and a second lobe would predict better
+                keep = _second_lobe_gate(init, index, data, sensor, folds, heldout[index], config)
+                index, init = index[keep], init[keep]
         if index.numel() == 0:
             break
         fit = assess(solve_pixels(name, index, init, data, config), data, sensor, config)
         compare(fit)
         index, init = index[fit.unexplained], fit.svbrdf[fit.unexplained]
+
+
+def _second_lobe_gate(
+    init: SVBRDF, index: Tensor, data: TileSamples, sensor: Tensor, folds: Tensor, current: Tensor, config: FitConfig
+) -> Tensor:
+    """``(m,)`` bool: a second lobe, linearised at the one-lobe fit ``init`` of pixels ``index``
+    (:func:`~torchspec.pipeline.prediction.second_lobe_held_out`, at :data:`GATE_ROUGHNESS`
+    roughnesses from twice the least the lights resolve to half the largest), predicts the left-out
+    frames better than the model kept so far (``current``, its held-out residuals) by more than
+    ``FitConfig.dual_gate`` noise deviations at one of them at least."""
+    low, high = ALPHA_BOUNDS
+    least = max(config.least_roughness(data.lights), low)
+    roughness = torch.logspace(
+        math.log10(2 * least), math.log10(high / 2), GATE_ROUGHNESS, dtype=data.observed.dtype, device=index.device
+    )
+    inverse = data.inverse_noise(sensor, index, config.noise_floor)
+    linear = second_lobe_held_out(init, index, data, inverse, folds, config, roughness)  # (m, G, S, K, C)
+    better = [predicts_better(linear[:, j], current, config.dual_gate) for j in range(roughness.shape[0])]
+    return torch.stack(better, -1).any(-1)
 
 
 def _placed(svbrdf: SVBRDF, index: Tensor, values: SVBRDF) -> SVBRDF:

@@ -95,6 +95,11 @@ class FitConfig:
             RMS residual above ``dual_rms`` (of the pixel's level): a second lobe is a large
             structure (two lobes fitted to what one lobe of another shape leaves, such as a
             Beckmann lobe's tails, cost the most of the ladder's time and predict nothing better).
+        dual_gate: ``auto`` tries ``ward-dual`` only where a second lobe added to the one-lobe fit,
+            to first order (:func:`~torchspec.pipeline.prediction.second_lobe_held_out`), predicts
+            the left-out frames better than the model kept so far by more than ``dual_gate``
+            deviations of the noise (:func:`~torchspec.pipeline.prediction.predicts_better`) at one
+            of a few roughnesses; ``None``: wherever ``dual_rms`` lets it.
         trust_rms: a pixel whose chosen model leaves a misfit (a residual above the noise) with a
             relative RMS above ``trust_rms`` of its level is flagged ``poor_fit``, untrusted
             (quality 0): no model of the ladder explains it (a shadow, an interreflection, a
@@ -190,6 +195,7 @@ class FitConfig:
     broad_alpha: float = 0.25
     resolve: float = 0.5
     dual_rms: float = 0.03
+    dual_gate: float | None = 0.0
     trust_rms: float = 0.05
     uncertainty: bool = True
     flag_peak_misfit: float = 3.0
@@ -248,6 +254,10 @@ class FitConfig:
             raise ConfigError(f"FitConfig.trust_rms must be > 0; got {self.trust_rms!r}.")
         if not self.dual_rms >= 0:
             raise ConfigError(f"FitConfig.dual_rms must be >= 0; got {self.dual_rms!r}.")
+        if self.dual_gate is not None and not (
+            isinstance(self.dual_gate, (int, float)) and math.isfinite(self.dual_gate)
+        ):
+            raise ConfigError(f"FitConfig.dual_gate must be a finite number or None; got {self.dual_gate!r}.")
         if not self.resolve > 0:
             raise ConfigError(f"FitConfig.resolve must be > 0; got {self.resolve!r}.")
         if self.refit < 0:
