@@ -131,6 +131,12 @@ def test_give_up_stops_after_two_steps_only_above_its_misfit(near):
     small = calibrate_lights(frames, directions, give_up=1e-4, sample=200, **options)
     assert int(small.judged.sum()) == 200 and not bool((small.explained & ~small.judged).any())
     assert float(small.explained[small.judged].double().mean()) > 0.5 and small.rms.shape == full.rms.shape
+    # A pair also stops before the first step, above its first bound: no step, no deviations.
+    early = calibrate_lights(frames, directions, give_up=(1e-4, 0.5), sample=200, **options)
+    assert early.iterations == 0 and bool(early.gain_std.isnan().all()) and int(early.judged.sum()) == 200
+    assert not near or bool(early.position_std.isnan().all())
+    later = calibrate_lights(frames, directions, give_up=(0.5, 1e-4), **options)
+    assert later.iterations == 2 and torch.equal(later.gains, stopped.gains)
 
 
 def test_highlights_left_out():

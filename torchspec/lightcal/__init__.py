@@ -230,7 +230,7 @@ def calibrate_lights(
     explain: float = 2.5,
     damping: float = 1e-8,
     tolerance: float = 1e-5,
-    give_up: float | None = None,
+    give_up: float | tuple[float, float] | None = None,
 ) -> LightCalibration:
     """Calibrate the lights of a capture from its photographs (the module's model and method).
 
@@ -258,7 +258,9 @@ def calibrate_lights(
         give_up: stop after two steps when the sample's median per-frame misfit (as ``rms``) then
             exceeds it (``iterations`` 2; ``explained``, ``rms`` of the sample only: ``judged``): a
             caller that refuses lights above a misfit need not pay for their refinement (two steps
-            leave it within 1.1x of the converged one on a simulation: tests/test_lightcal.py).
+            leave it within 1.1x of the converged one on a simulation: tests/test_lightcal.py); a
+            pair ``(start, two steps)``: also before the first step, above ``start`` under the
+            start's gains (``iterations`` 0, ``gain_std`` NaN)).
 
     Returns:
         :class:`LightCalibration` in the dtype and on the device of ``frames``.
@@ -292,17 +294,15 @@ def calibrate_lights(
     gains, positions, covariance, level, done, stopped = _alternate(
         values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up
     )
-    std = covariance.diagonal().clamp_min(0).sqrt().reshape(k, -1)
-    gain_std = std[:, :c]
-    if stopped:  # refused anyway: judged on the sample (a pass over every pixel cost realrti-item3 10 of 24 s)
-        final = _sample_pass(values, ok, points, dirs, positions, gains, options, level, index, height, width)
-    else:
-        final = _full_pass(frames, valid, dirs, positions, gains, options, level)
+    std = _deviations(covariance, gains, c + 3 if near else c)
+    # stopped: refused anyway, judged on the sample (a pass over every pixel cost realrti-item3 10 of 24 s)
+    sample = (values, ok, points, dirs, positions, gains, options, level, index, height, width)
+    final = _sample_pass(*sample) if stopped else _full_pass(frames, valid, dirs, positions, gains, options, level)
     out = {"dtype": frames.dtype, "device": device}
     centre = dirs if positions is None else positions / positions.norm(dim=-1, keepdim=True)
     return LightCalibration(
         gains=gains.to(**out),
-        gain_std=gain_std.to(**out),
+        gain_std=std[:, :c].to(**out),
         positions=None if positions is None else positions.to(**out),
         position_std=None if positions is None or not near else std[:, c:].to(**out),
         directions=centre.to(**out),
@@ -317,6 +317,14 @@ def calibrate_lights(
     )
 
 
+def _deviations(covariance: Tensor | None, gains: Tensor, p: int) -> Tensor:
+    """``(K, p)`` standard errors of the lights' parameters from ``covariance``; NaN without one
+    (no step taken)."""
+    if covariance is None:
+        return gains.new_full((gains.shape[0], p), math.nan)
+    return covariance.diagonal().clamp_min(0).sqrt().reshape(gains.shape[0], -1)
+
+
 def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
     """``(H, W)`` bool: the flat pixels ``index``, or every pixel (``None``)."""
     if index is None:
@@ -328,18 +336,20 @@ def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
 
 def _alternate(values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up):
     """:func:`calibrate_lights`'s alternation of maps and lights on the sample: ``(gains, positions,
-    covariance of the lights' parameters, level, iterations run, whether give_up stopped it)``."""
+    covariance of the lights' parameters (``None`` before a step), level, iterations run, whether
+    give_up stopped it)``."""
     done, covariance, level, strict = 0, None, None, False
+    bounds = dict(zip((1, 3), give_up if isinstance(give_up, tuple) else (None, give_up), strict=True))
     for done in range(1, max(iterations, 1) + 1):
         b, weight, lit, _, sel, level = _explained_pass(
             values, ok, points, dirs, positions, gains, **options, shift=not strict
         )
+        bound = bounds.get(done)
         if (
-            done == 3
-            and give_up is not None
-            and _median_misfit(values, points, dirs, positions, gains, b, lit & sel[:, None, None]) > give_up
+            bound is not None
+            and _median_misfit(values, points, dirs, positions, gains, b, lit & sel[:, None, None]) > bound
         ):
-            return gains, positions, covariance, level, 2, True
+            return gains, positions, covariance, level, done - 1, True
         gains, positions, covariance, change, damping = _update(
             values[sel], weight[sel], b[sel], points[sel], dirs, positions, gains, near, damping
         )
