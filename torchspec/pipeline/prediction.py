@@ -118,43 +118,19 @@ def held_out(
         config: the fit's settings (the quadrature).
     """
     m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
-    schemes, count = folds.shape[0], int(folds.max()) + 1
+    schemes = folds.shape[0]
     out = data.observed.new_zeros((m, schemes, k, c))
     if m == 0:
         return out
     bounds = model.bounds(c, config.least_roughness(data.lights))
-    rule = config.rule
     p = model.size(c)
     chunk = max(1, CHUNK_SAMPLES // (k * c * p))
-    # member[s, f, k]: frame k is in fold f of scheme s.
-    member = folds[:, None, :] == torch.arange(count, device=folds.device)[None, :, None]
-    member = member.to(data.observed.dtype)
+    member = _members(folds, data.observed.dtype)
     for start in range(0, m, chunk):
         rows = slice(start, start + chunk)
         at = index[rows]
-        weight = data.weight[at]
-        free = bounds.to_free(model.pack(svbrdf[rows]))
-
-        def run(fused: bool, at=at, weight=weight, free=free):
-            quadrature = replace(rule, compile=fused)
-            channels = data.channels
-            fn = model.residuals(data.observed[at], weight, data.lights, data.view, channels, quadrature=quadrature)
-            return bounded(fn, bounds)(free, torch.arange(free.shape[0], device=free.device))
-
-        r, jac = compiled_or_eager(run, config.compile)
-        n = r.shape[0]
-        r, jac = r.view(n, k, c), jac.view(n, k, c, p)
-        # Per fold: the fold's J^T J and J^T r, and the normal equations without it.
-        jj = torch.einsum("nkcp,nkcq->nkpq", jac, jac)  # per frame
-        jr = torch.einsum("nkcp,nkc->nkp", jac, r)
-        fold_jj = torch.einsum("sfk,nkpq->nsfpq", member, jj)
-        fold_jr = torch.einsum("sfk,nkp->nsfp", member, jr)
-        rest_jj = jj.sum(1)[:, None, None] - fold_jj
-        rest_jr = jr.sum(1)[:, None, None] - fold_jr
-        step = _damped_solve(rest_jj, -rest_jr)  # (n, S, F, P)
-        # Each frame takes its own fold's step: predicted residual r + J step.
-        per_frame = torch.einsum("sfk,nsfp->nskp", member, step)
-        predicted = r[:, None] + torch.einsum("nkcp,nskp->nskc", jac, per_frame)
+        r, jac = _linearised(model, bounds, svbrdf[rows], at, data, config)
+        predicted = _fold_refits(r, jac[:, None], member)[:, 0]
         # r = (render - observed) / level on valid samples: to noise units.
         scale = data.level[at, None, None, None] * inverse_noise[rows, None]
         out[rows] = predicted * scale
@@ -227,33 +203,20 @@ def second_lobe_held_out(
     """
     model = get_model("ward-iso")
     m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
-    g = roughness.shape[0]
-    schemes, count = folds.shape[0], int(folds.max()) + 1
+    g, schemes = roughness.shape[0], folds.shape[0]
     out = data.observed.new_zeros((m, g, schemes, k, c))
     if m == 0:
         return out
     bounds = model.bounds(c, config.least_roughness(data.lights))
-    rule = config.rule
     p = model.size(c) + 1
     chunk = max(1, CHUNK_SAMPLES // (k * c * p * g))
-    member = (folds[:, None, :] == torch.arange(count, device=folds.device)[None, :, None]).to(data.observed.dtype)
+    member = _members(folds, data.observed.dtype)
     for start in range(0, m, chunk):
         rows = slice(start, start + chunk)
         at = index[rows]
-        weight = data.weight[at]
         maps = svbrdf[rows]
-        free = bounds.to_free(model.pack(maps))
-
-        def run(fused: bool, at=at, weight=weight, free=free):
-            quadrature = replace(rule, compile=fused)
-            fn = model.residuals(
-                data.observed[at], weight, data.lights, data.view, data.channels, quadrature=quadrature
-            )
-            return bounded(fn, bounds)(free, torch.arange(free.shape[0], device=free.device))
-
-        r, jac = compiled_or_eager(run, config.compile)
+        r, jac = _linearised(model, bounds, maps, at, data, config)
         n = r.shape[0]
-        r, jac = r.view(n, k, c), jac.view(n, k, c, p - 1)
         # The second lobe's column per roughness: its rendering at height 1, weighted as r.
         alpha = roughness.to(r)[None, :, None].expand(n, g, 2)
         unit = SVBRDF(
@@ -264,21 +227,51 @@ def second_lobe_held_out(
             None,
             data.channels,
         )
-        lobe = render(unit, data.lights, data.view, quadrature=replace(rule, compile=False))  # (n, G, K, C)
-        column = lobe * weight[:, None, :, None]
+        lobe = render(unit, data.lights, data.view, quadrature=replace(config.rule, compile=False))  # (n, G, K, C)
+        column = lobe * data.weight[at][:, None, :, None]
         full = torch.cat([jac[:, None].expand(n, g, k, c, p - 1), column[..., None]], -1)  # (n, G, K, C, P)
-        jj = torch.einsum("ngkcp,ngkcq->ngkpq", full, full)
-        jr = torch.einsum("ngkcp,nkc->ngkp", full, r)
-        fold_jj = torch.einsum("sfk,ngkpq->ngsfpq", member, jj)
-        fold_jr = torch.einsum("sfk,ngkp->ngsfp", member, jr)
-        rest_jj = jj.sum(2)[:, :, None, None] - fold_jj
-        rest_jr = jr.sum(2)[:, :, None, None] - fold_jr
-        step = _damped_solve(rest_jj, -rest_jr)  # (n, G, S, F, P)
-        per_frame = torch.einsum("sfk,ngsfp->ngskp", member, step)
-        predicted = r[:, None, None] + torch.einsum("ngkcp,ngskp->ngskc", full, per_frame)
         scale = data.level[at, None, None, None, None] * inverse_noise[rows, None, None]
-        out[rows] = predicted * scale
+        out[rows] = _fold_refits(r, full, member) * scale
     return out
+
+
+def _linearised(model: Model, bounds, maps: SVBRDF, at: Tensor, data: TileSamples, config: FitConfig):
+    """``model``'s residuals ``(n, K, C)`` and Jacobian ``(n, K, C, P)`` in the solver's free
+    parameters (``bounds``) at ``maps``, the pixels ``at (n,)`` of ``data``."""
+    free = bounds.to_free(model.pack(maps))
+    weight = data.weight[at]
+
+    def run(fused: bool):
+        quadrature = replace(config.rule, compile=fused)
+        fn = model.residuals(data.observed[at], weight, data.lights, data.view, data.channels, quadrature=quadrature)
+        return bounded(fn, bounds)(free, torch.arange(free.shape[0], device=free.device))
+
+    r, jac = compiled_or_eager(run, config.compile)
+    n, k, c = at.shape[0], data.observed.shape[1], data.observed.shape[2]
+    return r.view(n, k, c), jac.view(n, k, c, -1)
+
+
+def _members(folds: Tensor, dtype) -> Tensor:
+    """``(S, F, K)``: 1 where frame ``k`` is in fold ``f`` of scheme ``s`` (``folds (S, K)``)."""
+    count = int(folds.max()) + 1
+    return (folds[:, None, :] == torch.arange(count, device=folds.device)[None, :, None]).to(dtype)
+
+
+def _fold_refits(r: Tensor, jac: Tensor, member: Tensor) -> Tensor:
+    """Each sample's residual after one damped Gauss-Newton step on the frames of the other folds:
+    ``(n, G, S, K, C)`` from ``r (n, K, C)``, ``G`` alternative Jacobians ``jac (n, G, K, C, P)``
+    and ``member (S, F, K)`` (frame ``k`` is in fold ``f`` of scheme ``s``)."""
+    # Per fold: the fold's J^T J and J^T r, and the normal equations without it.
+    jj = torch.einsum("ngkcp,ngkcq->ngkpq", jac, jac)  # per frame
+    jr = torch.einsum("ngkcp,nkc->ngkp", jac, r)
+    fold_jj = torch.einsum("sfk,ngkpq->ngsfpq", member, jj)
+    fold_jr = torch.einsum("sfk,ngkp->ngsfp", member, jr)
+    rest_jj = jj.sum(2)[:, :, None, None] - fold_jj
+    rest_jr = jr.sum(2)[:, :, None, None] - fold_jr
+    step = _damped_solve(rest_jj, -rest_jr)  # (n, G, S, F, P)
+    # Each frame takes its own fold's step: predicted residual r + J step.
+    per_frame = torch.einsum("sfk,ngsfp->ngskp", member, step)
+    return r[:, None, None] + torch.einsum("ngkcp,ngskp->ngskc", jac, per_frame)
 
 
 def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:
