@@ -54,9 +54,38 @@ def _normal_gram(parts: tuple, observed: Tensor, weight: Tensor, rows: Tensor) -
     f = torch.cat([diffuse[..., None], spec[..., None], diffuse_angles, spec_angles, d_spec_shape], -1)  # (N, K, 9)
     gram = ((ws * ws)[..., None, None] * (f[:, :, None, :, None] * f[:, :, None, None, :])).sum(1)  # (N, C, 9, 9)
     moment = ((ws * r)[..., None] * f[:, :, None, :]).sum(1)  # (N, C, 9)
+    columns = (rows[:, :, :, :, None] * _coefficients(k_d, k_s)[:, :, :, None, :]).sum(2)  # (N, C, P, 9)
+    half = (columns[..., :, None, :] * gram[:, :, None, :, :]).sum(-1)  # (N, C, P, 9)
+    hess = (half[:, :, :, None, :] * columns[:, :, None, :, :]).sum((1, -1))
+    grad = (columns * moment[:, :, None, :]).sum((1, -1))
+    return 0.5 * (r * r).sum((1, 2)), hess, grad
+
+
+def _normal_gram_eager(parts: tuple, observed: Tensor, weight: Tensor, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_normal_gram` without ``torch.compile``: the same sums as batched matrix products
+    (``einsum``), from the nine quantities per pixel and frame, never the Jacobian ``(N, K, C, P)``
+    nor a product per sample of them: on one lobe under point lights, where the assembly and
+    contraction of the Jacobian are most of a solver step, about half the time of :func:`_normal`
+    (``experiments/bench_fit.py``); equal to it within float rounding (``tests/test_models.py``)."""
+    diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s = parts
+    value = (k_d[:, None, :] / math.pi * diffuse[..., None] + k_s[:, None, :] * spec[..., None]) * scale
+    r = (value - observed) * weight
+    ws = weight * scale
+    f = torch.cat([diffuse[..., None], spec[..., None], d_diffuse @ dn, d_spec_n @ dn, d_spec_shape], -1)  # (N, K, 9)
+    gram = torch.einsum("nkci,nkj->ncij", (ws * ws)[..., None] * f[:, :, None, :], f)  # (N, C, 9, 9)
+    moment = torch.einsum("nkc,nki->nci", ws * r, f)  # (N, C, 9)
+    columns = torch.einsum("cap,ncaj->ncpj", rows[0], _coefficients(k_d, k_s))  # (N, C, P, 9)
+    hess = torch.einsum("ncpj,ncqj->npq", torch.einsum("ncpi,ncij->ncpj", columns, gram), columns)
+    grad = torch.einsum("ncpi,nci->np", columns, moment)
+    return 0.5 * (r * r).sum((1, 2)), hess, grad
+
+
+def _coefficients(k_d: Tensor, k_s: Tensor) -> Tensor:
+    """``(N, C, 7, 9)``: the seven non-zero columns of channel ``c``'s Jacobian (the two angles, its
+    ``k_d``, its ``k_s``, the lobe's shape) as combinations of :func:`_normal_gram`'s nine quantities."""
     kd, ks = k_d / math.pi, k_s.expand_as(k_d)  # (N, C)
     z, one = torch.zeros_like(kd), torch.ones_like(kd)
-    coefficients = torch.stack(  # (N, C, 7, 9)
+    return torch.stack(
         [
             torch.stack([z, z, kd, z, ks, z, z, z, z], -1),  # the angles: k_d / pi dD + k_s dS
             torch.stack([z, z, z, kd, z, ks, z, z, z], -1),
@@ -68,11 +97,6 @@ def _normal_gram(parts: tuple, observed: Tensor, weight: Tensor, rows: Tensor) -
         ],
         -2,
     )
-    columns = (rows[:, :, :, :, None] * coefficients[:, :, :, None, :]).sum(2)  # (N, C, P, 9)
-    half = (columns[..., :, None, :] * gram[:, :, None, :, :]).sum(-1)  # (N, C, P, 9)
-    hess = (half[:, :, :, None, :] * columns[:, :, None, :, :]).sum((1, -1))
-    grad = (columns * moment[:, :, None, :]).sum((1, -1))
-    return 0.5 * (r * r).sum((1, 2)), hess, grad
 
 
 def _channel_rows(select: Tensor, channels: int, grey: bool) -> Tensor:
@@ -131,22 +155,26 @@ def _contract(function, svbrdf, lights, view, observed, weights, select, *, quad
     count = svbrdf.diffuse.shape[-1]
     grey = svbrdf.specular.shape[-1] == 1 and count != 1
     channel_rows = None
-    if compile and gram is not None and svbrdf.specular2 is None:  # gram: one lobe
+    if gram is not None and svbrdf.specular2 is None:  # gram: one lobe
         # (1, C, 7, P): a first axis of 1 is never taken for the batch (torchspec.fusion.compiled),
         # and the models' parameter counts P share one compiled graph.
         channel_rows = _channel_rows(select, count, grey)[None]
-        torch._dynamo.maybe_mark_dynamic(channel_rows, 3)
+        if compile:
+            torch._dynamo.maybe_mark_dynamic(channel_rows, 3)
     out = []
     for start in range(0, max(n, 1), chunk):
         part = svbrdf[start : start + chunk]
         parts = jacobian_parts(part, lights, view, quadrature, diffuse_only)
         rows = slice(start, start + chunk)
-        if channel_rows is not None and part.diffuse.shape[0] > 1:
+        if channel_rows is not None and compile and part.diffuse.shape[0] > 1:
             out.append(
                 fused(gram, True, part.diffuse.shape[0])(
                     parts, observed[rows], *[w[rows] for w in weights], channel_rows
                 )
             )
+            continue
+        if channel_rows is not None and not compile:
+            out.append(_normal_gram_eager(parts, observed[rows], *[w[rows] for w in weights], channel_rows))
             continue
         sums = fused(function, compile, part.diffuse.shape[0])
         cost, first, second, *rest = sums(parts, observed[rows], *[w[rows] for w in weights])
