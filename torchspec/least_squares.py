@@ -64,9 +64,10 @@ def _normal_gram(parts: tuple, observed: Tensor, weight: Tensor, rows: Tensor) -
 def _normal_gram_eager(parts: tuple, observed: Tensor, weight: Tensor, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_normal_gram` without ``torch.compile``: the same sums as batched matrix products
     (``einsum``), from the nine quantities per pixel and frame, never the Jacobian ``(N, K, C, P)``
-    nor a product per sample of them: on one lobe under point lights, where the assembly and
-    contraction of the Jacobian are most of a solver step, about half the time of :func:`_normal`
-    (``experiments/bench_fit.py``); equal to it within float rounding (``tests/test_models.py``)."""
+    nor a product per sample of them: under point lights the Jacobian's assembly and contraction
+    are most of a solver step, and this takes 0.55-0.8 of :func:`_normal`'s time on 2048-4096
+    pixels (``ward-iso-colour``, 36 lights, CPU), about as much on a few pixels or under a kernel's
+    quadrature. Equal to :func:`_normal` within float rounding (``tests/test_models.py``)."""
     diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s = parts
     value = (k_d[:, None, :] / math.pi * diffuse[..., None] + k_s[:, None, :] * spec[..., None]) * scale
     r = (value - observed) * weight
