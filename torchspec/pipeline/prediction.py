@@ -260,18 +260,28 @@ def _members(folds: Tensor, dtype) -> Tensor:
 def _fold_refits(r: Tensor, jac: Tensor, member: Tensor) -> Tensor:
     """Each sample's residual after one damped Gauss-Newton step on the frames of the other folds:
     ``(n, G, S, K, C)`` from ``r (n, K, C)``, ``G`` alternative Jacobians ``jac (n, G, K, C, P)``
-    and ``member (S, F, K)`` (frame ``k`` is in fold ``f`` of scheme ``s``)."""
-    # Per fold: the fold's J^T J and J^T r, and the normal equations without it.
-    jj = torch.einsum("ngkcp,ngkcq->ngkpq", jac, jac)  # per frame
-    jr = torch.einsum("ngkcp,nkc->ngkp", jac, r)
-    fold_jj = torch.einsum("sfk,ngkpq->ngsfpq", member, jj)
-    fold_jr = torch.einsum("sfk,ngkp->ngsfp", member, jr)
-    rest_jj = jj.sum(2)[:, :, None, None] - fold_jj
-    rest_jr = jr.sum(2)[:, :, None, None] - fold_jr
+    and ``member (S, F, K)`` (frame ``k`` is in fold ``f`` of scheme ``s``: each frame in one fold
+    per scheme)."""
+    n, g, k, c, p = jac.shape
+    schemes, count = member.shape[:2]
+    flat = jac.reshape(n * g, k, c, p)
+    rows = r[:, None].expand(n, g, k, c).reshape(n * g, k, c)
+    # Per fold: its J^T J and J^T r, one batched product over its frames and channels; then the
+    # normal equations without it (the scheme's folds hold every frame once).
+    fold_jj = jac.new_zeros((n * g, schemes, count, p, p))
+    fold_jr = jac.new_zeros((n * g, schemes, count, p))
+    for s in range(schemes):
+        for f in range(count):
+            frames = member[s, f].nonzero()[:, 0]
+            part = flat[:, frames].reshape(n * g, -1, p)
+            fold_jj[:, s, f] = part.transpose(1, 2) @ part
+            fold_jr[:, s, f] = (part.transpose(1, 2) @ rows[:, frames].reshape(n * g, -1, 1))[..., 0]
+    rest_jj = (fold_jj.sum(2, keepdim=True) - fold_jj).view(n, g, schemes, count, p, p)
+    rest_jr = (fold_jr.sum(2, keepdim=True) - fold_jr).view(n, g, schemes, count, p)
     step = _damped_solve(rest_jj, -rest_jr)  # (n, G, S, F, P)
     # Each frame takes its own fold's step: predicted residual r + J step.
     per_frame = torch.einsum("sfk,ngsfp->ngskp", member, step)
-    return r[:, None, None] + torch.einsum("ngkcp,ngskp->ngskc", jac, per_frame)
+    return r[:, None, None] + (jac[:, :, None] * per_frame[..., None, :]).sum(-1)
 
 
 def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:
