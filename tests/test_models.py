@@ -5,6 +5,7 @@ from torchspec.brdf import SVBRDF
 from torchspec.geometry import normalize
 from torchspec.lights import Kernel, Lights
 from torchspec.models import MODELS, get_model
+from torchspec.quadrature import Quadrature
 from torchspec.rendering import render
 from torchspec.simulate import LayoutConfig, layout
 
@@ -106,12 +107,14 @@ def test_normal_equations_are_those_of_the_residuals(name, grey_weight):
     torch.testing.assert_close(ne.grad, (jac.transpose(1, 2) @ r[..., None])[..., 0], rtol=1e-12, atol=1e-15)
 
 
-@pytest.mark.parametrize("name", ["diffuse", "ward-iso", "ward-aniso"])
+@pytest.mark.parametrize("name", sorted(MODELS))
 def test_sandwich_terms_are_those_of_the_jacobian(name):
     """``sandwich_terms``: ``0.5 chi^2``, ``A = J^T W^2 J`` and ``B = J^T W^2 S W^2 J`` of the dense
     Jacobian (brute force, float64), with noise weights per sample and channel (some 0) and fit
-    weights per pixel; with ``W`` the noise weights, ``A = B``: the Fisher information."""
-    from torchspec.least_squares import sandwich_terms
+    weights per pixel; with ``W`` the noise weights, ``A = B``: the Fisher information. With
+    ``samples``, the same three, and the per-sample terms of the sums over the dense Jacobian (one
+    lobe is summed from Gram matrices, never that Jacobian)."""
+    from torchspec.least_squares import _contract, _sandwich_samples, sandwich_terms
 
     model = get_model(name)
     lights = _lights()
@@ -135,6 +138,11 @@ def test_sandwich_terms_are_those_of_the_jacobian(name):
     torch.testing.assert_close(cost, half_chi2, rtol=1e-12, atol=1e-15)
     torch.testing.assert_close(bread, a, rtol=1e-12, atol=1e-15)
     torch.testing.assert_close(meat, b, rtol=1e-12, atol=1e-15)
+    options = dict(diffuse_only=not model.lobe)
+    full = sandwich_terms(*args, noise, fit.contiguous(), select, samples=True, **options)
+    dense = _contract(_sandwich_samples, *args, (noise, fit.contiguous()), select, quadrature=Quadrature(), **options)
+    for got, expected in zip(full, (half_chi2, a, b, *dense[3:]), strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-15)
     _, bread, meat = sandwich_terms(*args, noise, noise, select, diffuse_only=not model.lobe)
     torch.testing.assert_close(bread, meat, rtol=1e-12, atol=1e-15)
     with pytest.raises(ValueError, match=rf"fit_weight must have shape \(4, {k}, 3\)"):

@@ -68,17 +68,28 @@ def _normal_gram_eager(parts: tuple, observed: Tensor, weight: Tensor, rows: Ten
     are most of a solver step, and this takes 0.55-0.8 of :func:`_normal`'s time on 2048-4096
     pixels (``ward-iso-colour``, 36 lights, CPU), about as much on a few pixels or under a kernel's
     quadrature. Equal to :func:`_normal` within float rounding (``tests/test_models.py``)."""
+    value, f, columns = _gram_parts(parts, rows)
+    r = (value - observed) * weight
+    ws = weight * parts[6]  # parts[6]: each sample's scale (irradiance, exposure)
+    moment = torch.einsum("nkc,nki->nci", ws * r, f)  # (N, C, 9)
+    return 0.5 * (r * r).sum((1, 2)), _gram_hessian(f, columns, ws), torch.einsum("ncpi,nci->np", columns, moment)
+
+
+def _gram_parts(parts: tuple, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """One lobe's values ``(N, K, C)``, the nine quantities ``f (N, K, 9)`` every column of the
+    Jacobian is made of, and the model's columns per channel as combinations of them ``(N, C, P, 9)``
+    (the Jacobian of sample ``(k, c)`` is ``scale columns_c f_k``; ``rows``: :func:`_channel_rows`)."""
     diffuse, d_diffuse, spec, d_spec_n, d_spec_shape, dn, scale, k_d, k_s = parts
     value = (k_d[:, None, :] / math.pi * diffuse[..., None] + k_s[:, None, :] * spec[..., None]) * scale
-    r = (value - observed) * weight
-    ws = weight * scale
-    f = torch.cat([diffuse[..., None], spec[..., None], d_diffuse @ dn, d_spec_n @ dn, d_spec_shape], -1)  # (N, K, 9)
+    f = torch.cat([diffuse[..., None], spec[..., None], d_diffuse @ dn, d_spec_n @ dn, d_spec_shape], -1)
+    return value, f, torch.einsum("cap,ncaj->ncpj", rows[0], _coefficients(k_d, k_s))
+
+
+def _gram_hessian(f: Tensor, columns: Tensor, ws: Tensor) -> Tensor:
+    """``J^T W^2 J (N, P, P)`` with each sample's weight ``ws (N, K, C)`` (its scale included), from
+    :func:`_gram_parts`'s quantities and columns: the Gram matrix of ``f`` per channel, then the columns."""
     gram = torch.einsum("nkci,nkj->ncij", (ws * ws)[..., None] * f[:, :, None, :], f)  # (N, C, 9, 9)
-    moment = torch.einsum("nkc,nki->nci", ws * r, f)  # (N, C, 9)
-    columns = torch.einsum("cap,ncaj->ncpj", rows[0], _coefficients(k_d, k_s))  # (N, C, P, 9)
-    hess = torch.einsum("ncpj,ncqj->npq", torch.einsum("ncpi,ncij->ncpj", columns, gram), columns)
-    grad = torch.einsum("ncpi,nci->np", columns, moment)
-    return 0.5 * (r * r).sum((1, 2)), hess, grad
+    return torch.einsum("ncpj,ncqj->npq", torch.einsum("ncpi,ncij->ncpj", columns, gram), columns)
 
 
 def _coefficients(k_d: Tensor, k_s: Tensor) -> Tensor:
@@ -135,13 +146,17 @@ def normal_equations(
         ``(cost (N,), J^T J (N, P, P), J^T r (N, P))``, ``cost = 0.5 |r|^2``.
     """
     options = dict(quadrature=quadrature, diffuse_only=diffuse_only)
-    return _contract(_normal, svbrdf, lights, view, observed, (weight,), select, gram=_normal_gram, **options)
+    grams = dict(gram=_normal_gram, gram_eager=_normal_gram_eager)
+    return _contract(_normal, svbrdf, lights, view, observed, (weight,), select, **grams, **options)
 
 
-def _contract(function, svbrdf, lights, view, observed, weights, select, *, quadrature, diffuse_only, gram=None):
-    """``function(parts, observed, *weights) -> (cost, matrix, matrix or vector)`` over chunks of
-    pixels, the matrices and vectors taken to the model's columns ``select``; compiled, ``gram``
-    instead when given (the same, in the model's columns from :func:`_channel_rows`)."""
+def _contract(
+    function, svbrdf, lights, view, observed, weights, select, *, quadrature, diffuse_only, gram=None, gram_eager=None
+):
+    """``function(parts, observed, *weights) -> (cost, matrix, matrix or vector, ...)`` over chunks of
+    pixels, the matrices and vectors taken to the model's columns ``select``; for one lobe, ``gram``
+    instead when compiled and ``gram_eager`` when not, where given (the same outputs, already in the
+    model's columns: their last argument is :func:`_channel_rows`)."""
     check_quadrature(quadrature)
     compile = quadrature.compile
     n, k = svbrdf.diffuse.shape[0], lights.directions.shape[0]
@@ -156,7 +171,7 @@ def _contract(function, svbrdf, lights, view, observed, weights, select, *, quad
     count = svbrdf.diffuse.shape[-1]
     grey = svbrdf.specular.shape[-1] == 1 and count != 1
     channel_rows = None
-    if gram is not None and svbrdf.specular2 is None:  # gram: one lobe
+    if (gram if compile else gram_eager) is not None and svbrdf.specular2 is None:  # grams: one lobe
         # (1, C, 7, P): a first axis of 1 is never taken for the batch (torchspec.fusion.compiled),
         # and the models' parameter counts P share one compiled graph.
         channel_rows = _channel_rows(select, count, grey)[None]
@@ -175,7 +190,7 @@ def _contract(function, svbrdf, lights, view, observed, weights, select, *, quad
             )
             continue
         if channel_rows is not None and not compile:
-            out.append(_normal_gram_eager(parts, observed[rows], *[w[rows] for w in weights], channel_rows))
+            out.append(gram_eager(parts, observed[rows], *[w[rows] for w in weights], channel_rows))
             continue
         sums = fused(function, compile, part.diffuse.shape[0])
         cost, first, second, *rest = sums(parts, observed[rows], *[w[rows] for w in weights])
@@ -190,12 +205,17 @@ def _sandwich(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tup
     return _sandwich_sums(*assemble(*parts), observed, noise, fit)[:3]
 
 
+def _sandwich_gram(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor, rows: Tensor) -> tuple:
+    """:func:`_sandwich` of one lobe in the model's columns ``rows`` (:func:`_channel_rows`), from the
+    Gram matrices of :func:`_gram_parts`' quantities (no Jacobian; equal within rounding)."""
+    return _sandwich_gram_sums(parts, observed, noise, fit, rows)[:3]
+
+
 def _sandwich_sums(value: Tensor, jac: Tensor, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple:
     """:func:`_sandwich`'s sums from the values and the Jacobian, and the noise-weighted residual."""
     r = (value - observed) * noise
-    sigma = torch.where(noise > 0, 1.0 / torch.where(noise > 0, noise, torch.ones_like(noise)), torch.zeros_like(noise))
     bread = jac * fit[..., None]
-    meat = bread * (fit * sigma)[..., None]
+    meat = bread * (fit * _deviation(noise))[..., None]
     return (
         0.5 * (r * r).sum((1, 2)),
         torch.einsum("nkcp,nkcq->npq", bread, bread),
@@ -204,12 +224,37 @@ def _sandwich_sums(value: Tensor, jac: Tensor, observed: Tensor, noise: Tensor, 
     )
 
 
+def _sandwich_gram_sums(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor, rows: Tensor) -> tuple:
+    """:func:`_sandwich_sums` of one lobe from :func:`_gram_parts` (the values too)."""
+    value, f, columns = _gram_parts(parts, rows)
+    r = (value - observed) * noise
+    bread = fit * parts[6]  # parts[6]: each sample's scale
+    meat = bread * fit * _deviation(noise)
+    return 0.5 * (r * r).sum((1, 2)), _gram_hessian(f, columns, bread), _gram_hessian(f, columns, meat), r
+
+
+def _deviation(noise: Tensor) -> Tensor:
+    """Each sample's noise deviation from one over it, ``noise``; 0 where ``noise`` is 0 (dropped)."""
+    return torch.where(noise > 0, 1.0 / torch.where(noise > 0, noise, torch.ones_like(noise)), torch.zeros_like(noise))
+
+
 def _sandwich_samples(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor) -> tuple:
     """:func:`_sandwich`, and per sample ``(N, K)``: the squared residual in units of the noise summed
     over channels, and the mean over the valid channels of the samples less the diffuse part; then
     the lobe's signal-to-noise ratio ``(N,)``, the norm of its part of the values in noise units."""
     value, jac = assemble(*parts)
     cost, bread, meat, r = _sandwich_sums(value, jac, observed, noise, fit)
+    return cost, bread, meat, *_sample_terms(parts, r, observed, noise)
+
+
+def _sandwich_samples_gram(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor, rows: Tensor) -> tuple:
+    """:func:`_sandwich_samples` of one lobe in the model's columns ``rows`` (:func:`_sandwich_gram`)."""
+    cost, bread, meat, r = _sandwich_gram_sums(parts, observed, noise, fit, rows)
+    return cost, bread, meat, *_sample_terms(parts, r, observed, noise)
+
+
+def _sample_terms(parts: tuple, r: Tensor, observed: Tensor, noise: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_sandwich_samples`' per-sample terms from the noise-weighted residual ``r``."""
     diffuse, _, spec, _, _, _, scale, k_d, k_s, *second = parts
     valid = (noise > 0).to(observed.dtype)
     lambertian = k_d[:, None, :] / math.pi * diffuse[..., None] * scale
@@ -218,7 +263,7 @@ def _sandwich_samples(parts: tuple, observed: Tensor, noise: Tensor, fit: Tensor
     if second:  # both lobes
         lobe = lobe + second[3][:, None, :] * second[0][..., None]
     lobe = lobe * scale * noise  # the lobes' part, in units of the noise
-    return cost, bread, meat, (r * r).sum(-1), excess, (lobe * lobe).sum((1, 2)).sqrt()
+    return (r * r).sum(-1), excess, (lobe * lobe).sum((1, 2)).sqrt()
 
 
 def sandwich_terms(
@@ -256,6 +301,7 @@ def sandwich_terms(
         then ``z2 (N, K)``, ``excess (N, K)`` and ``lobe_snr (N,)``.
     """
     options = dict(quadrature=quadrature, diffuse_only=diffuse_only)
-    function = _sandwich_samples if samples else _sandwich
-    return _contract(function, svbrdf, lights, view, observed, (noise_weight, fit_weight), select, **options)
+    function, eager = (_sandwich_samples, _sandwich_samples_gram) if samples else (_sandwich, _sandwich_gram)
+    weights = (noise_weight, fit_weight)
+    return _contract(function, svbrdf, lights, view, observed, weights, select, gram_eager=eager, **options)
 
