@@ -366,19 +366,9 @@ def _sample_pass(values, ok, points, dirs, positions, gains, options, level, ind
     b, _, lit, _, explained, _ = _explained_pass(values, ok, points, dirs, positions, gains, **options, level=level)
     pred = _Design.of(_lighting(points, dirs, positions)[1], gains).predict(b)
     residual2, energy = _frame_sums(values, pred, lit & explained[:, None, None])
-    c = b.shape[1]
-    total = b.sum(1)
-    normal = values.new_zeros((height * width, 3)).index_copy_(
-        0, index, total / total.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    )
-    albedo = values.new_zeros((height * width, c)).index_copy_(0, index, b.norm(dim=-1))
+    every = values.new_zeros((height * width, *b.shape[1:])).index_copy_(0, index, b)
     flat = torch.zeros(height * width, dtype=torch.bool, device=index.device).index_copy_(0, index, explained)
-    return LambertFit(
-        normal=normal.reshape(height, width, 3),
-        albedo=albedo.T.reshape(c, height, width),
-        explained=flat.reshape(height, width),
-        rms=(residual2 / energy.clamp_min(1e-300)).sqrt(),
-    )
+    return _lambert(every, flat, (residual2 / energy.clamp_min(1e-300)).sqrt(), height, width, values.dtype)
 
 
 def _full_pass(frames, valid, dirs, positions, gains, options, level, pixels=None) -> LambertFit:
@@ -404,14 +394,19 @@ def _full_pass(frames, valid, dirs, positions, gains, options, level, pixels=Non
         residual2, energy = residual2 + sums[0], energy + sums[1]
         rows.append((b, explained))
     b, explained = (torch.cat(t) for t in zip(*rows, strict=True))
+    return _lambert(b, explained, (residual2 / energy.clamp_min(1e-300)).sqrt(), height, width, frames.dtype)
+
+
+def _lambert(b: Tensor, explained: Tensor, rms: Tensor, height: int, width: int, dtype) -> LambertFit:
+    """The :class:`LambertFit` of every pixel's solution ``b (H W, C, 3)`` (0: no normal, no albedo),
+    ``explained (H W,)`` and the frames' ``rms``; maps in ``dtype``."""
     total = b.sum(1)
     normal = total / total.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    out = {"dtype": frames.dtype}
     return LambertFit(
-        normal=normal.reshape(height, width, 3).to(**out),
-        albedo=b.norm(dim=-1).T.reshape(c, height, width).to(**out),
+        normal=normal.reshape(height, width, 3).to(dtype),
+        albedo=b.norm(dim=-1).T.reshape(b.shape[1], height, width).to(dtype),
         explained=explained.reshape(height, width),
-        rms=(residual2 / energy.clamp_min(1e-300)).sqrt(),
+        rms=rms,
     )
 
 
