@@ -60,6 +60,19 @@ def test_normal_angles_round_trip(a, b):
     torch.testing.assert_close(g.angles_from_normal(n), angles, atol=1e-10, rtol=0)
 
 
+@settings(max_examples=50, deadline=None)
+@given(a=st.floats(-1.4, 1.4), b=st.floats(-1.4, 1.4))
+def test_normal_derivative_is_that_of_normal_from_angles(a, b):
+    angles = torch.tensor([[a, b]], dtype=F64)
+    expected = torch.autograd.functional.jacobian(g.normal_from_angles, angles)[0, :, 0]  # (3, 2)
+    n = g.normal_from_angles(angles)
+    found = g.normal_derivative(n)
+    assert found.shape == (1, 3, 2)
+    torch.testing.assert_close(found[0], expected, atol=1e-12, rtol=1e-10)
+    # at the angles of n: a normal of any length gives the same (as angles_from_normal does)
+    torch.testing.assert_close(g.normal_derivative(2.5 * n), found, atol=1e-12, rtol=1e-10)
+
+
 def test_normal_angles_smooth_at_zenith():
     angles = torch.zeros(1, 2, dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(g.normal_from_angles, (angles,))

@@ -98,14 +98,16 @@ def normal_from_angles(angles: Tensor) -> Tensor:
 
 
 def normal_derivative(n: Tensor) -> Tensor:
-    """``dn / d(a, b)`` ``(N, 3, 2)`` of :func:`normal_from_angles` at the angles of unit normals
-    ``n (N, 3)`` (by automatic differentiation, also under ``torch.no_grad``)."""
-    angles = angles_from_normal(n)
-    with torch.enable_grad():
-        a = angles.detach().requires_grad_(True)
-        return torch.stack(
-            [torch.autograd.grad(normal_from_angles(a)[:, i].sum(), a, retain_graph=True)[0] for i in range(3)], 1
-        )
+    """``dn / d(a, b)`` ``(N, 3, 2)`` of :func:`normal_from_angles` at the angles of normals
+    ``n (N, 3)`` (:func:`angles_from_normal`), in closed form: there ``v = (tan a, tan b, 1) =
+    (n_x, n_y, n_z) / n_z`` and ``m = v / |v|``, so ``dm/da = (e_x - m_x m) (1 + tan^2 a) / |v|``
+    and likewise for ``b`` with ``y`` (``tests/test_geometry.py`` compares it with automatic
+    differentiation)."""
+    tangent = n[:, :2] / n[:, 2:]  # (tan a, tan b)
+    length = (1.0 + (tangent * tangent).sum(-1, keepdim=True)).sqrt()  # |v|
+    m = torch.cat([tangent, torch.ones_like(length)], -1) / length
+    eye = torch.eye(3, 2, dtype=n.dtype, device=n.device)
+    return (eye - m[:, :, None] * m[:, None, :2]) * ((1.0 + tangent * tangent) / length)[:, None, :]
 
 
 def angles_from_normal(n: Tensor) -> Tensor:
