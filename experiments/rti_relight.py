@@ -75,7 +75,7 @@ def _reduce(frames: torch.Tensor, factor: int) -> torch.Tensor:
     return torch.nn.functional.avg_pool2d(frames, factor)
 
 
-def _load(folder: Path, scratch: Path, factor: int):
+def load_reduced(folder: Path, scratch: Path, factor: int):
     """Import ``folder`` and reduce it: ``(capture, linear (K, C, H, W) float64, codes (K, C, H, W))``
     where ``codes`` are the reduced photographs as 8-bit sRGB in ``[0, 1]``."""
     name = "-".join(folder.parts[-2:])
@@ -84,7 +84,7 @@ def _load(folder: Path, scratch: Path, factor: int):
         imported = import_rti(folder, scratch / f"{name}-import")
     full = imported.capture
     linear = _reduce(full.read_frames(dtype=torch.float64), factor)
-    codes = _quantise(SRGB.encode(linear))
+    codes = quantise(SRGB.encode(linear))
     linear = SRGB.decode(codes)  # the photograph as it is scored: reduced, 8-bit again
     k, c, h, w = linear.shape
     capture = replace(full, root=scratch / name, width=w, height=h)
@@ -92,7 +92,8 @@ def _load(folder: Path, scratch: Path, factor: int):
     return capture, linear, codes
 
 
-def _quantise(values: torch.Tensor) -> torch.Tensor:
+def quantise(values: torch.Tensor) -> torch.Tensor:
+    """Values in ``[0, 1]`` rounded to 8-bit codes (still in ``[0, 1]``)."""
     return (values.clamp(0, 1) * 255).round() / 255
 
 
@@ -163,7 +164,7 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, ca
 def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
     """PSNR (peak 1) and mean luminance SSIM of 8-bit sRGB ``(K, C, H, W)``, and the worst frame's
     mean brightness ratio (linear)."""
-    predicted_codes = _quantise(predicted_codes)
+    predicted_codes = quantise(predicted_codes)
     mse = float((predicted_codes - codes).pow(2).mean())
     luma = torch.tensor(LUMA, dtype=codes.dtype)[None, :, None, None]
     if codes.shape[1] == 1:
@@ -213,7 +214,7 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
     rows, shown = [], {"photograph": truth}
     for name, basis in BASES.items():
         values, seconds = polynomial(basis, d[fitted], codes[fitted], test_d)
-        shown[name] = _quantise(values)
+        shown[name] = quantise(values)
         rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth)})
         rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]  # the frame's index in the target
     fits = {}
@@ -226,7 +227,7 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
         for name, prediction in ((f"torchspec {label}", values), (f"torchspec {label} + term", termed)):
             if prediction is None:
                 continue
-            shown[name] = _quantise(SRGB.encode(prediction.clamp(0, 1)))
+            shown[name] = quantise(SRGB.encode(prediction.clamp(0, 1)))
             row = {"method": name, "fit_seconds": seconds, **scores(shown[name], truth)}
             row["worst_frame"] = predicted[row["worst_frame"]]
             row["lobe_share"] = float(fit.lobe.double().mean())
@@ -242,7 +243,7 @@ def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: li
     """Every score of one capture (SynthRTI: the left-out protocol on Dome/, Dome -> Test, normals);
     its left-out frames' images appended to ``figure_rows`` (:func:`figure`)."""
     synth = (folder / "Dome").is_dir()
-    capture, linear, codes = _load(folder / "Dome" if synth else folder, scratch, settings.downsample)
+    capture, linear, codes = load_reduced(folder / "Dome" if synth else folder, scratch, settings.downsample)
     count = len(capture.frames)
     predicted = [i for i in range(count) if i % 5 == settings.left_out]
     fitted = [i for i in range(count) if i % 5 != settings.left_out]
@@ -256,7 +257,7 @@ def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: li
     }
     figure_rows.append((folder.name, shown))
     if synth:
-        target = _load(folder / "Test", scratch, settings.downsample)
+        target = load_reduced(folder / "Test", scratch, settings.downsample)
         every = list(range(count))
         tested = list(range(len(target[0].frames)))
         dome_rows, fits, _ = relight(capture, linear, codes, every, tested, settings, target)

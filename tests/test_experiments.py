@@ -417,3 +417,64 @@ def test_light_calibration_runs(tmp_path):
     assert sim["renderer_check"] < 1e-7  # 1 / R of the radius 1e9 stand-in for distant lights
     assert sim["gain_rel_error"]["max"] < 0.05 and sim["position_rel_error"]["max"] < 0.1
     assert json.loads((tmp_path / "light_calibration.json").read_text())["simulated"]["frames"] == 16
+
+
+def test_left_out_brightness_finds_each_frames_own_gain(tmp_path):
+    """A Lambertian relief relit with HSH: its left-out frames' brightness is predicted (within the
+    issue's 10 %) until each photograph gets its own flash intensity; then the misses follow those
+    intensities, which the nearest lights' errors do not predict."""
+    import math
+
+    import numpy as np
+    from PIL import Image
+
+    y, x = np.mgrid[0:8, 0:8] / 8.0
+    slope = np.stack([0.3 * np.sin(2 * math.pi * x), 0.2 * np.cos(2 * math.pi * y), np.ones_like(x)], -1)
+    normals = slope / np.linalg.norm(slope, axis=-1, keepdims=True)
+    dome = [
+        (math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e))
+        for e, turn in ((0.6, 0.0), (0.85, 0.2), (1.1, 0.4), (1.35, 0.6))
+        for a in np.linspace(turn, turn + 2 * math.pi, 10, endpoint=False)
+    ]
+    _rti_folder(tmp_path / "data" / "plain", dome, normals)
+    gains = np.random.default_rng(4).uniform(0.7, 1.3, len(dome))
+    folder = tmp_path / "data" / "flashes"
+    _rti_folder(folder, dome, normals)
+    for k, gain in enumerate(gains):  # each photograph brighter or darker by its gain (linear values)
+        path = folder / f"image{k:02d}.png"
+        code = np.asarray(Image.open(path)).astype(np.float64) / 255
+        linear = np.where(code <= 0.04045, code / 12.92, ((code + 0.055) / 1.055) ** 2.4) * gain
+        encoded = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+        Image.fromarray((encoded.clip(0, 1) * 255).round().astype(np.uint8)).save(path)
+    result = _main(
+        "left_out_brightness",
+        tmp_path,
+        f"data: {tmp_path / 'data'}\ncaptures: [plain, flashes]\ndownsample: 1\nneighbours: [1, 3]\nthreads: 1\n",
+    )
+    plain, flashes = result["captures"]
+    assert plain["left_out"] == list(range(2, 40, 5)) and len(plain["elevation_deg"]) == 8
+    assert plain["HSH"]["as fitted"]["off"] == 0 and abs(plain["HSH"]["as fitted"]["worst_ratio"] - 1) < 0.1
+    found = np.log(flashes["HSH"]["as fitted"]["ratios"])
+    assert flashes["HSH"]["as fitted"]["off"] >= 3
+    # the misses are the frames' own gains: log ratio against -log gain
+    assert np.corrcoef(found, -np.log(gains[plain["left_out"]]))[0, 1] > 0.8
+    for label in ("corrected, 1 nearest", "corrected, 3 nearest"):
+        assert flashes["HSH"][label]["off"] >= 3
+    assert json.loads((tmp_path / "tiny.json").read_text())["captures"][1]["capture"] == "flashes"
+
+
+def test_neighbour_correction_is_the_weighted_mean_of_the_nearest_errors():
+    import torch
+
+    correction = _load("left_out_brightness").neighbour_correction
+    angles = torch.tensor([0.1, 0.2, 0.4, 1.0, 1.4], dtype=torch.float64)
+    directions = torch.stack([torch.sin(angles), torch.zeros_like(angles), torch.cos(angles)], -1)
+    directions = torch.cat([directions, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)])  # frame 5
+    own = torch.tensor([1.2, 0.8, 2.0, 0.5, 3.0], dtype=torch.float64)
+    fitted, predicted = [0, 1, 2, 3, 4], [5]
+    assert float(correction(directions, fitted, own, predicted, 1)) == pytest.approx(1.2)
+    weights = 1 / angles[:2]
+    expected = torch.exp((weights * own[:2].log()).sum() / weights.sum())
+    assert float(correction(directions, fitted, own, predicted, 2)) == pytest.approx(float(expected))
+    flat = torch.full_like(own, 0.9)
+    assert float(correction(directions, fitted, flat, predicted, 5)) == pytest.approx(0.9)
