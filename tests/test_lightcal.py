@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.errors import TorchspecError
-from torchspec.lightcal import DOME_MARGIN, RADII, calibrate_lights, lambert_fit
+from torchspec.lightcal import DOME_MARGIN, RADII, RADIUS_SAMPLE, calibrate_lights, lambert_fit
 from torchspec.near_lights import image_points, near_light
 
 F64 = torch.float64
@@ -137,6 +137,25 @@ def test_give_up_stops_after_two_steps_only_above_its_misfit(near):
     assert not near or bool(early.position_std.isnan().all())
     later = calibrate_lights(frames, directions, give_up=(0.5, 1e-4), **options)
     assert later.iterations == 2 and torch.equal(later.gains, stopped.gains)
+
+
+def test_give_up_tests_the_start_pixels_first():
+    """A sample larger than the start's pixels (RADIUS_SAMPLE): give_up's tests are made on those
+    first; where they stop the calibration, those pixels are all it judges, its misfit within 1.1x
+    of the converged one's; where they do not, the calibration is exactly the one without give_up."""
+    frames, _, positions, _ = make_capture(size=56, near=False, noise=0.01)  # 3,136 pixels
+    assert frames.shape[-1] * frames.shape[-2] > RADIUS_SAMPLE
+    directions = positions / positions.norm(dim=-1, keepdim=True)
+    full = calibrate_lights(frames, directions)
+    kept = calibrate_lights(frames, directions, give_up=(0.5, 0.5))
+    assert full.iterations > 2 and kept.iterations == full.iterations and bool(kept.judged.all())
+    assert torch.equal(kept.gains, full.gains) and torch.equal(kept.gain_std, full.gain_std)
+    stopped = calibrate_lights(frames, directions, give_up=1e-4)
+    assert stopped.iterations == 2 and int(stopped.judged.sum()) == RADIUS_SAMPLE
+    assert not bool((stopped.explained & ~stopped.judged).any())
+    assert float(stopped.rms.median()) < 1.1 * float(full.rms.median())
+    early = calibrate_lights(frames, directions, give_up=(1e-4, 0.5))
+    assert early.iterations == 0 and int(early.judged.sum()) == RADIUS_SAMPLE
 
 
 def test_highlights_left_out():

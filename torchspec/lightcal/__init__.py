@@ -260,7 +260,10 @@ def calibrate_lights(
             caller that refuses lights above a misfit need not pay for their refinement (two steps
             leave it within 1.1x of the converged one on a simulation: tests/test_lightcal.py); a
             pair ``(start, two steps)``: also before the first step, above ``start`` under the
-            start's gains (``iterations`` 0, ``gain_std`` NaN)).
+            start's gains (``iterations`` 0, ``gain_std`` NaN)). A sample larger than the start's
+            :data:`RADIUS_SAMPLE` pixels is tested on those first: where that stops, they are the
+            sample (``judged``); else the tests are made again on the whole sample, and the
+            calibration is the one without that first trial.
 
     Returns:
         :class:`LightCalibration` in the dtype and on the device of ``frames``.
@@ -291,9 +294,17 @@ def calibrate_lights(
         (chosen, misfit), written = dome_radius(*start, gains, options)
         positions = None if chosen is None else chosen * dirs
     gains = _ratio_gains(*start, positions, gains, options, 8)[0]
-    gains, positions, covariance, level, done, stopped = _alternate(
-        values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up
-    )
+    steps = (near, iterations, damping, tolerance, give_up)
+    found = None
+    if give_up is not None and few.shape[0] < values.shape[0]:  # the give-up's tests on the start's pixels first
+        found = _alternate(*start, positions, gains, options, *steps, trial=True)
+        if found[-1]:  # stopped there: the calibration is judged on those pixels
+            values, ok, points, index = values[few], ok[few], points[few], index[few]
+        else:
+            found = None
+    if found is None:
+        found = _alternate(values, ok, points, dirs, positions, gains, options, *steps)
+    gains, positions, covariance, level, done, stopped = found
     std = _deviations(covariance, gains, c + 3 if near else c)
     # stopped: refused anyway, judged on the sample (a pass over every pixel cost realrti-item3 10 of 24 s)
     sample = (values, ok, points, dirs, positions, gains, options, level, index, height, width)
@@ -334,10 +345,13 @@ def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
     )
 
 
-def _alternate(values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up):
+def _alternate(
+    values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up, trial=False
+):
     """:func:`calibrate_lights`'s alternation of maps and lights on the sample: ``(gains, positions,
     covariance of the lights' parameters (``None`` before a step), level, iterations run, whether
-    give_up stopped it)``."""
+    give_up stopped it)``; ``trial``: only up to give_up's last test (what is returned is then
+    of use only where it stopped)."""
     done, covariance, level, strict = 0, None, None, False
     bounds = dict(zip((1, 3), give_up if isinstance(give_up, tuple) else (None, give_up), strict=True))
     for done in range(1, max(iterations, 1) + 1):
@@ -350,6 +364,8 @@ def _alternate(values, ok, points, dirs, positions, gains, options, near, iterat
             and _median_misfit(values, points, dirs, positions, gains, b, lit & sel[:, None, None]) > bound
         ):
             return gains, positions, covariance, level, done - 1, True
+        if trial and done >= max(bounds):
+            return gains, positions, covariance, level, done - 1, False
         gains, positions, covariance, change, damping = _update(
             values[sel], weight[sel], b[sel], points[sel], dirs, positions, gains, near, damping
         )

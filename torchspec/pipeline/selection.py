@@ -262,12 +262,16 @@ def _climb(
         return predict(model, svbrdf, index, data, inverse, folds, config)
 
     def compare(fit: ModelFit) -> Tensor:
-        index = fit.index
-        mine = predicted(get_model(fit.name), fit.svbrdf, index)
-        better = predicts_better(mine, heldout[index], config.predict_z) & (fit.criterion < math.inf)
-        better &= resolved(fit, config.resolve) & supported(fit, data, config.lobe_support)
+        # the left-out frames are predicted only where the fit could be kept at all
+        eligible = resolved(fit, config.resolve) & supported(fit, data, config.lobe_support)
+        eligible &= fit.criterion < math.inf
+        at = eligible.nonzero()[:, 0]
+        index = fit.index[at]
+        mine = predicted(get_model(fit.name), fit.svbrdf[at], index)
+        better = torch.zeros_like(eligible)
+        better[at] = predicts_better(mine, heldout[index], config.predict_z)
         choice.take(fit, better)
-        heldout[index[better]] = mine[better]
+        heldout[fit.index[better]] = mine[better[at]]
         return better
 
     fit = assess(_joined(candidates), data, sensor, config)
