@@ -260,10 +260,7 @@ def calibrate_lights(
             caller that refuses lights above a misfit need not pay for their refinement (two steps
             leave it within 1.1x of the converged one on a simulation: tests/test_lightcal.py); a
             pair ``(start, two steps)``: also before the first step, above ``start`` under the
-            start's gains (``iterations`` 0, ``gain_std`` NaN)). A sample larger than the start's
-            :data:`RADIUS_SAMPLE` pixels is tested on those first: where that stops, they are the
-            sample (``judged``); else the tests are made again on the whole sample, and the
-            calibration is the one without that first trial.
+            start's gains (``iterations`` 0, ``gain_std`` NaN)); first on the start's pixels.
 
     Returns:
         :class:`LightCalibration` in the dtype and on the device of ``frames``.
@@ -294,16 +291,8 @@ def calibrate_lights(
         (chosen, misfit), written = dome_radius(*start, gains, options)
         positions = None if chosen is None else chosen * dirs
     gains = _ratio_gains(*start, positions, gains, options, 8)[0]
-    steps = (near, iterations, damping, tolerance, give_up)
-    found = None
-    if give_up is not None and few.shape[0] < values.shape[0]:  # the give-up's tests on the start's pixels first
-        found = _alternate(*start, positions, gains, options, *steps, trial=True)
-        if found[-1]:  # stopped there: the calibration is judged on those pixels
-            values, ok, points, index = values[few], ok[few], points[few], index[few]
-        else:
-            found = None
-    if found is None:
-        found = _alternate(values, ok, points, dirs, positions, gains, options, *steps)
+    steps = (positions, gains, options, near, iterations, damping, tolerance, give_up)
+    (values, ok, points, index), found = _alternate_sample((values, ok, points, index), few, dirs, steps)
     gains, positions, covariance, level, done, stopped = found
     std = _deviations(covariance, gains, c + 3 if near else c)
     # stopped: refused anyway, judged on the sample (a pass over every pixel cost realrti-item3 10 of 24 s)
@@ -343,6 +332,20 @@ def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
     return (
         torch.zeros(height * width, dtype=torch.bool, device=device).index_fill_(0, index, True).reshape(height, width)
     )
+
+
+def _alternate_sample(sample: tuple, few: Tensor, dirs: Tensor, steps: tuple) -> tuple[tuple, tuple]:
+    """``(the sample (values, ok, points, index) judged, _alternate's outcome)``: with a give-up and
+    a ``sample`` larger than the start's pixels ``few`` (:data:`RADIUS_SAMPLE`), its tests on those
+    first; where they stop the calibration, ``few`` are the sample (``judged``); else (or without a
+    give-up) the alternation on the whole sample, as if that trial had not been made."""
+    give_up = steps[-1]
+    if give_up is not None and few.shape[0] < sample[0].shape[0]:
+        part = tuple(t[few] for t in sample)
+        found = _alternate(*part[:3], dirs, *steps, trial=True)
+        if found[-1]:  # stopped there: the calibration is judged on those pixels
+            return part, found
+    return sample, _alternate(*sample[:3], dirs, *steps)
 
 
 def _alternate(
