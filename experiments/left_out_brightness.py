@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 from _common import ROOT, parse_args
-from rti_relight import BASES, SRGB, load_reduced, polynomial, quantise
+from rti_relight import BASES, brightness_ratios, load_reduced, polynomial
 
 from torchspec.atomic import write_json
 from torchspec.config import load_config
@@ -44,16 +44,11 @@ class Settings:
     threads: int = 2  # torch threads
 
 
-def brightness(codes: torch.Tensor) -> torch.Tensor:
-    """``(K,)`` the mean linear value of each frame of 8-bit sRGB ``codes (K, C, H, W)``."""
-    return SRGB.decode(codes.clamp(0, 1)).mean((1, 2, 3))
-
-
 def left_out_ratios(basis, directions: torch.Tensor, codes: torch.Tensor, fitted: list[int], predicted: list[int]):
     """``(len(predicted),)`` brightness ratios, predicted over photographed, of ``basis`` fitted on
     the ``fitted`` frames of ``codes (K, C, H, W)`` under ``directions (K, 3)``."""
     values, _ = polynomial(basis, directions[fitted], codes[fitted], directions[predicted])
-    return brightness(quantise(values)) / brightness(codes[predicted]).clamp_min(1e-12)
+    return brightness_ratios(values, codes[predicted])
 
 
 def neighbour_correction(

@@ -172,7 +172,7 @@ def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
     y_p, y_o = (predicted_codes * luma).sum(1, keepdim=True), (codes * luma).sum(1, keepdim=True)
     window = min(11, codes.shape[-1] - (codes.shape[-1] + 1) % 2, codes.shape[-2] - (codes.shape[-2] + 1) % 2)
     ssim = float(kornia.metrics.ssim(y_p.float(), y_o.float(), window, max_val=1.0).mean())
-    ratio = SRGB.decode(predicted_codes).mean((1, 2, 3)) / SRGB.decode(codes).mean((1, 2, 3)).clamp(min=1e-12)
+    ratio = brightness_ratios(predicted_codes, codes)
     worst = int(ratio.log().abs().argmax())
     return {
         "psnr_db": math.inf if mse == 0 else 10 * math.log10(1 / mse),
@@ -180,6 +180,13 @@ def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
         "worst_brightness_ratio": float(ratio[worst]),
         "worst_frame": worst,  # its index in the frames scored
     }
+
+
+def brightness_ratios(predicted_codes: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """``(K,)`` each frame's mean brightness, predicted over photographed: the linear values of the
+    8-bit sRGB ``predicted_codes`` (quantised here) and ``codes`` ``(K, C, H, W)``."""
+    predicted = SRGB.decode(quantise(predicted_codes)).mean((1, 2, 3))
+    return predicted / SRGB.decode(codes).mean((1, 2, 3)).clamp(min=1e-12)
 
 
 def normal_errors(fitted_normal: torch.Tensor, truth_png: Path, linear, directions, factor) -> dict:
