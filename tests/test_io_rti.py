@@ -223,8 +223,8 @@ def test_16_bit_tiff(tmp_path):
     expected = torch.from_numpy(stack.astype(np.float64) / 65535).permute(0, 3, 1, 2)
     assert (frames - expected).abs().max() < 1e-7
     assert imported.capture.extra["source"]["encoding"] == "16-bit" and imported.saturated[1] >= 1
-    photo = read_photo(folder / "f0.tif")  # the default for 16-bit: sRGB
-    assert photo.default_transfer == Transfer("srgb")
+    photo = read_photo(folder / "f0.tif")  # the default for 16-bit without a profile: estimated
+    assert photo.default_transfer == Transfer("auto") and not photo.tagged
 
 
 def test_exif_exposure_becomes_per_frame_exposure(tmp_path):

@@ -56,9 +56,10 @@ def _add_import_command(commands) -> None:
     command.add_argument("source", type=Path, help="an .lp light file (or Relight .relight/.dome, or lights.txt), "
                                                    "or a folder holding one")
     command.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
-    command.add_argument("--transfer", default=None, metavar="{srgb,linear,gamma:G}",
+    command.add_argument("--transfer", default=None, metavar="{auto,srgb,linear,gamma:G}",
                          help="the photographs' tone curve, decoded to linear (default: an embedded ICC profile, "
-                              "else srgb for 8 and 16-bit files, linear for float and RAW)")
+                              "else auto for 8 and 16-bit files: the camera's response estimated from the "
+                              "photographs; linear for float and RAW)")
     command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
     sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
@@ -97,6 +98,7 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import warnings
 
     from .io.rti import import_rti
+    from .response import describe_response
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the notes are printed below, once each
@@ -104,10 +106,12 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                             progress=not args.quiet)
     for note in result.notes:
         print(f"torchspec import: note: {note}", file=sys.stderr)
+    estimated = result.transfer.name == "response"
+    transfer = describe_response(result.response.to_json()) if estimated else result.transfer
     capture = result.capture
     print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
           f"{''.join(capture.channels)} from {result.light_file.path} (images matched by {result.matched}; "
-          f"transfer {result.transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
+          f"transfer {transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
           f"{shlex.quote(str(args.output))}")
     return 0
 
@@ -158,10 +162,11 @@ def _add_fit_command(commands) -> None:
                           "manifest lists as unknown, e.g. an imported capture's irradiance, with a dome radius "
                           "where the photographs show one), none, gains (one per frame and channel), positions "
                           "(near lights' positions, and gains) or dome (one radius for every light, and gains)")
-    fit.add_argument("--residual-term", type=int, default=None, choices=[0, 2, 3], metavar="{0,2,3}",
+    fit.add_argument("--residual-term", default=None, choices=["auto", "0", "2", "3"], metavar="{auto,0,2,3}",
                      help="fit a smooth per-pixel residual term (hemispherical harmonics of order 2 or 3) where it "
                           "predicts left-out frames better, for relighting what the physical model cannot (cast "
-                          "shadows); written to residual_term.exr, the physical maps unchanged (default 0: off)")
+                          "shadows); written to residual_term.exr, the physical maps unchanged (default auto: 3 "
+                          "for a capture imported from photographs, else 0: off)")
     fit.add_argument("--threads", default=None, metavar="N|auto",
                      help="torch threads per tile: auto (the default: the cores other processes leave free, "
                           "measured before each tile) or a number")
@@ -389,7 +394,8 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.calibrate is not None:
         config = replace(config, calibrate=args.calibrate)
     if args.residual_term is not None:
-        config = replace(config, residual_term=args.residual_term)
+        term = args.residual_term
+        config = replace(config, residual_term=term if term == "auto" else int(term))
     if args.threads is not None:
         if args.threads != "auto" and not args.threads.isdigit():
             parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")

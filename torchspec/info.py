@@ -24,6 +24,7 @@ from .io import Capture, LightSpec, read_capture
 from .layout import MIN_FRAMES, MIN_PEAK_SAMPLES, coverage_warning, fit_problem, layout_of
 from .photometric import peak_of, sample_masks, saturation_level
 from .progress import bar as progress_bar
+from .response import describe_response
 
 __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
 
@@ -63,7 +64,9 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         ``max`` and ``error``, the message of an unreadable frame), ``frames_at_fault``, ``kept``
         (what masking saturated samples leaves each pixel: ``fewest`` frames, ``need`` and
         ``short`` pixels, see :func:`_kept`; ``None`` when nothing clips) and ``notes`` (facts
-        that do not lower the verdict, e.g. saturated samples every pixel can spare).
+        that do not lower the verdict, e.g. saturated samples every pixel can spare), ``decoded``
+        (an imported capture's transfer in words: ``source.transfer``, and the estimated camera
+        response with its uncertainty, ``source.response``; ``None`` for a capture not imported).
 
     Example:
         >>> report = inspect_capture("../shared/data/painting-dev")  # doctest: +SKIP
@@ -95,6 +98,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         layout=_layout(capture.directions(), capture.extra) if count >= 3 else None,
         exposure=[float(exposure.min()), float(exposure.max())],
         irradiance=[float(irradiance.min()), float(irradiance.max())],
+        decoded=_decoded(capture.extra.get("source")),
     )
     if capture.light.kernel == "tabulated":
         try:
@@ -130,6 +134,22 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     report["reason"] = "\n".join(reasons) if reasons else None
     report["verdict"] = UNUSABLE if reasons else WARNINGS if report["warnings"] else OK
     return report
+
+
+def _decoded(source: Any) -> str | None:
+    """An imported capture's transfer in words (``source.transfer``, ``source.response``)."""
+    if not isinstance(source, dict) or not source.get("transfer"):
+        return None
+    response = source.get("response")
+    if source["transfer"] == "response" and isinstance(response, dict):
+        return f"{describe_response(response)}, from {source.get('encoding', 'integer')} photographs"
+    words = f"{source['transfer']} ({source.get('encoding', 'integer')} photographs)"
+    if isinstance(response, dict) and response.get("judged_psnr_db"):
+        judged = ", ".join(f"{name} {value:.1f} dB" for name, value in response["judged_psnr_db"].items())
+        words += f"; it predicted left-out photographs better than the curves estimated from them ({judged})"
+    if source.get("icc_profiles"):
+        words += "; frames with an ICC profile decoded by it"
+    return words
 
 
 def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
@@ -374,6 +394,7 @@ def format_report(report: dict[str, Any]) -> str:
             f"frames    {report['frames']}, {where}",
             *([f"planned   {_planned_words(layout)}"] if _planned_words(layout) else []),
             f"light     {report['kernel']}; view {_vector(report['view'])}",
+            *([f"decoded   {report['decoded']}"] if report.get("decoded") else []),
             f"exposure  {_span(report['exposure'])}; irradiance {_span(report['irradiance'])}",
             f"values    {_span(values) if values else 'none finite'}"
             + (f"; clipped at {report['saturation']:.6g}" if report["saturation"] is not None else "; none clipped"),

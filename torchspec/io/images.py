@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ..errors import TorchspecError
+from ..response import ResponseCurve
 from .icc import ColourProfile, read_icc
 
 __all__ = ["IMAGE_SUFFIXES", "RAW_SUFFIXES", "ImageError", "Photo", "Transfer", "read_photo", "exposure_value"]
@@ -58,7 +59,9 @@ class ImageError(TorchspecError):
 @dataclass(frozen=True)
 class Transfer:
     """The tone curve of encoded values ``v`` in ``[0, 1]``: ``srgb`` (IEC 61966-2-1), ``linear``,
-    or ``gamma`` (``v ** gamma``).
+    ``gamma`` (``v ** gamma``), or ``response``: a camera response estimated from the photographs
+    (:mod:`torchspec.response`, :attr:`curve`). ``auto`` asks for that estimate (``torchspec
+    import`` makes it; :meth:`decode` refuses it).
 
     Example:
         >>> t = Transfer.parse("gamma:2.2")
@@ -71,12 +74,13 @@ class Transfer:
 
     name: str
     gamma: float | None = None
+    curve: ResponseCurve | None = None
 
     @classmethod
     def parse(cls, text: str) -> Transfer:
-        """``srgb``, ``linear`` or ``gamma:G`` (``G > 0``); :class:`ImageError` otherwise."""
+        """``auto``, ``srgb``, ``linear`` or ``gamma:G`` (``G > 0``); :class:`ImageError` otherwise."""
         name, _, value = str(text).strip().lower().partition(":")
-        if name in ("srgb", "linear") and not value:
+        if name in ("srgb", "linear", "auto") and not value:
             return cls(name)
         if name == "gamma":
             try:
@@ -86,14 +90,30 @@ class Transfer:
             if math.isfinite(gamma) and gamma > 0:
                 return cls("gamma", gamma)
         raise ImageError(
-            f"the transfer must be 'srgb', 'linear' or 'gamma:G' with G > 0 (e.g. gamma:2.2); got {text!r}."
+            f"the transfer must be 'auto', 'srgb', 'linear' or 'gamma:G' with G > 0 (e.g. gamma:2.2); got {text!r}."
         )
 
     def __str__(self) -> str:
         return f"gamma:{self.gamma:g}" if self.name == "gamma" else self.name
 
+    @classmethod
+    def of_source(cls, source: dict | None) -> Transfer | None:
+        """The transfer an imported capture's frames were decoded with, from its manifest's
+        ``source`` block (``transfer``, and ``response`` for an estimated one); ``None`` without
+        one (a capture not imported from photographs)."""
+        if not source or not source.get("transfer"):
+            return None
+        if source["transfer"] == "response":
+            return cls("response", curve=ResponseCurve.from_json(source.get("response") or {}, "source.response"))
+        return cls.parse(source["transfer"])
+
     def decode(self, values: torch.Tensor) -> torch.Tensor:
-        """Encoded values in ``[0, 1]`` to linear, elementwise (dtype and device kept)."""
+        """Encoded values in ``[0, 1]`` to linear, elementwise (a response curve per channel along
+        the last dimension; dtype and device kept)."""
+        if self.name == "auto":
+            raise ImageError("the transfer 'auto' must be estimated from the photographs first (torchspec import).")
+        if self.name == "response":
+            return self.curve.decode(values)
         if self.name == "linear":
             return values
         if self.name == "gamma":
@@ -102,6 +122,10 @@ class Transfer:
 
     def encode(self, values: torch.Tensor) -> torch.Tensor:
         """Linear values to encoded ones, the inverse of :meth:`decode` on ``[0, 1]``."""
+        if self.name == "auto":
+            raise ImageError("the transfer 'auto' must be estimated from the photographs first (torchspec import).")
+        if self.name == "response":
+            return self.curve.encode(values)
         if self.name == "linear":
             return values
         if self.name == "gamma":
@@ -124,6 +148,8 @@ class Photo:
             grey one other than sRGB: it, not a :class:`Transfer`, decodes the pixels to linear
             sRGB primaries (:meth:`decode`). ``None`` without a profile, with an sRGB one, or when
             the image was converted to sRGB on reading (a CMYK or lookup-table profile; noted).
+        tagged: whether the file says how it is encoded (an embedded ICC profile, sRGB included,
+            or converted to sRGB on reading).
     """
 
     pixels: np.ndarray
@@ -131,6 +157,7 @@ class Photo:
     exif: dict[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     profile: ColourProfile | None = None
+    tagged: bool = False
 
     def decode(self, pixels: torch.Tensor, transfer: Transfer | None) -> tuple[torch.Tensor, str]:
         """``pixels`` (this photo's ``(H, W, C)`` values, any dtype) to linear: with ``transfer``
@@ -148,8 +175,11 @@ class Photo:
 
     @property
     def default_transfer(self) -> Transfer:
-        """sRGB for 8 and 16-bit files, linear for float and RAW files."""
-        return Transfer("srgb") if self.encoding in ("8-bit", "16-bit") else Transfer("linear")
+        """For 8 and 16-bit files sRGB where the file says so (:attr:`tagged`), else ``auto``
+        (estimated from the photographs); linear for float and RAW files."""
+        if self.encoding not in ("8-bit", "16-bit"):
+            return Transfer("linear")
+        return Transfer("srgb") if self.tagged else Transfer("auto")
 
 
 def exposure_value(exif: dict[str, float]) -> float | None:
@@ -207,9 +237,13 @@ def _to_srgb(image, icc: bytes | None, path: Path, notes: list[str]):
     return converted
 
 
+_SRGB_TAG = b"converted to sRGB"
+"""What stands for the profile of an image converted to sRGB on reading."""
+
+
 def _profile(icc: bytes | None, path: Path, notes: list[str]) -> ColourProfile | None:
     """The embedded profile that decodes the pixels, or ``None`` (none, or sRGB)."""
-    if not icc:
+    if not icc or icc == _SRGB_TAG:
         return None
     profile = read_icc(icc)
     if profile is None:
@@ -233,7 +267,7 @@ def _with_pillow(path: Path, notes: list[str]) -> tuple[np.ndarray, dict[str, fl
             exif = image.getexif().get_ifd(_EXIF_IFD)
             icc = image.info.get("icc_profile")
             if mode == "CMYK" or (icc and mode in ("RGB", "L") and read_icc(icc) is None):
-                image, mode, icc = _to_srgb(image, icc, path, notes), "RGB", None
+                image, mode, icc = _to_srgb(image, icc, path, notes), "RGB", _SRGB_TAG
             if mode in ("P", "PA", "1", "YCbCr", "LAB", "HSV"):
                 notes.append(f"{path}: {mode} image converted to RGB.")
                 image = image.convert("RGBA" if mode == "PA" else "RGB")
@@ -369,4 +403,5 @@ def read_photo(path: str | Path) -> Photo:
             f"{path} embeds a {len(profile.curves)}-channel ICC profile for a {pixels.shape[2]}-channel image; "
             "re-export it with a matching profile."
         )
-    return Photo(pixels=pixels, encoding=encoding, exif=exif, notes=tuple(notes), profile=profile)
+    tagged = bool(icc) and encoding != "float"
+    return Photo(pixels=pixels, encoding=encoding, exif=exif, notes=tuple(notes), profile=profile, tagged=tagged)

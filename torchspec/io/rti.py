@@ -11,7 +11,11 @@ whose name holds ``mask`` or ``normal`` are not photographs). Otherwise each mis
 Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with one recorded transfer
 (or, without ``--transfer``, with its embedded ICC profile when that is not sRGB: to linear sRGB
 primaries, colours outside sRGB's gamut clipped at 0 with a note; the manifest's
-``source.icc_profiles`` names each frame's profile), and written as a float32 EXR: point lights (the
+``source.icc_profiles`` names each frame's profile). 8 and 16-bit photographs that do not say
+their encoding (no ICC profile), or ``--transfer auto``, are decoded with the camera's response
+estimated from the stack itself (:func:`torchspec.response.estimate_response`, on
+:data:`RESPONSE_PIXELS` pixels under the light file's directions), recorded with its uncertainty
+as ``source.response``. Each frame is written as a float32 EXR: point lights (the
 light file's directions), irradiance 1, exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to
 the median frame's where it differs between frames. A clipped sample (an integer image's largest
 code) reads as exactly 1, the clipping level the fit detects (``FitConfig.saturation``); the
@@ -29,7 +33,7 @@ import re
 import shutil
 import tempfile
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path, PureWindowsPath
 
 import numpy as np
@@ -38,6 +42,7 @@ from tqdm.auto import tqdm
 
 from .._version import __version__
 from ..errors import TorchspecError
+from ..response import ResponseError, ResponseEstimate, estimate_response, response_samples
 from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
 from .lp import LightFile, read_light_file
@@ -48,6 +53,15 @@ __all__ = ["RTIImportError", "Imported", "find_light_file", "import_rti", "match
 CLIP = 1.0
 """The linear value of a clipped sample, whatever the transfer."""
 _NOT_FRAMES = ("mask", "normal")
+GLARE = 25.0
+"""Degrees about each pixel's mirror direction whose samples one candidate curve leaves out."""
+JUDGE_MARGIN = 1.0
+"""dB by which another candidate curve must predict left-out photographs better than the curve
+estimated from every sample to replace it: the fit's score of a small crop moves by a fraction of a
+dB with what the Ward lobes make of the highlights (on a simulated painting encoded as sRGB it
+preferred a power curve, 0.05 off in linear units, to sRGB itself)."""
+RESPONSE_PIXELS = 2048
+"""Pixels the camera's response is estimated from (``--transfer auto``)."""
 _MEMORY = 1 << 30
 """A frame stack larger than this (bytes) is held in a temporary file instead of memory."""
 
@@ -65,7 +79,8 @@ class Imported:
         light_file: the light file read.
         images: each frame's photograph, in frame order.
         matched: ``"name"`` or ``"order"``.
-        transfer: the tone curve the photographs were decoded with.
+        transfer: the tone curve the photographs were decoded with (``response``: estimated).
+        response: the estimate behind a ``response`` transfer, else ``None``.
         saturated: clipped pixels (any channel at the clipping level), per frame.
         notes: what was assumed (also warned about, and kept in the manifest's ``source``).
         positions: ``(K, 3)`` float64 light positions in image widths (origin at the image's
@@ -82,6 +97,7 @@ class Imported:
     saturated: tuple[int, ...]
     notes: tuple[str, ...]
     positions: torch.Tensor | None = None
+    response: ResponseEstimate | None = None
 
 
 def find_light_file(source: str | Path) -> Path:
@@ -222,10 +238,11 @@ def _frame_name(k: int, image: Path) -> str:
     return f"frames/{k:04d}_{stem}.exr"
 
 
-def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
+def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directions: torch.Tensor):
     """Decode every photograph into a ``(K, C, H, W)`` float32 array: ``(stack, transfer,
-    encoding, exifs, notes, saturated, profiles)``; ``profiles[k]`` names the ICC profile that
-    decoded frame ``k`` (``transfer`` None: an embedded non-sRGB profile decodes its frame)."""
+    encoding, exifs, notes, saturated, profiles, response)``; ``profiles[k]`` names the ICC profile
+    that decoded frame ``k`` (``transfer`` None: an embedded non-sRGB profile decodes its frame);
+    ``response`` the estimate of an ``auto`` transfer (:func:`_decode_auto`)."""
     stack, size, first, exifs, notes, saturated = None, None, None, [], [], []
     given, profiles = transfer, [None] * len(images)
     for k, image in enumerate(tqdm(images, unit="image", desc="import", disable=not progress)):
@@ -234,34 +251,30 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
         pixels = torch.from_numpy(photo.pixels)
         if stack is None:
             first = photo
-            transfer = transfer or photo.default_transfer
+            transfer = transfer or (photo.default_transfer if photo.profile is None else None)
+            if transfer is not None and transfer.name == "auto" and photo.encoding not in ("8-bit", "16-bit"):
+                raise ImageError(
+                    f"{image} holds {photo.encoding} samples, which are linear: --transfer auto is for 8 or 16-bit "
+                    "photographs. Leave --transfer out (or pass linear)."
+                )
             size = photo.pixels.shape
             shape = (len(images), size[2], size[0], size[1])
             if np.prod(shape) * 4 > _MEMORY:
                 stack = np.lib.format.open_memmap(scratch / "stack.npy", mode="w+", dtype=np.float32, shape=shape)
             else:
                 stack = np.empty(shape, dtype=np.float32)
-        if photo.pixels.shape[:2] != size[:2]:
-            raise ImageError(
-                f"{image} must be {size[1]}x{size[0]} (width x height) like {images[0].name}; got "
-                f"{photo.pixels.shape[1]}x{photo.pixels.shape[0]}. Crop or resize the photographs to one size."
-            )
-        if photo.encoding != first.encoding:
-            raise ImageError(
-                f"{image} must be encoded like {images[0].name} ({first.encoding}) to share one transfer; got "
-                f"{photo.encoding}. Export every photograph the same way."
-            )
+        _check_alike(image, images[0], photo, first, size)
         if photo.pixels.shape[2] != size[2]:  # grey among colour frames: the grey replicated
-            if photo.pixels.shape[2] == 1:
-                notes.append(f"{image}: a greyscale photograph among colour ones; its grey is used for R, G and B.")
-                pixels = pixels.expand(-1, -1, 3)
-            else:
-                raise ImageError(
-                    f"{image} must be greyscale like {images[0].name}; got a colour photograph. Convert every "
-                    "photograph to the same kind (or the first one to colour)."
-                )
+            notes.append(f"{image}: a greyscale photograph among colour ones; its grey is used for R, G and B.")
+            pixels = pixels.expand(-1, -1, 3)
         clipped = (pixels >= CLIP).any(-1, keepdim=True) if first.clipped else torch.zeros(size[:2] + (1,), dtype=bool)
         saturated.append(int(clipped.sum()))
+        if transfer is not None and transfer.name == "auto":  # codes kept: decoded once the curve is known
+            if photo.profile is not None:
+                notes.append(f"{image}: its ICC profile is not used (--transfer auto).")
+            stack[k] = pixels.permute(2, 0, 1).numpy()
+            exifs.append(photo.exif)
+            continue
         linear, decoder = photo.decode(pixels.to(dtype), given)
         if decoder.startswith("icc:"):  # the matrix moves a clipped sample off 1: keep it at the level
             linear = torch.where(clipped, linear.clamp(min=CLIP), linear)
@@ -275,7 +288,96 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool):
                 linear = linear.clamp(min=0)
         stack[k] = linear.permute(2, 0, 1).float().numpy()
         exifs.append(photo.exif)
-    return stack, transfer, first.encoding, exifs, notes, saturated, profiles
+    transfer = transfer or first.default_transfer
+    response = None
+    if transfer.name == "auto":
+        transfer, response = _decode_auto(stack, directions, notes)
+    return stack, transfer, first.encoding, exifs, notes, saturated, profiles, response
+
+
+def _check_alike(image: Path, first_image: Path, photo, first, size) -> None:
+    """Every photograph of a stack must match the first one's size, encoding and kind (a grey
+    one among colour ones is allowed: its grey serves R, G and B)."""
+    if photo.pixels.shape[:2] != size[:2]:
+        raise ImageError(
+            f"{image} must be {size[1]}x{size[0]} (width x height) like {first_image.name}; got "
+            f"{photo.pixels.shape[1]}x{photo.pixels.shape[0]}. Crop or resize the photographs to one size."
+        )
+    if photo.encoding != first.encoding:
+        raise ImageError(
+            f"{image} must be encoded like {first_image.name} ({first.encoding}) to share one transfer; got "
+            f"{photo.encoding}. Export every photograph the same way."
+        )
+    if photo.pixels.shape[2] != size[2] and photo.pixels.shape[2] != 1:
+        raise ImageError(
+            f"{image} must be greyscale like {first_image.name}; got a colour photograph. Convert every "
+            "photograph to the same kind (or the first one to colour)."
+        )
+
+
+def _decode_auto(stack: np.ndarray, directions: torch.Tensor, notes: list[str]):
+    """The codes of ``stack (K, C, H, W)`` decoded in place with the camera's response: ``(transfer,
+    estimate)``. Candidates: the curve estimated from every sample, the one estimated without the
+    samples near a highlight (:data:`GLARE`), and sRGB, judged by the fit's prediction of left-out
+    frames (:func:`torchspec.response_judge.judge_curves`) where the capture has 10 frames or more:
+    the first is kept unless another predicts better by :data:`JUDGE_MARGIN`;
+    where no curve can be estimated, sRGB (noted)."""
+    k, c, h, w = stack.shape
+    generator = torch.Generator().manual_seed(0)
+    drawn = torch.randperm(h * w, generator=generator)[: 8 * RESPONSE_PIXELS].sort().values
+    rows, cols = (drawn // w).numpy(), (drawn % w).numpy()
+    codes = torch.from_numpy(np.ascontiguousarray(stack[:, :, rows, cols])).double()  # (K, C, N)
+    picked = response_samples(codes, RESPONSE_PIXELS)
+    try:
+        estimates = {
+            "estimated": estimate_response(codes[..., picked], directions.double()),
+            "estimated without glare": estimate_response(codes[..., picked], directions.double(), glare=GLARE),
+        }
+    except ResponseError as error:
+        notes.append(f"the camera's response could not be estimated ({error}); the photographs are decoded as sRGB.")
+        estimates = {}
+    candidates = {name: Transfer("response", curve=e.curve) for name, e in estimates.items()}
+    chosen, estimate = "srgb", None
+    if candidates:
+        chosen, estimate = "estimated", estimates["estimated"]
+    if candidates and k >= 10 and min(h, w) >= 8:
+        from ..response_judge import judge_curves  # the fit judges the curves: imported where it does
+
+        candidates["srgb"] = Transfer("srgb")
+        scores = judge_curves(torch.from_numpy(np.asarray(stack)), directions, candidates)
+        best = max(scores, key=scores.get)
+        chosen = best if scores[best] > scores["estimated"] + JUDGE_MARGIN else "estimated"
+        estimate = replace(estimates.get(chosen, estimates["estimated"]), judged=scores)
+        if chosen == "srgb":
+            notes.append(
+                "the camera's responses estimated from the photographs predicted left-out photographs less well than "
+                f"sRGB ({', '.join(f'{n} {v:.2f} dB' for n, v in scores.items())}): decoded as sRGB."
+            )
+    transfer = candidates.get(chosen, Transfer("srgb"))
+    for frame in range(k):
+        codes = torch.from_numpy(stack[frame]).double().permute(1, 2, 0)
+        stack[frame] = transfer.decode(codes).permute(2, 0, 1).float().numpy()
+    return transfer, estimate
+
+
+def _source_record(lights, matched, images, encoding, transfer, response, profiles, saturated, exifs, notes) -> dict:
+    """The manifest's ``source`` block of an import (docs/capture-format.md)."""
+    return {
+        "importer": f"torchspec {__version__} import",
+        "light_file": str(lights.path),
+        "matched": matched,
+        "images": [os.path.relpath(image, lights.path.parent) for image in images],
+        "lines": [entry.where or entry.line for entry in lights.entries],
+        "encoding": encoding,
+        "transfer": str(transfer),
+        "response": None if response is None else response.to_json(),
+        "icc_profiles": profiles if any(profiles) else None,
+        "positions": None if lights.positions is None else [list(p) for p in lights.positions],
+        "saturation": CLIP if encoding != "float" else None,
+        "saturated_pixels": saturated,
+        "exif": exifs if any(exifs) else None,
+        "notes": notes,
+    }
 
 
 def import_rti(
@@ -291,8 +393,9 @@ def import_rti(
     Args:
         source: an ``.lp`` file (or ``lights.txt``), or a folder holding one.
         output: the capture folder to write; new, empty, or replaced with ``overwrite``.
-        transfer: ``srgb``, ``linear`` or ``gamma:G``; ``None``: sRGB for 8 and 16-bit
-            photographs, linear for float and RAW ones.
+        transfer: ``auto``, ``srgb``, ``linear`` or ``gamma:G``; ``None``: for 8 and 16-bit
+            photographs their ICC profile where they embed one, else ``auto`` (the camera's
+            response estimated from the photographs); linear for float and RAW ones.
         overwrite: replace an ``output`` that holds files (only once the new capture is complete).
         progress: a tqdm bar over the photographs.
 
@@ -321,8 +424,10 @@ def import_rti(
     output.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{output.name}.import-", dir=output.parent))
     try:
-        stack, transfer, encoding, exifs, image_notes, saturated, profiles = _read_stack(
-            images, transfer, torch.float64, scratch, progress
+        directions = torch.tensor([entry.direction for entry in lights.entries], dtype=torch.float64)
+        directions = directions / directions.norm(dim=-1, keepdim=True)
+        stack, transfer, encoding, exifs, image_notes, saturated, profiles, response = _read_stack(
+            images, transfer, torch.float64, scratch, progress, directions
         )
         notes += image_notes
         exposures = _exposures(exifs, images, notes)
@@ -339,21 +444,9 @@ def import_rti(
                 zip(images, lights.entries, exposures, places, strict=True)
             )
         )
-        record = {
-            "importer": f"torchspec {__version__} import",
-            "light_file": str(lights.path),
-            "matched": matched,
-            "images": [os.path.relpath(image, lights.path.parent) for image in images],
-            "lines": [entry.where or entry.line for entry in lights.entries],
-            "encoding": encoding,
-            "transfer": str(transfer),
-            "icc_profiles": profiles if any(profiles) else None,
-            "positions": None if lights.positions is None else [list(p) for p in lights.positions],
-            "saturation": CLIP if encoding != "float" else None,
-            "saturated_pixels": saturated,
-            "exif": exifs if any(exifs) else None,
-            "notes": notes,
-        }
+        record = _source_record(
+            lights, matched, images, encoding, transfer, response, profiles, saturated, exifs, notes
+        )
         channels = ("Y",) if stack.shape[1] == 1 else ("R", "G", "B")
         capture = Capture(
             root=scratch / "capture",
@@ -377,7 +470,9 @@ def import_rti(
         warnings.warn(note, stacklevel=2)
     written = read_capture(output)
     positions = None if lights.positions is None else torch.tensor(lights.positions, dtype=torch.float64)
-    return Imported(written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes), positions)
+    return Imported(
+        written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes), positions, response
+    )
 
 
 def _replace(new: Path, output: Path, scratch: Path) -> None:
