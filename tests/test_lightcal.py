@@ -233,3 +233,22 @@ def test_dome_radius_found_or_distant_kept(radius):
         best = min(result.radius_misfit.values())
         assert result.radius_misfit[str(radius)] == best < (1 - DOME_MARGIN) * result.radius_misfit["distant"]
     assert float(((result.gains - gains) / gains).abs().max()) < 0.01
+
+
+def test_left_out_misfit_prefers_the_lights_that_made_the_photographs():
+    """Frames left out of the Lambertian maps are predicted best under the true lights: equal
+    intensities (the capture's) beat gains spread as a real dome's (which bend every fold's maps),
+    and a dome's true positions beat the same lights taken as distant; noise-free and Lambertian,
+    the true lights leave ~0."""
+    from torchspec.lightcal.judge import left_out_misfit
+
+    frames, gains, positions, _ = make_capture(size=24, frames=20, radius=3.0)
+    frames = frames / gains[:, :, None, None]  # lights of equal intensity
+    unit = positions / positions.norm(dim=-1, keepdim=True)
+    ones = torch.ones_like(gains)
+    truth = left_out_misfit(frames, unit, ones, positions=positions)
+    assert truth < 1e-6
+    assert left_out_misfit(frames, unit, ones) > 10 * max(truth, 1e-4)  # the dome taken as distant
+    generator = torch.Generator().manual_seed(5)
+    wrong = (0.5 * torch.randn(20, 1, generator=generator, dtype=F64)).exp().expand(-1, 3)  # gains fitted to nothing
+    assert left_out_misfit(frames, unit, wrong, positions=positions) > truth + 0.01

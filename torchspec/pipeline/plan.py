@@ -23,6 +23,7 @@ from .settings import AUTO, COMPILE_PIXELS, FitConfig, select_frames
 __all__ = [
     "MIN_TILE",
     "RUNTIME_BYTES",
+    "TERM_FOR_PHOTOGRAPHS",
     "TILES",
     "FitWarning",
     "Setup",
@@ -33,6 +34,11 @@ __all__ = [
     "tile_size",
 ]
 
+TERM_FOR_PHOTOGRAPHS = 3
+"""``FitConfig.residual_term = auto``'s order for a capture imported from photographs (its manifest's
+``source``): on the RTI captures of ``../shared/data/rti`` the order-3 term relit left-out
+photographs at or above HSH, where the physical model alone was below it
+(``experiments/results/rti_relight.json``)."""
 RUNTIME_BYTES = 768 * 2**20
 """What a fit holds besides its stack and tiles: the torch runtime and fixed work arrays."""
 TILES = 16
@@ -129,6 +135,8 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
     if config.saturation is None and capture.saturation is not None:  # the level an imported capture records
         config = replace(config, saturation=capture.saturation)
+    if config.residual_term == AUTO:  # photographs: the term carries what the physics misses, where it predicts
+        config = replace(config, residual_term=TERM_FOR_PHOTOGRAPHS if capture.extra.get("source") else 0)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
     l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]
     problem = fit_problem(l, lobe=config.model != "diffuse")
@@ -156,6 +164,10 @@ CALIBRATION_EXPLAINED = 0.8
 CALIBRATION_RMS = 0.05
 """... with a median relative misfit per frame of at most this: on a coin or a relief in cast
 shadow, gains and positions take up what the model lacks (``experiments/results/light_calibration.json``)."""
+CALIBRATION_LEFT_OUT = 0.01
+"""``auto`` also keeps calibrated lights only where they predict frames left out of the Lambertian
+maps better than the lights as written, by this share of the misfit
+(:func:`torchspec.lightcal.judge.left_out_misfit`; a left-out frame at its nominal intensity)."""
 CALIBRATION_GIVE_UP = 1.5
 """``auto`` stops calibrating (:func:`torchspec.lightcal.calibrate_lights`'s ``give_up``) when the
 sample's misfit after two steps exceeds :data:`CALIBRATION_RMS` by this factor: the lights would
@@ -235,6 +247,17 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         warnings.warn(
             message.replace("were not calibrated", "are calibrated as asked, but") + ".", FitWarning, stacklevel=3
         )
+    if wanted == "auto":  # kept only where it predicts frames left out of the maps better
+        judged = _left_out(stack / scale[:, :, None, None], valid, directions, found, job.positions, near or dome)
+        if judged["calibrated"] >= (1 - CALIBRATION_LEFT_OUT) * judged["as_written"]:
+            message = (
+                f"{job.capture.root}: the lights were not calibrated from the photographs: the gains and positions "
+                f"estimated explain the frames they were fitted on, but predict frames left out of the maps no "
+                f"better (median relative misfit {100 * judged['calibrated']:.1f} % against "
+                f"{100 * judged['as_written']:.1f} % with the lights as written); the lights are taken as written"
+            )
+            warnings.warn(message + ".", FitWarning, stacklevel=3)
+            return job, {"calibrated": [], "refused": message, "left_out_misfit": judged}
     irradiance = lights.irradiance.to(stack) * found.gains
     calibrated_lights = Lights(found.directions.to(stack), lights.kernel, irradiance, lights.exposure.to(stack))
     positions = found.positions.to(stack) if (near or dome) and found.positions is not None else job.positions
@@ -250,8 +273,23 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
         "judged_pixels": int(found.judged.sum()),
         "rms": found.rms.tolist(),
         "iterations": found.iterations,
+        "left_out_misfit": judged if wanted == "auto" else None,
     }
     return replace(job, lights=calibrated_lights, positions=positions, gains=found.gains.to(stack)), record
+
+
+def _left_out(frames: Tensor, valid: Tensor, directions: Tensor, found, positions, moved: bool) -> dict:
+    """:func:`torchspec.lightcal.judge.left_out_misfit` of the lights as written and as ``found``
+    (its gains, and its positions where ``moved``: near lights or a dome radius)."""
+    from ..lightcal.judge import left_out_misfit
+
+    ones = torch.ones_like(found.gains).to(frames)
+    written = left_out_misfit(frames, directions, ones, positions=positions, valid=valid)
+    new_positions = found.positions.to(frames) if moved and found.positions is not None else positions
+    calibrated = left_out_misfit(
+        frames, found.directions.to(frames), found.gains.to(frames), positions=new_positions, valid=valid
+    )
+    return {"as_written": written, "calibrated": calibrated}
 
 
 def _dome_only(job: Setup, found, message: str, refused: dict) -> tuple[Setup, dict]:

@@ -124,7 +124,9 @@ class FitConfig:
             a light within the lobe's half maximum): a lobe peaking between the lights, farther
             from each than its width, has a height no photograph determines, and a light at its
             peak sees it at any height. ``0``: no such test.
-        residual_term: ``0`` (off), ``2`` or ``3``: the order of a smooth per-pixel residual term
+        residual_term: ``auto`` (the default: ``3`` for a capture imported from photographs, whose
+            manifest has a ``source`` block; ``0`` for others, e.g. simulated ones), ``0`` (off),
+            ``2`` or ``3``: the order of a smooth per-pixel residual term
             (:mod:`torchspec.residual_term`: hemispherical harmonics of the light direction, 4 or 9
             coefficients per channel, in the sRGB-encoded domain) fitted on top of the chosen model
             and kept only where it predicts left-out frames better (``predict_z``, ``folds``). It
@@ -190,7 +192,7 @@ class FitConfig:
     lobe_resolution: float = 0.5
     lobe_support: float = 0.5
     calibrate: str = "auto"
-    residual_term: int = 0
+    residual_term: int | str = AUTO
     term_z: float = 1.0
     broad_alpha: float = 0.25
     resolve: float = 0.5
@@ -238,9 +240,10 @@ class FitConfig:
             )
         if not (self.predict_z >= 0 and math.isfinite(self.predict_z)):
             raise ConfigError(f"FitConfig.predict_z must be >= 0 and finite; got {self.predict_z!r}.")
-        if self.residual_term not in (0, *TERMS):
+        if self.residual_term not in (AUTO, 0, *TERMS):
             raise ConfigError(
-                f"FitConfig.residual_term must be 0 (off) or an order in {sorted(TERMS)}; got {self.residual_term!r}."
+                f"FitConfig.residual_term must be auto, 0 (off) or an order in {sorted(TERMS)}; got "
+                f"{self.residual_term!r}."
             )
         if self.calibrate not in CALIBRATE:
             raise ConfigError(f"FitConfig.calibrate must be one of {list(CALIBRATE)}; got {self.calibrate!r}.")
