@@ -69,7 +69,7 @@ def run_capture(folder: Path, scratch: Path, settings: Settings) -> dict:
     synth = (folder / "Dome").is_dir()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the import's notes are not scores
-        capture, _, codes = load_reduced(folder / "Dome" if synth else folder, scratch, settings.downsample)
+        capture, _, codes, _ = load_reduced(folder / "Dome" if synth else folder, scratch, settings.downsample, "srgb")
     directions = capture.directions().double()
     count = len(capture.frames)
     predicted = [i for i in range(count) if i % 5 == settings.left_out]

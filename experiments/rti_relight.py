@@ -1,20 +1,29 @@
-"""Relighting real and RTI-format captures: torchspec against PTM and HSH, the fitters RTI users run.
+"""Relighting real and RTI-format captures: torchspec against PTM, HSH and RBF, the fitters RTI users run.
 
-The protocol of ``../shared/data/rti/README.md``: each capture is imported with ``torchspec import``
-(:func:`torchspec.io.rti.import_rti`), reduced by ``downsample`` (a box average of the linear
-values; the photographs scored are the reduced ones, encoded as 8-bit sRGB again), every fifth light
-(frame ``i % 5 == 2``) is left out, the rest fitted, and the left-out photographs predicted. Scores
-on 8-bit sRGB: PSNR over all pixels and channels (peak 1) and the mean SSIM of the luminance
+The protocol of ``../shared/data/rti/README.md``: each capture's photographs are reduced by
+``downsample`` (a box average of their 8-bit codes, rounded to 8 bits again: the photographs
+scored), written as PNG files without a colour profile beside a copy of its light file, and
+imported with ``torchspec import`` (:func:`torchspec.io.rti.import_rti`, with ``transfer``:
+``null`` its default, the camera's response estimated from the photographs); every fifth light
+(frame ``i % 5 == 2``) is left out, the rest fitted, and the left-out photographs predicted. A
+prediction is encoded with the transfer the import decoded with (SynthRTI's ``Test/`` is imported
+with its ``Dome/``'s). Scores on the 8-bit codes: PSNR over all pixels and channels (peak 1) and
+the mean SSIM of the luminance
 (``kornia.metrics.ssim``, 11 x 11 Gaussian window). On SynthRTI captures (a ``Dome/`` and a
 ``Test/`` folder) also: ``Dome/`` fitted whole and ``Test/`` predicted, and the median angle
 between the fitted normals and ``Dome/normals.png`` (``RGB = (n + 1) / 2``) beside plain
 least-squares photometric stereo on the same frames' luminance.
 
 - PTM (6 terms: ``lu^2, lv^2, lu lv, lu, lv, 1``) and HSH (order 3, 9 terms) are fitted per pixel
-  and channel by least squares on the sRGB values (one ``torch.linalg.lstsq`` for all pixels).
+  and channel by least squares on the codes (one ``torch.linalg.lstsq`` for all pixels).
+- RBF, Relight's radial basis interpolation: Gaussians ``exp(-|l - l_j|^2 / (2 w^2))`` centred on
+  the fitted lights' directions, ``w`` twice the mean distance from a fitted light to its nearest
+  neighbour, weights by ridge regression (``ridge`` 0.1 on the diagonal) on the codes.
 - torchspec: :func:`torchspec.fit` on the fitted frames with each ``models`` entry (``auto``, or a
-  forced model), the maps rendered under the left-out lights by :func:`torchspec.rendering.render_image`; the
-  share of pixels given a lobe (``Fit.lobe``) is reported.
+  forced model), the maps rendered under the left-out lights by :func:`torchspec.rendering.render_image`:
+  ``torchspec MODEL`` the physical maps alone (``torchspec render --no-term``), ``+ term`` with the
+  fit's residual term (what ``torchspec render`` renders; the default fit of an imported capture);
+  the share of pixels given a lobe (``Fit.lobe``), the transfer and the lights are reported.
 - per method: the worst left-out frame's mean brightness ratio (predicted over photographed, in
   linear values; the frame furthest from 1).
 
@@ -30,7 +39,7 @@ import math
 import tempfile
 import time
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import kornia
@@ -40,9 +49,8 @@ from _common import ROOT, parse_args
 import torchspec
 from torchspec.atomic import write_json
 from torchspec.config import load_config
-from torchspec.io import write_capture
 from torchspec.io.images import Transfer, read_photo
-from torchspec.io.rti import import_rti
+from torchspec.io.rti import find_light_file, import_rti, match_images, read_lights
 from torchspec.lights import Lights
 from torchspec.relight import render_near
 from torchspec.rendering import render_image
@@ -61,8 +69,10 @@ class Settings:
     threads: int = 2  # torch threads
     compile: bool = False  # FitConfig.compile
     left_out: int = 2  # frames i % 5 == left_out are predicted
-    residual_term: int = 3  # FitConfig.residual_term: rows with and without the term, of one fit
+    residual_term: int | str = "auto"  # FitConfig.residual_term: rows with and without the term, of one fit
     calibrations: tuple[str, ...] = ("auto",)  # FitConfig.calibrate of the torchspec rows (each model, each)
+    transfer: str | None = None  # import's --transfer (None: its default, auto for these untagged 8-bit files)
+    ridge: float = 0.1  # the RBF baseline's ridge
 
 
 # --- data ---------------------------------------------------------------------------------------
@@ -75,21 +85,32 @@ def _reduce(frames: torch.Tensor, factor: int) -> torch.Tensor:
     return torch.nn.functional.avg_pool2d(frames, factor)
 
 
-def load_reduced(folder: Path, scratch: Path, factor: int):
-    """Import ``folder`` and reduce it: ``(capture, linear (K, C, H, W) float64, codes (K, C, H, W))``
-    where ``codes`` are the reduced photographs as 8-bit sRGB in ``[0, 1]``."""
+def load_reduced(folder: Path, scratch: Path, factor: int, transfer: str | Transfer | None = None):
+    """Reduce ``folder``'s photographs and import them (module docstring): ``(capture, linear
+    (K, C, H, W) float64, codes (K, C, H, W) in [0, 1], the import's result)``."""
+    from PIL import Image
+
     name = "-".join(folder.parts[-2:])
+    light_file = find_light_file(folder)
+    images, _, _ = match_images(read_lights(light_file))
+    reduced = scratch / f"{name}-photographs"
+    reduced.mkdir(parents=True)
+    (reduced / light_file.name).write_bytes(light_file.read_bytes())
+    codes = []
+    for image in images:
+        pixels = torch.from_numpy(read_photo(image).pixels).double().permute(2, 0, 1)[None]
+        code = quantise(_reduce(pixels, factor))[0]
+        codes.append(code)
+        target = reduced / image.relative_to(light_file.parent)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        array = (code.permute(1, 2, 0) * 255).round().to(torch.uint8).numpy()
+        # PNG data under the light file's name for it (Pillow reads by content): lossless, no profile
+        Image.fromarray(array.squeeze(-1) if array.shape[-1] == 1 else array).save(target, format="PNG")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the import's notes (norms, horizon) are not scores
-        imported = import_rti(folder, scratch / f"{name}-import")
-    full = imported.capture
-    linear = _reduce(full.read_frames(dtype=torch.float64), factor)
-    codes = quantise(SRGB.encode(linear))
-    linear = SRGB.decode(codes)  # the photograph as it is scored: reduced, 8-bit again
-    k, c, h, w = linear.shape
-    capture = replace(full, root=scratch / name, width=w, height=h)
-    capture = write_capture(scratch / name, capture, linear.float())
-    return capture, linear, codes
+        imported = import_rti(reduced, scratch / f"{name}-capture", transfer=transfer)
+    capture = imported.capture
+    return capture, capture.read_frames(dtype=torch.float64), torch.stack(codes), imported
 
 
 def quantise(values: torch.Tensor) -> torch.Tensor:
@@ -161,7 +182,7 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, ca
 # --- scores -----------------------------------------------------------------------------------------
 
 
-def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
+def scores(predicted_codes: torch.Tensor, codes: torch.Tensor, transfer: Transfer = SRGB) -> dict:
     """PSNR (peak 1) and mean luminance SSIM of 8-bit sRGB ``(K, C, H, W)``, and the worst frame's
     mean brightness ratio (linear)."""
     predicted_codes = quantise(predicted_codes)
@@ -172,7 +193,7 @@ def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
     y_p, y_o = (predicted_codes * luma).sum(1, keepdim=True), (codes * luma).sum(1, keepdim=True)
     window = min(11, codes.shape[-1] - (codes.shape[-1] + 1) % 2, codes.shape[-2] - (codes.shape[-2] + 1) % 2)
     ssim = float(kornia.metrics.ssim(y_p.float(), y_o.float(), window, max_val=1.0).mean())
-    ratio = brightness_ratios(predicted_codes, codes)
+    ratio = brightness_ratios(predicted_codes, codes, transfer)
     worst = int(ratio.log().abs().argmax())
     return {
         "psnr_db": math.inf if mse == 0 else 10 * math.log10(1 / mse),
@@ -182,11 +203,36 @@ def scores(predicted_codes: torch.Tensor, codes: torch.Tensor) -> dict:
     }
 
 
-def brightness_ratios(predicted_codes: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
-    """``(K,)`` each frame's mean brightness, predicted over photographed: the linear values of the
-    8-bit sRGB ``predicted_codes`` (quantised here) and ``codes`` ``(K, C, H, W)``."""
-    predicted = SRGB.decode(quantise(predicted_codes)).mean((1, 2, 3))
-    return predicted / SRGB.decode(codes).mean((1, 2, 3)).clamp(min=1e-12)
+def brightness_ratios(predicted_codes: torch.Tensor, codes: torch.Tensor, transfer: Transfer = SRGB) -> torch.Tensor:
+    """``(K,)`` each frame's mean brightness, predicted over photographed: the linear values (under
+    ``transfer``) of the 8-bit ``predicted_codes`` (quantised here) and ``codes`` ``(K, C, H, W)``."""
+    predicted = _linear(transfer, quantise(predicted_codes)).mean((1, 2, 3))
+    return predicted / _linear(transfer, codes).mean((1, 2, 3)).clamp(min=1e-12)
+
+
+def _linear(transfer: Transfer, codes: torch.Tensor) -> torch.Tensor:
+    """``codes (K, C, H, W)`` decoded by ``transfer`` (channels last for it)."""
+    return transfer.decode(codes.movedim(1, -1)).movedim(-1, 1)
+
+
+def _encoded(transfer: Transfer, linear: torch.Tensor) -> torch.Tensor:
+    """``linear (K, C, H, W)`` clamped to ``[0, 1]`` and encoded by ``transfer``."""
+    return transfer.encode(linear.clamp(0, 1).movedim(1, -1)).movedim(-1, 1)
+
+
+def rbf(train_d: torch.Tensor, train_codes: torch.Tensor, test_d: torch.Tensor, ridge: float):
+    """Relight's Gaussian radial basis interpolation (module docstring) of ``train_codes (K, C, H, W)``
+    over the directions ``train_d (K, 3)``, evaluated at ``test_d``; and the seconds of the fit."""
+    clock = time.perf_counter()
+    distance = torch.cdist(train_d, train_d)
+    nearest = distance.masked_fill(torch.eye(len(train_d), dtype=torch.bool), math.inf).min(-1).values
+    width = 2 * float(nearest.mean())
+    gram = torch.exp(-(distance**2) / (2 * width**2))
+    k = train_codes.shape[0]
+    weights = torch.linalg.solve(gram + ridge * torch.eye(k, dtype=gram.dtype), train_codes.reshape(k, -1))
+    seconds = time.perf_counter() - clock
+    across = torch.exp(-(torch.cdist(test_d, train_d) ** 2) / (2 * width**2))
+    return (across @ weights).reshape(-1, *train_codes.shape[1:]), seconds
 
 
 def normal_errors(fitted_normal: torch.Tensor, truth_png: Path, linear, directions, factor) -> dict:
@@ -211,9 +257,10 @@ def normal_errors(fitted_normal: torch.Tensor, truth_png: Path, linear, directio
 # --- one capture ------------------------------------------------------------------------------------
 
 
-def relight(capture, linear, codes, fitted, predicted, settings, target=None):
-    """The rows of PTM, HSH and each torchspec model fitting ``fitted`` frames of ``capture`` and
-    predicting the ``predicted`` ones (of ``target = (capture, linear, codes)`` when given)."""
+def relight(capture, linear, codes, fitted, predicted, settings, transfer, target=None):
+    """The rows of PTM, HSH, RBF and each torchspec model fitting ``fitted`` frames of ``capture``
+    and predicting the ``predicted`` ones (of ``target = (capture, linear, codes)`` when given),
+    torchspec's encoded with ``transfer``."""
     target_capture, _, target_codes = target or (capture, linear, codes)
     d = capture.directions()
     test_d = target_capture.directions()[predicted]
@@ -222,8 +269,12 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
     for name, basis in BASES.items():
         values, seconds = polynomial(basis, d[fitted], codes[fitted], test_d)
         shown[name] = quantise(values)
-        rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth)})
+        rows.append({"method": name, "fit_seconds": seconds, **scores(values, truth, transfer)})
         rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]  # the frame's index in the target
+    values, seconds = rbf(d[fitted], codes[fitted], test_d, settings.ridge)
+    shown["RBF"] = quantise(values)
+    rows.append({"method": "RBF", "fit_seconds": seconds, **scores(values, truth, transfer)})
+    rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]
     fits = {}
     for model, calibrate in [(m, c) for m in settings.models for c in settings.calibrations]:
         values, termed, seconds, fit = torchspec_predict(
@@ -234,40 +285,62 @@ def relight(capture, linear, codes, fitted, predicted, settings, target=None):
         for name, prediction in ((f"torchspec {label}", values), (f"torchspec {label} + term", termed)):
             if prediction is None:
                 continue
-            shown[name] = quantise(SRGB.encode(prediction.clamp(0, 1)))
-            row = {"method": name, "fit_seconds": seconds, **scores(shown[name], truth)}
+            shown[name] = quantise(_encoded(transfer, prediction))
+            row = {"method": name, "fit_seconds": seconds, **scores(shown[name], truth, transfer)}
             row["worst_frame"] = predicted[row["worst_frame"]]
             row["lobe_share"] = float(fit.lobe.double().mean())
             row["term_share"] = None if fit.term is None else float(fit.term.chosen.double().mean())
             row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
             row["dome_radius"] = (fit.stats.get("lights") or {}).get("radius")
+            row["lights"] = _lights_record(fit.stats.get("lights"))
             rows.append(row)
     shown["elevation"] = test_d[:, 2]
     return rows, fits, shown
+
+
+def _lights_record(record: dict | None) -> dict | None:
+    """What the fit's light calibration kept (``fit.lights`` of ``svbrdf.json``), briefly."""
+    if not record:
+        return None
+    gains = record.get("gains")
+    spread = None
+    if gains:
+        flat = torch.tensor(gains, dtype=torch.float64).flatten()
+        spread = [float(flat.min()), float(flat.max())]
+    return {
+        "calibrated": record.get("calibrated"),
+        "refused": record.get("refused") is not None,
+        "radius": record.get("radius"),
+        "gain_range": spread,
+    }
 
 
 def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: list) -> dict:
     """Every score of one capture (SynthRTI: the left-out protocol on Dome/, Dome -> Test, normals);
     its left-out frames' images appended to ``figure_rows`` (:func:`figure`)."""
     synth = (folder / "Dome").is_dir()
-    capture, linear, codes = load_reduced(folder / "Dome" if synth else folder, scratch, settings.downsample)
+    source = folder / "Dome" if synth else folder
+    capture, linear, codes, imported = load_reduced(source, scratch, settings.downsample, settings.transfer)
+    transfer = imported.transfer
     count = len(capture.frames)
     predicted = [i for i in range(count) if i % 5 == settings.left_out]
     fitted = [i for i in range(count) if i % 5 != settings.left_out]
-    rows, _, shown = relight(capture, linear, codes, fitted, predicted, settings)
+    rows, _, shown = relight(capture, linear, codes, fitted, predicted, settings, transfer)
     out = {
         "capture": folder.name,
         "size": [capture.width, capture.height],
         "frames": count,
         "left_out": predicted,
+        "transfer": str(transfer),
+        "response": None if getattr(imported, "response", None) is None else imported.response.to_json(),
         "rows": rows,
     }
     figure_rows.append((folder.name, shown))
     if synth:
-        target = load_reduced(folder / "Test", scratch, settings.downsample)
+        target = load_reduced(folder / "Test", scratch, settings.downsample, transfer)[:3]  # the Dome's curve
         every = list(range(count))
         tested = list(range(len(target[0].frames)))
-        dome_rows, fits, _ = relight(capture, linear, codes, every, tested, settings, target)
+        dome_rows, fits, _ = relight(capture, linear, codes, every, tested, settings, transfer, target)
         out["dome_to_test"] = dome_rows
         truth = folder / "Dome" / "normals.png"
         for label, fit in fits.items():  # the first model's first: "torchspec_deg"
