@@ -29,11 +29,13 @@ OUT = ROOT / "experiments" / "results"
 
 
 def fit(transfer: str | None, downsample: int) -> None:
-    import torchspec
     from rti_relight import load_reduced
 
+    import torchspec
+
     with tempfile.TemporaryDirectory() as scratch:
-        capture, _, codes, _ = load_reduced(ROOT / "../shared/data/rti/realrti-item9", Path(scratch), downsample, transfer)
+        folder = ROOT / "../shared/data/rti/realrti-item9"
+        capture, _, codes, _ = load_reduced(folder, Path(scratch), downsample, transfer)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             result = torchspec.fit(capture)
@@ -75,11 +77,17 @@ def figure() -> dict:
         panels = [
             (run["photo"], "photograph (highest light)"),
             (np.clip(kd / np.percentile(kd, 99), 0, 1) ** (1 / 2.2), f"k_d ({name})"),
-            (ks, f"k_s ({name}): coin {stats[name]['coin']['k_s_median']:.2f}, paper {stats[name]['paper']['k_s_median']:.2f}"),
+            (
+                ks,
+                f"k_s ({name}): coin {stats[name]['coin']['k_s_median']:.2f}, "
+                f"paper {stats[name]['paper']['k_s_median']:.2f}",
+            ),
         ]
         for col, (image, title) in enumerate(panels):
             ax = fig.add_subplot(2, 3, 3 * row + col + 1)
-            shown = ax.imshow(image, cmap="gray", vmin=0, vmax=max(1.0, float(np.percentile(ks, 99))) if col == 2 else None)
+            shown = ax.imshow(
+                image, cmap="gray", vmin=0, vmax=max(1.0, float(np.percentile(ks, 99))) if col == 2 else None
+            )
             if col == 2:
                 fig.colorbar(shown, ax=ax, fraction=0.046)
             ax.set_title(title, fontsize=8)
