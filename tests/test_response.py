@@ -199,6 +199,23 @@ def test_an_encoding_that_is_said_is_used_as_said(tmp_path):
     torch.testing.assert_close(a, Transfer("srgb").decode(codes.reshape(a.shape)).float().double())
 
 
+def test_untagged_frames_after_a_tagged_first_one_decode_as_srgb(tmp_path):
+    """The first frame says sRGB (an ICC profile), the others say nothing: one transfer for the
+    stack, sRGB, as before the response was estimated (not an estimate for some frames)."""
+    from PIL import ImageCms
+
+    linear, d = lambertian(256, seed=8)
+    codes = _codes(linear, ENCODINGS["srgb"])
+    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    _write_stack(tmp_path / "plain", codes, d)
+    first = tmp_path / "plain" / "f00.png"
+    Image.open(first).save(first, icc_profile=srgb)
+    imported = import_rti(tmp_path / "plain", tmp_path / "out")
+    assert str(imported.transfer) == "srgb" and imported.response is None
+    frames = imported.capture.read_frames(dtype=torch.float64)
+    torch.testing.assert_close(frames, Transfer("srgb").decode(codes.reshape(frames.shape)).float().double())
+
+
 def test_auto_is_refused_for_linear_photographs(tmp_path):
     tifffile = pytest.importorskip("tifffile")
     linear, d = lambertian(64, seed=5)

@@ -275,7 +275,9 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directio
             stack[k] = pixels.permute(2, 0, 1).numpy()
             exifs.append(photo.exif)
             continue
-        linear, decoder = photo.decode(pixels.to(dtype), given)
+        # an untagged frame in a stack whose first frame says its encoding: sRGB, as before the estimate
+        untagged = photo.profile is None and photo.default_transfer.name == "auto"
+        linear, decoder = photo.decode(pixels.to(dtype), Transfer("srgb") if given is None and untagged else given)
         if decoder.startswith("icc:"):  # the matrix moves a clipped sample off 1: keep it at the level
             linear = torch.where(clipped, linear.clamp(min=CLIP), linear)
             profiles[k] = decoder[4:]
