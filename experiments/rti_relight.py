@@ -118,12 +118,6 @@ def quantise(values: torch.Tensor) -> torch.Tensor:
     return (values.clamp(0, 1) * 255).round() / 255
 
 
-def _lights(capture, indices: list[int]) -> Lights:
-    every = capture.lights(dtype=torch.float64)
-    index = torch.tensor(indices)
-    return Lights(every.directions[index], every.kernel, every.irradiance[index], every.exposure[index])
-
-
 # --- the baselines: PTM and HSH on sRGB values ----------------------------------------------------
 
 
@@ -278,7 +272,7 @@ def relight(capture, linear, codes, fitted, predicted, settings, transfer, targe
     fits = {}
     for model, calibrate in [(m, c) for m in settings.models for c in settings.calibrations]:
         values, termed, seconds, fit = torchspec_predict(
-            capture, fitted, _lights(target_capture, predicted), model, calibrate, settings
+            capture, fitted, target_capture.lights(dtype=torch.float64)[predicted], model, calibrate, settings
         )
         label = model if calibrate == "auto" else f"{model} ({calibrate})"
         fits[label] = fit

@@ -58,7 +58,6 @@ __all__ = [
 
 FAMILIES = ("linear", "power", "offset", "film")
 """The nested members of the family, smallest first: the parameters each one frees."""
-_FREE = {"linear": (), "power": ("gamma",), "offset": ("gamma", "offset"), "film": ("gamma", "offset", "contrast")}
 DARK = 0.03
 """Codes below this are not used to estimate the curve (noise and compression dominate them)."""
 BRIGHT = 0.97

@@ -76,9 +76,7 @@ def judge_curves(
                 warnings.simplefilter("ignore")
                 capture = write_capture(root, capture, linear.float())
                 result = fit(capture, config=FitConfig(calibrate="none", residual_term=0, compile=False), frames=fitted)
-            every = capture.lights(dtype=torch.float64)
-            index = torch.tensor(predicted)
-            lights = type(every)(every.directions[index], every.kernel, every.irradiance[index], every.exposure[index])
+            lights = capture.lights(dtype=torch.float64)[predicted]
             values = render_image(result.svbrdf.to(torch.float64), lights, view).permute(2, 3, 0, 1)  # (K', C, H, W)
             encoded = transfer.encode(values.clamp(0, 1).movedim(1, -1)).movedim(-1, 1)
             mse = float(((encoded * 255).round() / 255 - crop[predicted]).pow(2).nanmean())

@@ -357,8 +357,8 @@ def _decode_auto(stack: np.ndarray, directions: torch.Tensor, notes: list[str]):
             )
     transfer = candidates.get(chosen, Transfer("srgb"))
     for frame in range(k):
-        codes = torch.from_numpy(stack[frame]).double().permute(1, 2, 0)
-        stack[frame] = transfer.decode(codes).permute(2, 0, 1).float().numpy()
+        encoded = torch.from_numpy(stack[frame]).double().permute(1, 2, 0)
+        stack[frame] = transfer.decode(encoded).permute(2, 0, 1).float().numpy()
     return transfer, estimate
 
 

@@ -59,6 +59,7 @@ from ._solve import (
     _lighting,
     _median_misfit,
     _normalised,
+    _sample,
     _update,
 )
 
@@ -159,14 +160,6 @@ def _check(frames: Tensor, directions: Tensor, valid: Tensor | None) -> None:
         raise LightCalibrationError(
             f"valid must have the frames' shape {tuple(frames.shape)}; got {tuple(valid.shape)}."
         )
-
-
-def _sample(count: int, sample: int, device) -> Tensor:
-    """A deterministic subset of ``sample`` flat pixel indices (all when ``count <= sample``)."""
-    if count <= sample:
-        return torch.arange(count, device=device)
-    chosen = torch.randperm(count, generator=torch.Generator().manual_seed(0))[:sample]
-    return chosen.sort().values.to(device)
 
 
 def _ratio_gains(

@@ -126,6 +126,14 @@ def _pixel_quality(values, weight, lit, design, b):
     return rms, enough
 
 
+def _sample(count: int, sample: int, device, seed: int = 0) -> Tensor:
+    """A deterministic subset of ``sample`` flat pixel indices (all when ``count <= sample``)."""
+    if count <= sample:
+        return torch.arange(count, device=device)
+    chosen = torch.randperm(count, generator=torch.Generator().manual_seed(seed))[:sample]
+    return chosen.sort().values.to(device)
+
+
 def _gather(frames: Tensor, valid: Tensor | None, index: Tensor, dtype) -> tuple[Tensor, Tensor]:
     """``(values, valid) (n, K, C)`` of the flat pixel ``index``, in ``dtype``."""
     k, c = frames.shape[:2]

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..near_lights import image_points
-from ._solve import _Design, _gather, _lighting, _stereo
+from ._solve import _Design, _gather, _lighting, _sample, _stereo
 
 __all__ = ["left_out_misfit"]
 
@@ -49,10 +49,7 @@ def left_out_misfit(
         shadow, cut: as :func:`torchspec.lightcal.calibrate_lights`'s.
     """
     k, c, h, w = frames.shape
-    index = torch.arange(h * w, device=frames.device)
-    if h * w > sample:
-        chosen = torch.randperm(h * w, generator=torch.Generator().manual_seed(1))[:sample]
-        index = chosen.sort().values.to(frames.device)
+    index = _sample(h * w, sample, frames.device, seed=1)
     values, ok = _gather(frames, valid, index, torch.float64)
     points = image_points(h, w, dtype=torch.float64, device=frames.device).reshape(-1, 3)[index]
     unit, vector = _lighting(
