@@ -272,6 +272,33 @@ def test_rti_relight_runs(tmp_path):
     assert synth["normals"]["torchspec_deg"] < 3 and synth["normals"]["least_squares_ps_deg"] < 3
     assert json.loads((tmp_path / "tiny.json").read_text())["captures"][0]["capture"] == "real"
 
+
+def test_term_bases_runs(tmp_path):
+    """Each basis of the term on a tiny Lambertian relief: every row scored, the maps' own residual
+    (a Lambertian relief, distant lights) small, so the maps alone predict the left-out frames."""
+    import math
+
+    import numpy as np
+
+    y, x = np.mgrid[0:8, 0:8] / 8.0
+    slope = np.stack([0.3 * np.sin(2 * math.pi * x), 0.2 * np.cos(2 * math.pi * y), np.ones_like(x)], -1)
+    normals = slope / np.linalg.norm(slope, axis=-1, keepdims=True)
+    dome = [
+        (math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e))
+        for e, turn in ((0.5, 0.0), (0.8, 0.2), (1.1, 0.4))
+        for a in np.linspace(turn, turn + 2 * math.pi, 8, endpoint=False)
+    ]
+    _rti_folder(tmp_path / "data" / "real", dome, normals)
+    text = f"data: {tmp_path / 'data'}\ncaptures: [real]\ndownsample: 1\nthreads: 1\nsizes: [4]\n"
+    result = _main("term_bases", tmp_path, text)
+    (capture,) = result["captures"]
+    scores = capture["psnr_db"]
+    expected = ["PTM", "HSH", "RBF", "maps", "maps + HSH3", "maps + RBF", "maps + PCA 4", "maps + centres 4"]
+    assert list(scores) == [*expected, "RBF + maps / 4"]
+    assert all(math.isfinite(v) for v in scores.values()) and scores["maps"] > 35
+    assert json.loads((tmp_path / "tiny.json").read_text())["captures"][0]["frames"] == 24
+
+
 TINY_PAIR = """
 data: {data}
 models: [auto, diffuse]

@@ -17,6 +17,7 @@ from torchspec.io.capture import CaptureError
 from torchspec.near_lights import block_order, image_points, near_light
 from torchspec.pipeline import FitConfig, fit
 from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block, tiling_of
+from torchspec.rendering import TILE_PIXELS
 
 D = torch.float64
 
@@ -41,11 +42,24 @@ def test_near_light_by_hand():
 def test_block_order_is_a_permutation_of_compact_blocks(height, width, block):
     order = block_order(height, width, block)
     assert torch.equal(torch.sort(order).values, torch.arange(height * width))
-    tiling = tiling_of(height, width, block * block, torch.ones(4, 3, dtype=D))
+    positions = torch.ones(4, 3, dtype=D)
+    tiling = tiling_of(height, width, block * block, positions)
     assert tiling.ranges[-1][1] == height * width
+    side = near_block(height, width, TILE_PIXELS, positions)  # render's blocks, whatever the fit's tile
     for first, stop in tiling.ranges:  # each tile spans at most a block's rows and columns
         rows, cols = tiling.order[first:stop] // width, tiling.order[first:stop] % width
-        assert int(rows.max() - rows.min()) < max(block, 8) and int(cols.max() - cols.min()) < max(block, 8)
+        assert int(rows.max() - rows.min()) < max(side, 8) and int(cols.max() - cols.min()) < max(side, 8)
+
+
+@given(st.floats(1.2, 40.0), st.integers(8, 96), st.integers(8, 96), st.sampled_from([64, 256, 1024, 4096, 1 << 16]))
+@settings(max_examples=40, deadline=None)
+def test_a_fit_takes_the_blocks_its_render_takes(radius, height, width, tile):
+    """Under near lights a fit of any tile size is cut into the blocks torchspec render lights
+    (torchspec.relight.render_near: TILE_PIXELS), so each pixel is rendered under the lights its
+    maps and residual term were fitted under."""
+    positions = radius * torch.tensor([[0.6, 0.0, 0.8], [0.0, -0.6, 0.8], [0.0, 0.0, 1.0]], dtype=D)
+    fitted, rendered = tiling_of(height, width, tile, positions), tiling_of(height, width, TILE_PIXELS, positions)
+    assert fitted.ranges == rendered.ranges and torch.equal(fitted.order, rendered.order)
 
 
 @given(st.floats(1.2, 40.0), st.integers(8, 48), st.integers(8, 48), st.integers(0, 2**31 - 1))

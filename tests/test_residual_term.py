@@ -14,7 +14,8 @@ from torchspec.errors import TorchspecError
 from torchspec.io.images import Transfer
 from torchspec.lights import Kernel, Lights
 from torchspec.pipeline.prediction import light_folds
-from torchspec.residual_term import ResidualTerm, blend, decode, encode, fit_term, hsh_basis
+from torchspec.residual_term import ResidualTerm, TermDomain, blend, decode, encode, fit_term, hsh_basis
+from torchspec.response import ResponseCurve
 
 D = torch.float64
 
@@ -45,6 +46,60 @@ def test_encode_decode_are_inverse_and_monotonic(value):
 def test_encode_is_srgb_on_the_unit_interval():
     v = torch.linspace(0, 1, 1001, dtype=D)
     assert torch.allclose(encode(v), Transfer("srgb").encode(v), atol=1e-12)
+
+
+FILM = ResponseCurve(gamma=(1.3, 2.2, 0.8), offset=(0.0, 0.055, 0.3), contrast=(5.0, -4.0, 0.0))
+
+
+@given(st.floats(-20, 20, allow_nan=False), st.integers(0, 2))
+@settings(max_examples=200, deadline=None)
+def test_a_response_domain_is_a_monotonic_bijection_of_the_reals(value, channel):
+    domain = TermDomain(FILM)
+    v = torch.zeros(2, 3, dtype=D)
+    v[:, channel] = torch.tensor([value, value + 1e-3], dtype=D)
+    e = domain.encode(v)
+    assert torch.allclose(domain.decode(e), v, rtol=1e-9, atol=1e-11)
+    assert float(e[1, channel]) > float(e[0, channel])
+
+
+def test_a_response_domain_is_the_curve_inside_and_its_tangent_outside():
+    domain = TermDomain(FILM)
+    codes = torch.linspace(0, 1, 201, dtype=D)[:, None].expand(-1, 3)
+    assert torch.allclose(domain.decode(codes), FILM.decode(codes), atol=1e-14)
+    assert torch.allclose(domain.encode(FILM.decode(codes)), codes, atol=1e-9)
+    # continued along the slope at code 1 (a finite difference of the curve there) and odd below 0
+    h = 1e-6
+    slope = (FILM.decode(torch.ones(1, 3, dtype=D)) - FILM.decode(torch.full((1, 3), 1 - h, dtype=D))) / h
+    above = domain.decode(torch.full((1, 3), 1.5, dtype=D))
+    assert torch.allclose(above, 1 + 0.5 * slope, rtol=1e-5)
+    assert torch.allclose(domain.decode(-codes), -domain.decode(codes))
+    assert torch.equal(TermDomain().encode(codes), encode(codes))  # no curve: sRGB, as before
+    assert TermDomain.from_json(TermDomain(FILM).to_json()) == TermDomain(FILM)
+    assert TermDomain.from_json(None) == TermDomain() == TermDomain.from_json({"transfer": "srgb"})
+    with pytest.raises(TorchspecError, match="maps.json: transfer must be srgb or response; got 'gamma'"):
+        TermDomain.from_json({"transfer": "gamma"}, "maps.json")
+
+
+def test_a_term_in_the_photographs_encoding_is_recovered_there_and_not_in_srgb():
+    """Photographs whose codes are a film curve of the values: a term added in those codes is
+    fitted back exactly in them; fitted in sRGB units it is not (the slopes differ)."""
+    torch.manual_seed(4)
+    directions = _dome()
+    lights = _lights(directions)
+    n, k, c = 20, directions.shape[0], 3
+    model = 0.05 + torch.rand(n, k, c, dtype=D) * 0.6
+    truth = ResidualTerm(torch.randn(n, 9, c, dtype=D) * 0.02, torch.ones(n, dtype=torch.bool), domain=TermDomain(FILM))
+    observed = truth.apply(model, lights)
+    valid = torch.ones(n, k, dtype=torch.bool)
+    folds = light_folds(directions, 5, False)
+    term = fit_term(observed, valid, model, lights, folds, ridge=0.0, domain=TermDomain(FILM))
+    assert bool(term.chosen.all()) and term.domain == TermDomain(FILM)
+    assert torch.allclose(term.coefficients, truth.coefficients, atol=1e-6)
+    assert torch.allclose(term.apply(model, lights), observed, atol=1e-8)
+    in_srgb = fit_term(observed, valid, model, lights, folds)
+    assert float((in_srgb.apply(model, lights) - observed).abs().max()) > 1e-3
+    mapped = ResidualTerm.from_map(term.to_map()[None], c, encoding=term.description()["encoding"])  # (1, n, C J)
+    assert mapped.domain == TermDomain(FILM)
 
 
 def test_hsh_basis_is_orthonormal_on_the_hemisphere():

@@ -254,3 +254,31 @@ def test_the_fit_judges_the_true_curve_best():
     assert set(scores) == {"true", "linear", "srgb"}
     assert scores["true"] > scores["srgb"] > scores["linear"]
     assert scores["true"] > 40  # the 8-bit rounding of a Lambertian stack: ~50 dB
+
+
+def test_the_term_of_a_fit_of_photographs_is_in_their_estimated_encoding(tmp_path):
+    """Imported with an estimated curve, the fit's residual term is fitted in the photographs'
+    codes (that curve), recorded in svbrdf.json, and render applies it there; a capture that says
+    sRGB keeps the sRGB term."""
+    import torchspec
+    from torchspec.relight import render_capture
+    from torchspec.residual_term import TermDomain
+
+    linear, d = lambertian(256, seed=9)
+    _write_stack(tmp_path / "rti", _codes(linear, ENCODINGS["power 1.8"]), d)
+    imported = import_rti(tmp_path / "rti", tmp_path / "capture")
+    job = setup(imported.capture, None, None)
+    assert job.domain == TermDomain(imported.transfer.curve)
+    config = torchspec.FitConfig(model="diffuse", residual_term=2, calibrate="none", compile=False)
+    fit = torchspec.fit(imported.capture, config=config)
+    assert fit.term is not None and fit.term.domain == job.domain
+    torchspec.write_fit(tmp_path / "maps", fit)
+    record = json.loads((tmp_path / "maps" / "svbrdf.json").read_text())["residual_term"]["encoding"]
+    assert record == {"transfer": "response", "response": imported.transfer.curve.to_json()}
+    rendered = render_capture(tmp_path / "maps", tmp_path / "capture", None, dtype=torch.float64)["predicted"]
+    physical = render_capture(tmp_path / "maps", tmp_path / "capture", None, dtype=torch.float64, term=False)
+    lights = imported.capture.lights(dtype=torch.float64)
+    expected = fit.term.apply(physical["predicted"].double().permute(2, 3, 0, 1), lights)
+    torch.testing.assert_close(rendered.double(), expected.permute(2, 3, 0, 1), rtol=1e-5, atol=1e-6)
+    given = import_rti(tmp_path / "rti", tmp_path / "srgb", transfer="srgb")
+    assert setup(given.capture, None, None).domain == TermDomain()

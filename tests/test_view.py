@@ -362,8 +362,9 @@ def test_the_page_sums_other_kernels_on_their_fixed_nodes(browser, kernel):
 
 def _term(maps) -> ResidualTerm:
     """The maps' residual term as ``torchspec render`` reads it (torchspec.relight.render_capture)."""
-    extra = maps.extra
-    return ResidualTerm.from_map(extra[MAP_NAME], len(maps.svbrdf.channels), weight=extra.get(WEIGHT_MAP))
+    extra, encoding = maps.extra, (maps.meta.get(MAP_NAME) or {}).get("encoding")
+    channels = len(maps.svbrdf.channels)
+    return ResidualTerm.from_map(extra[MAP_NAME], channels, weight=extra.get(WEIGHT_MAP), encoding=encoding)
 
 
 def test_the_web_export_holds_the_residual_terms_planes(tmp_path):
@@ -403,6 +404,33 @@ def test_the_page_adds_the_residual_term_as_render_does(browser, order):
         page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
         assert np.abs(page - physical).max() <= 1
         assert "physical maps only" in browser.evaluate("document.getElementById('shown').textContent")
+
+
+CURVES = {  # a film-like S curve per channel, and a grey power: torchspec.response's family
+    "film": {
+        "transfer": "response",
+        "response": {"gamma": [1.3, 2.0, 0.9], "offset": [0.0, 0.05, 0.2], "contrast": [4.0, -3.0, 0.0]},
+    },
+    "power": {"transfer": "response", "response": {"gamma": [1.25], "offset": [0.0], "contrast": [0.0]}},  # one for all
+}
+
+
+@needs_browser
+@pytest.mark.parametrize("curve", sorted(CURVES))
+def test_the_page_adds_a_term_in_the_photographs_encoding_as_render_does(browser, curve):
+    maps = with_term(model_maps("ward-iso", 32, 48, seed=14), 3, seed=7, size=0.3, encoding=CURVES[curve])
+    term = _term(maps)
+    assert term.domain.curve is not None
+    srgb = ResidualTerm(term.coefficients, term.chosen, term.weight)  # the same term added in sRGB
+    with _page(browser, open_site(maps)):
+        assert browser.evaluate("torchspecView.viewer.m.term_encoding.transfer") == "response"
+        for light in hemisphere_lights(6, 75.0):
+            browser.show(origin=True, light=light.tolist(), layer="relit")
+            page = browser.read(0, 0, 48, 32)[..., :3].astype(int)
+            expected = reference_srgb(maps.svbrdf, tuple(light), term=term).astype(int)
+            assert np.abs(page - expected).max() <= 1, light
+            other = reference_srgb(maps.svbrdf, tuple(light), term=srgb).astype(int)
+            assert np.abs(other - expected).max() > 10  # the encoding matters here
 
 
 @needs_browser

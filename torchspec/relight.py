@@ -57,7 +57,7 @@ def render_near(
         values = render(flat[index], near, view, quadrature=quadrature, lobe=lobe)
         if term is not None:
             weight = None if term.weight is None else term.weight.reshape(-1)[index]
-            part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight)
+            part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight, domain=term.domain)
             values = part.apply(values, near)
         out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
         out[index] = values
@@ -148,7 +148,10 @@ def render_capture(
     found = None
     if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
         source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
-        found = ResidualTerm.from_map(maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(WEIGHT_MAP))
+        encoding = (maps.meta.get(MAP_NAME) or {}).get("encoding")  # the photographs' encoding; absent: sRGB
+        found = ResidualTerm.from_map(
+            maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(WEIGHT_MAP), encoding
+        )
     positions = fit_positions(capture, maps.meta)[0]
     if positions is not None:  # near lights: block by block, as the fit saw them
         values = render_near(

@@ -4,14 +4,18 @@ from the physical maps so that normal, diffuse, specular and roughness stay phys
 
 Per pixel and channel, hemispherical harmonics of the light direction (the RTI fitters' HSH basis,
 :func:`hsh_basis`: order 2, 4 terms, or order 3, 9 terms) added to the physical prediction in the
-sRGB-encoded domain of its value at unit light, where the photographs were recorded and are
-judged:
+encoded domain of its value at unit light, where the photographs were recorded and are judged:
 
     value_k = scale_k decode(w encode(model_k / scale_k) + sum_j c_j H_j(l_k))
 
 with ``scale_k`` the frame's exposure times irradiance, ``l_k`` its light's (effective) direction,
-``encode`` the sRGB transfer extended to every real value (:func:`encode`, :func:`decode`), and
-``w`` in ``[0, 1]`` the physical model's weight (1 but where the term alone predicts better).
+``w`` in ``[0, 1]`` the physical model's weight (1 but where the term alone predicts better), and
+``encode`` the photographs' own encoding (:class:`TermDomain`): for a capture imported from
+photographs whose camera response was estimated (``source.transfer: response``), that response
+curve (:mod:`torchspec.response`), so that the term is fitted in the codes the photographs hold;
+otherwise the sRGB transfer extended to every real value (:func:`encode`, :func:`decode`). A term
+fitted in sRGB units on photographs whose codes are nearly linear weighs their dark values by the
+wrong slope: on RealRTI item7 it predicted left-out photographs worse than the maps alone.
 
 :func:`fit_term` fits the coefficients by least squares on a fit's valid samples and keeps them
 only at the pixels where they predict frames left out of their fit better than the physical model
@@ -30,12 +34,14 @@ from torch import Tensor
 from .errors import TorchspecError
 from .lights import Lights, diffuse_directions
 from .photometric import MAD_SCALE
+from .response import ResponseCurve
 
 __all__ = [
     "MAP_NAME",
     "WEIGHT_MAP",
     "TERMS",
     "ResidualTerm",
+    "TermDomain",
     "hsh_basis",
     "encode",
     "decode",
@@ -71,6 +77,66 @@ def decode(encoded: Tensor) -> Tensor:
     size = encoded.abs()
     curve = ((size.clamp(min=12.92 * _KNEE) + _A) / (1 + _A)).pow(2.4)
     return torch.sign(encoded) * torch.where(size <= 12.92 * _KNEE, size / 12.92, curve)
+
+
+@dataclass(frozen=True)
+class TermDomain:
+    """The encoded domain a residual term is added in (module docstring): ``curve`` ``None``, the
+    sRGB transfer extended to every real value (:func:`encode`); else a camera response
+    (:class:`~torchspec.response.ResponseCurve`, codes to linear values), continued past its
+    ends as :func:`encode` is: odd below 0 and along its slope at code 1 above 1, a monotonic
+    bijection of the reals (a model brighter than white, or a term below black, stays defined).
+    Values are channels last.
+
+    Example:
+        >>> domain = TermDomain(ResponseCurve(gamma=(2.0,), offset=(0.0,), contrast=(0.0,)))
+        >>> domain.encode(torch.tensor([0.25, -0.25, 3.0])).tolist()  # 2 g'(1) = 2: 1 + 2 / 2
+        [0.5, -0.5, 2.0]
+    """
+
+    curve: ResponseCurve | None = None
+
+    def encode(self, linear: Tensor) -> Tensor:
+        """Linear values to the domain's codes."""
+        if self.curve is None:
+            return encode(linear)
+        size = linear.abs()
+        slope = self.curve.slope_at_one(size)
+        return torch.sign(linear) * torch.where(size > 1, 1 + (size - 1) / slope, self.curve.encode(size))
+
+    def decode(self, encoded: Tensor) -> Tensor:
+        """The inverse of :meth:`encode`."""
+        if self.curve is None:
+            return decode(encoded)
+        size = encoded.abs()
+        slope = self.curve.slope_at_one(size)
+        return torch.sign(encoded) * torch.where(size > 1, 1 + (size - 1) * slope, self.curve.decode(size))
+
+    def to_json(self) -> dict:
+        """What ``svbrdf.json`` records under the term's ``encoding``."""
+        if self.curve is None:
+            return {"transfer": "srgb"}
+        return {"transfer": "response", "response": self.curve.to_json()}
+
+    @classmethod
+    def from_json(cls, record: dict | None, where: str = "residual_term.encoding") -> TermDomain:
+        """The domain of :meth:`to_json`; ``None`` (maps written before the record): sRGB.
+
+        Raises:
+            TorchspecError: an unknown transfer or a malformed curve, naming ``where``."""
+        if record is None or record.get("transfer") == "srgb":
+            return cls()
+        if record.get("transfer") != "response":
+            raise TorchspecError(f"{where}: transfer must be srgb or response; got {record.get('transfer')!r}.")
+        return cls(ResponseCurve.from_json(record.get("response") or {}, f"{where}.response"))
+
+    @classmethod
+    def of_source(cls, source: dict | None) -> TermDomain:
+        """The domain of a capture's ``source`` record (``capture.json``): its estimated camera
+        response where the import estimated one, else sRGB."""
+        if source and source.get("transfer") == "response" and source.get("response"):
+            return cls(ResponseCurve.from_json(source["response"], "capture.json source.response"))
+        return cls()
 
 
 def hsh_basis(directions: Tensor, order: int = 3) -> Tensor:
@@ -119,6 +185,7 @@ class ResidualTerm:
             kept, per fold scheme, frame and channel, and ``noise`` (0-dim) the encoded noise level
             they were judged in: what :func:`fit_term` knows of its choice (not saved with the maps;
             ``None`` otherwise).
+        domain: the encoded domain the term is added in (:class:`TermDomain`; ``None``: sRGB).
     """
 
     coefficients: Tensor
@@ -126,6 +193,12 @@ class ResidualTerm:
     weight: Tensor | None = None
     left_out: Tensor | None = None
     noise: Tensor | None = None
+    domain: TermDomain | None = None
+
+    @property
+    def encoding(self) -> TermDomain:
+        """:attr:`domain`, sRGB where it is ``None``."""
+        return self.domain or TermDomain()
 
     @property
     def order(self) -> int:
@@ -150,8 +223,10 @@ class ResidualTerm:
             "basis": f"hemispherical harmonics of order {self.order} of the light direction (Gautron et al. 2004)",
             "terms": self.coefficients.shape[-2],
             "layout": "channel-major: channel c's coefficient j in EXR channel C{c*terms+j}",
-            "domain": "value = scale * decode(w * encode(model / scale) + sum_j c_j H_j(l)), encode the sRGB transfer "
-            "extended to all reals, scale = exposure * irradiance",
+            "domain": "value = scale * decode(w * encode(model / scale) + sum_j c_j H_j(l)), encode the transfer of "
+            "'encoding' (srgb, or the capture's estimated camera response) extended to all reals, "
+            "scale = exposure * irradiance",
+            "encoding": self.encoding.to_json(),
             "pixels": int(self.chosen.sum()),
             "weight": f"{WEIGHT_MAP}.exr: the physical model's weight w in [0, 1]",
             "weight_pixels": self._weights(),
@@ -167,10 +242,15 @@ class ResidualTerm:
 
     @staticmethod
     def from_map(
-        image: Tensor, channels: int, source: str = "residual_term.exr", weight: Tensor | None = None
+        image: Tensor,
+        channels: int,
+        source: str = "residual_term.exr",
+        weight: Tensor | None = None,
+        encoding: dict | None = None,
     ) -> ResidualTerm:
-        """The term of a ``(*, C J)`` map (:meth:`to_map`) of ``channels`` channels, and the
-        :attr:`weight` map ``(*,)`` or ``(*, 1)`` when given.
+        """The term of a ``(*, C J)`` map (:meth:`to_map`) of ``channels`` channels, the
+        :attr:`weight` map ``(*,)`` or ``(*, 1)`` when given, in the domain of ``encoding``
+        (:meth:`TermDomain.to_json`, ``svbrdf.json``'s record of the term; ``None``: sRGB).
 
         Raises:
             TorchspecError: the map's channel count is not ``channels`` times a basis' size, or the
@@ -194,7 +274,8 @@ class ResidualTerm:
                     f"{float(weight[where])} at pixel (row, column) {where} and {int(bad.sum())} such value(s) in all."
                 )
             chosen = chosen | (weight < 1)
-        return ResidualTerm(coefficients=coefficients, chosen=chosen, weight=weight)
+        domain = TermDomain.from_json(encoding, f"{source}: svbrdf.json's {MAP_NAME}.encoding")
+        return ResidualTerm(coefficients=coefficients, chosen=chosen, weight=weight, domain=domain)
 
     def apply(self, values: Tensor, lights: Lights) -> Tensor:
         """The physical prediction ``values (*, K, C)`` of the maps as they are, with the term
@@ -210,7 +291,8 @@ class ResidualTerm:
         scale = lights.scale
         term = torch.einsum("kj,...jc->...kc", basis, coefficients)
         weight = 1.0 if self.weight is None else self.weight.to(values)[..., None, None]
-        added = decode(weight * encode(values / scale) + term) * scale
+        domain = self.encoding
+        added = domain.decode(weight * domain.encode(values / scale) + term) * scale
         return torch.where(self.chosen.to(values.device)[..., None, None], added, values)
 
 
@@ -225,6 +307,7 @@ def fit_term(
     z: float = 3.0,
     ridge: float = 1e-6,
     held_out: Tensor | None = None,
+    domain: TermDomain | None = None,
 ) -> ResidualTerm:
     """Fit the term on top of a physical prediction and keep it where it predicts left-out frames.
 
@@ -244,6 +327,7 @@ def fit_term(
             the left-out frames' errors; default ``model`` (a model that did not see the frames,
             or none). A model fitted on every frame predicts its own frames too well: judged on
             them, the term would look worse than it is, and the model better.
+        domain: the encoded domain the term is fitted and judged in (default sRGB).
 
     Returns:
         a :class:`ResidualTerm` of ``n`` pixels, fitted on all valid samples where chosen.
@@ -253,8 +337,9 @@ def fit_term(
     dtype = observed.dtype
     lights = lights.to(dtype=dtype, device=observed.device)
     scale = lights.scale[None]  # (1, K, C or 1)
-    recorded = encode(observed / scale)
-    target = recorded - encode(model / scale)  # (n, K, C)
+    to_codes = (domain or TermDomain()).encode
+    recorded = to_codes(observed / scale)
+    target = recorded - to_codes(model / scale)  # (n, K, C)
     weight = valid.to(dtype)
     target = target * weight[..., None]
     basis = hsh_basis(term_directions(lights), order)  # (K, J)
@@ -266,7 +351,7 @@ def fit_term(
     schemes, plain = [], []
     for s, scheme in enumerate(folds):  # a handful of folds: each a batched solve over every pixel
         # what the model fitted without each fold leaves of it (default: the model's own residual)
-        left_target = target if held_out is None else (recorded - encode(held_out[:, s] / scale)) * weight[..., None]
+        left_target = target if held_out is None else (recorded - to_codes(held_out[:, s] / scale)) * weight[..., None]
         errors = torch.zeros_like(target)
         for fold in range(count):
             out = scheme == fold
@@ -284,7 +369,7 @@ def fit_term(
     chosen = predicts_better(candidate / sigma, current / sigma, z)
     coefficients = torch.where(chosen[:, None, None], coefficients, torch.zeros_like(coefficients))
     kept = torch.where(chosen[:, None, None, None], candidate, current)
-    return ResidualTerm(coefficients=coefficients, chosen=chosen, left_out=kept, noise=sigma)
+    return ResidualTerm(coefficients=coefficients, chosen=chosen, left_out=kept, noise=sigma, domain=domain)
 
 
 def _solve(normal: Tensor, right: Tensor, ridge: float) -> Tensor:
@@ -324,4 +409,5 @@ def blend(with_model: ResidualTerm, alone: ResidualTerm, z: float = 3.0) -> Resi
     coefficients = w[:, None, None] * with_model.coefficients + (1 - w[:, None, None]) * alone.coefficients
     chosen = with_model.chosen | (w < 1)
     left = w[:, None, None, None] * model + (1 - w[:, None, None, None]) * other
-    return ResidualTerm(coefficients=coefficients, chosen=chosen, weight=w, left_out=left, noise=with_model.noise)
+    noise, domain = with_model.noise, with_model.domain
+    return ResidualTerm(coefficients=coefficients, chosen=chosen, weight=w, left_out=left, noise=noise, domain=domain)

@@ -53,6 +53,7 @@ __all__ = [
     "ResponseError",
     "describe_response",
     "estimate_response",
+    "invert_curve",
     "response_samples",
 ]
 
@@ -128,16 +129,16 @@ class ResponseCurve:
         return _curve(values, params, any(self.contrast))[0]
 
     def encode(self, values: Tensor, *, channel_dim: int = -1) -> Tensor:
-        """Linear values to codes, the inverse of :meth:`decode` on ``[0, 1]`` (bisection, to
-        float round-off); values outside ``[0, 1]`` are clamped first."""
+        """Linear values to codes, the inverse of :meth:`decode` on ``[0, 1]`` (closed form:
+        :func:`invert_curve`); values outside ``[0, 1]`` are clamped first."""
         values = values.clamp(0, 1)
-        params = _broadcast(self._params(values), values, channel_dim)
-        low, high = torch.zeros_like(values), torch.ones_like(values)
-        for _ in range(40 if values.dtype == torch.float64 else 26):
-            middle = (low + high) / 2
-            above = _curve(middle, params, any(self.contrast))[0] > values
-            high, low = torch.where(above, middle, high), torch.where(above, low, middle)
-        return (low + high) / 2
+        return invert_curve(values, _broadcast(self._params(values), values, channel_dim))
+
+    def slope_at_one(self, like: Tensor, *, channel_dim: int = -1) -> Tensor:
+        """``g'(1)`` per channel, shaped to broadcast against ``like`` along ``channel_dim``: the
+        slope of :meth:`decode` at the brightest code (how a curve is continued above it)."""
+        ones = torch.ones_like(like)
+        return _curve(ones, _broadcast(self._params(ones), ones, channel_dim), any(self.contrast))[1]
 
     def to_json(self) -> dict:
         return {"gamma": list(self.gamma), "offset": list(self.offset), "contrast": list(self.contrast)}
@@ -201,6 +202,23 @@ def _curve(v: Tensor, params: Tensor, contrast: bool = True) -> tuple[Tensor, Te
     scale = 1 - h0
     dh = gamma / (1 + a) * base ** (gamma - 1)
     return (h - h0) / scale, dh * du / scale
+
+
+def invert_curve(y: Tensor, params: Tensor) -> Tensor:
+    """``g^-1(y)`` for linear values ``y`` in ``[0, 1]`` and ``params (..., 3)`` = (gamma, offset,
+    contrast) broadcasting with ``y`` (:func:`_curve`'s ``g``), in closed form: the power and
+    offset undone, then the logistic contrast curve of the module's docstring."""
+    gamma, a, s = params[..., 0], params[..., 1], params[..., 2]
+    h0 = (a / (1 + a)).clamp(min=0) ** gamma
+    u = ((1 + a) * (h0 + y * (1 - h0)).clamp(min=0) ** (1 / gamma) - a).clamp(0, 1)
+    flat = s.abs() < 1e-3
+    m = torch.where(flat, 1e-3, s.abs())
+    low, high = torch.sigmoid(-m / 2), torch.sigmoid(m / 2)
+    eps = torch.finfo(y.dtype).eps
+    v_pos = (torch.sigmoid(m * (u - 0.5)) - low) / (high - low)  # s > 0: u = 1/2 + logit(p) / m
+    v_neg = 0.5 + torch.logit((low + u * (high - low)).clamp(eps, 1 - eps)) / m  # s < 0
+    v = torch.where(flat, u, torch.where(s > 0, v_pos, v_neg))
+    return torch.where(y <= 0, 0.0, torch.where(y >= 1, 1.0, v.clamp(0, 1)))
 
 
 # --- estimation -----------------------------------------------------------------------------------

@@ -105,6 +105,7 @@ def assemble(
             coefficients=_join([p.term.coefficients for p in parts], h, w),
             chosen=_join([p.term.chosen for p in parts], h, w),
             weight=_join([p.term.weight for p in parts], h, w),
+            domain=parts[0].term.domain,
         )
         joined = replace(joined, term=term)
     smoothed = None
@@ -116,7 +117,8 @@ def assemble(
             kept = joined.term.chosen & (joined.model == before)
             coefficients = torch.where(kept[..., None, None], joined.term.coefficients, 0.0)
             weight = torch.where(joined.model == before, joined.term.weight, torch.ones_like(joined.term.weight))
-            joined = replace(joined, term=ResidualTerm(coefficients=coefficients, chosen=kept, weight=weight))
+            term = replace(joined.term, coefficients=coefficients, chosen=kept, weight=weight)
+            joined = replace(joined, term=term)
     svbrdf = joined.svbrdf
     if svbrdf.specular2 is not None and not bool((svbrdf.specular2 > 0).any()):
         # A ladder with ward-dual that no pixel took: no second lobe's maps or deviations.

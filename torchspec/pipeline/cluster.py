@@ -45,6 +45,7 @@ from ..io import Capture
 from ..lights import Lights
 from ..photometric import peak_of, sample_masks, saturation_level
 from ..progress import bar as progress_bar
+from ..residual_term import TermDomain
 from .assembly import assemble, run_stats
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, tile_name
 from .plan import RUNTIME_BYTES, plan, setup
@@ -147,6 +148,11 @@ class _Job:
     folder: Path
     level: float | None = None  # the clipping level given to sample_masks
     halo: int = 0  # rows read around a task's own: the saturated regions' growth
+
+    @property
+    def domain(self) -> TermDomain:
+        """The residual term's encoding (:attr:`torchspec.pipeline.plan.Setup.domain`)."""
+        return TermDomain.of_source(self.capture.extra.get("source"))
 
     @property
     def pixels(self) -> int:
@@ -489,7 +495,7 @@ def _fit_tiles(job: _Job, firsts: list[int]) -> tuple[list[int], dict]:
         at = slice(first - offset, job.stop(first) - offset)
         values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
         try:
-            fit_tile(first, values, tile_masks, job.lights, job.view, channels, config, ctx, folder)
+            fit_tile(first, values, tile_masks, job.lights, job.view, channels, config, ctx, folder, domain=job.domain)
         except Exception as error:
             raise ClusterError(
                 f"{job.describe(first)} of {job.capture.root} failed on worker {_worker()}: "

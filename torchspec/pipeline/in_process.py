@@ -98,7 +98,7 @@ def fit(
                     values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
                     here, here_ctx = tiling.lights(lights, ctx, first, stop)
                     out = fit_tile(first, values, tile_masks, here, view, capture.channels, config, here_ctx, folder,
-                                   job.gains)  # fmt: skip
+                                   job.gains, job.domain)  # fmt: skip
                 parts.append(out)
                 bar.update(stop - first)
         except KeyboardInterrupt as interrupt:

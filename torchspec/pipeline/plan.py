@@ -7,7 +7,7 @@ other's checkpoint).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -18,6 +18,7 @@ from ..io import Capture, read_capture
 from ..layout import coverage_warning, fit_problem
 from ..lights import Lights
 from ..models import get_model
+from ..residual_term import TermDomain
 from .settings import AUTO, COMPILE_PIXELS, FitConfig, select_frames
 
 __all__ = [
@@ -109,6 +110,9 @@ class Setup:
         positions: ``(K, 3)`` the picked frames' near-light positions (``Frame.position``; object
             units, :mod:`torchspec.near_lights`), alike; ``None`` for distant lights.
         gains: ``(K, C)`` the gains :func:`calibrated` found (in ``lights``' irradiance), else ``None``.
+        domain: the encoding the residual term is fitted in: the capture's estimated camera response
+            where its import estimated one (``source.transfer: response``), else sRGB
+            (:class:`torchspec.residual_term.TermDomain`).
     """
 
     config: FitConfig
@@ -118,6 +122,7 @@ class Setup:
     view: Tensor
     positions: Tensor | None = None
     gains: Tensor | None = None
+    domain: TermDomain = field(default_factory=TermDomain)
 
 
 def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str | list[int] | None) -> Setup:
@@ -155,7 +160,10 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     positions = capture.positions()
     if positions is not None:
         positions = positions[index].to(dtype=dtype, device=device)
-    return Setup(config=config, capture=capture, picked=picked, lights=lights, view=view, positions=positions)
+    domain = TermDomain.of_source(capture.extra.get("source"))
+    return Setup(
+        config=config, capture=capture, picked=picked, lights=lights, view=view, positions=positions, domain=domain
+    )
 
 
 CALIBRATION_EXPLAINED = 0.8

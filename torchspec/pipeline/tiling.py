@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ..lights import Lights
 from ..near_lights import block_order, block_sizes, image_points, lights_at
+from ..rendering import TILE_PIXELS
 from .start import LightContext, light_context
 from .tile import TileResult
 
@@ -79,11 +80,16 @@ class Tiling:
 
 def tiling_of(height: int, width: int, tile: int, positions: Tensor | None) -> Tiling:
     """Tiles of ``tile`` pixels in row-major order for distant lights (``positions`` ``None``);
-    square blocks under near lights (:func:`near_block`)."""
+    square blocks under near lights (:func:`near_block`, of at most
+    :data:`~torchspec.rendering.TILE_PIXELS` pixels whatever ``tile``): the blocks
+    :func:`torchspec.relight.render_near` and the viewer render in, so that a render lights each
+    pixel as the fit saw it (a fit cut into smaller blocks than its render saw other lights: on
+    SynthRTI m1 at a dome radius of 25 image widths, 0.4 % apart, and a residual term fitted under
+    them predicted left-out photographs 3 dB worse)."""
     pixels = height * width
     if positions is None:
         return Tiling(ranges=[(first, min(first + tile, pixels)) for first in range(0, pixels, tile)])
-    block = near_block(height, width, tile, positions)
+    block = near_block(height, width, TILE_PIXELS, positions)
     starts, ranges = 0, []
     for size in block_sizes(height, width, block):
         ranges.append((starts, starts + size))

@@ -85,10 +85,12 @@ def model_maps(
     return Maps(svbrdf, meta, extra)
 
 
-def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1) -> Maps:
+def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1, encoding: dict | None = None) -> Maps:
     """``maps`` with a random residual term (as a fit writes it: ``residual_term`` channel-major,
     ``residual_term_weight``): coefficients uniform in ``[-size, size]`` on three pixels of four
-    (the others none), the weight 1 on half of those and uniform in ``[0, 1]`` on the rest."""
+    (the others none), the weight 1 on half of those and uniform in ``[0, 1]`` on the rest; in the
+    domain of ``encoding`` (:meth:`~torchspec.residual_term.TermDomain.to_json`, recorded in the
+    maps' ``meta`` as a fit records it; ``None``: sRGB, nothing recorded)."""
     height, width = maps.svbrdf.shape
     channels = len(maps.svbrdf.channels)
     g = torch.Generator().manual_seed(seed)
@@ -97,7 +99,8 @@ def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1) -> M
     blended = chosen & (torch.rand(height, width, generator=g) < 0.5)
     weight = torch.where(blended, torch.rand(height, width, generator=g), torch.ones(height, width))
     term = ResidualTerm(coefficients * chosen[..., None, None], chosen, weight)
-    return Maps(maps.svbrdf, maps.meta, {**maps.extra, MAP_NAME: term.to_map(), WEIGHT_MAP: weight})
+    meta = maps.meta if encoding is None else {**maps.meta, MAP_NAME: {"encoding": encoding}}
+    return Maps(maps.svbrdf, meta, {**maps.extra, MAP_NAME: term.to_map(), WEIGHT_MAP: weight})
 
 
 def reference_srgb(
@@ -156,7 +159,7 @@ def render_each_pixel(
         values = render(flat[index], near, view)  # (n, n K, C)
         if term is not None:
             weight = None if term.weight is None else term.weight.reshape(-1)[index]
-            part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight)
+            part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight, domain=term.domain)
             values = part.apply(values, near)
         parts.append(values.reshape(n, n, k, -1)[torch.arange(n), torch.arange(n)])  # each pixel's own lights
     return torch.cat(parts).reshape(height, width, k, -1)

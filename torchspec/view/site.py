@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
+import torch
 
 from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
@@ -37,6 +38,7 @@ from ..lights import Kernel
 from ..outputs import check_output
 from ..progress import bar
 from ..report import MODEL_COLOURS
+from ..residual_term import MAP_NAME, TermDomain
 from .cache import Stopped
 from .light import light_quadrature, near_lights
 from .tiles import EXTRA_MAPS, KEEP_TEXELS, Pyramid, frame_pyramid
@@ -66,6 +68,20 @@ def _quantile(values: list[np.ndarray], q: float = 0.99, samples: int = 1 << 18)
     value = value[:: max(1, value.size // samples)]
     finite = value[np.isfinite(value) & (value > 0)]
     return float(np.quantile(finite, q)) if finite.size else 1.0
+
+
+def term_encoding(meta: dict) -> dict:
+    """The manifest's ``term_encoding``: the residual term's encoding (``svbrdf.json``'s
+    ``residual_term.encoding``, :class:`torchspec.residual_term.TermDomain`), ``{"transfer":
+    "srgb"}`` or a camera response's ``gamma``, ``offset``, ``contrast`` and ``slope`` at code 1
+    for the page's three colour channels (a grey curve repeated)."""
+    domain = TermDomain.from_json((meta.get(MAP_NAME) or {}).get("encoding"), f"svbrdf.json {MAP_NAME}.encoding")
+    if domain.curve is None:
+        return {"transfer": "srgb"}
+    curve = domain.curve
+    slope = curve.slope_at_one(torch.ones(curve.channels, dtype=torch.float64)).tolist()
+    three = {"gamma": curve.gamma, "offset": curve.offset, "contrast": curve.contrast, "slope": slope}
+    return {"transfer": "response", **{k: [float(v[i % len(v)]) for i in range(3)] for k, v in three.items()}}
 
 
 def _kernel(capture: Capture | None) -> Kernel | None:
@@ -230,6 +246,7 @@ def open_site(
         "lights": [] if capture is None else capture.directions().tolist(),
         **near_lights(capture, meta, height, width),
         "term": terms,
+        "term_encoding": term_encoding(meta) if terms else None,
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
     }

@@ -8,7 +8,9 @@
 // A fit's residual term (manifest term: its basis functions; the tiles' term textures), on the
 // "relit" layer, as torchspec.residual_term.ResidualTerm.apply adds it at unit light:
 // decode(w encode(value) + sum_j c_j H_j(d)), d the light's direction (an extended kernel's
-// effective direction); the "physical" layer leaves it off.
+// effective direction), encode the photographs' encoding (manifest term_encoding: sRGB, or the
+// capture's estimated camera response: torchspec.residual_term.TermDomain); the "physical" layer
+// leaves it off.
 // A near light (manifest positions, near_radius; the distance control) lights each texel as
 // torchspec/near_lights.py does: from (p - x) / |p - x| with the falloff (|p| / |p - x|)^2, x the
 // centre of the texel's block of torchspec.relight.render_near (or, asked, of the pixel itself):
@@ -56,6 +58,9 @@ uniform vec4 uDiffuse[64]; // rows 2i and 2i + 1: (a, b) of d = (a l_xy / |l_xy|
 #endif
 #if TERM // the residual term's basis functions (4 or 9): its weight and coefficients, packed
 uniform sampler2D tTerm0, tTerm1, tTerm2, tTerm3, tTerm4, tTerm5, tTerm6;
+#if CURVE // its encoding, a camera response (torchspec.response.ResponseCurve) per channel
+uniform vec3 uGamma, uOffset, uContrast, uSlope; // uSlope: the curve's slope at code 1
+#endif
 #endif
 uniform vec3 uLight, uView, uModelColours[8];
 uniform vec4 uNear; // a near light: its position (image widths from the image's centre) and w = 1; w = 0: distant
@@ -235,6 +240,42 @@ vec3 termDirection() {
 #endif
 }
 
+#if CURVE
+// torchspec.residual_term.TermDomain with a camera response: torchspec.response's g (codes to
+// linear) and its closed-form inverse (invert_curve) on [0, 1], odd below 0 and continued along
+// the slope at code 1 above 1.
+vec3 logistic(vec3 x) { return 1.0 / (1.0 + exp(-x)); }
+
+vec3 curveDecode(vec3 v) {
+  vec3 still = step(abs(uContrast), vec3(1e-3)), m = max(abs(uContrast), vec3(1e-3));
+  vec3 low = logistic(-m / 2.0), high = logistic(m / 2.0);
+  vec3 p = clamp(low + v * (high - low), 1e-6, 1.0 - 1e-6);
+  vec3 up = 0.5 + log(p / (1.0 - p)) / m, un = (logistic(m * (v - 0.5)) - low) / (high - low);
+  vec3 u = clamp(mix(mix(un, up, step(0.0, uContrast)), v, still), 0.0, 1.0);
+  vec3 h0 = pow(max(uOffset / (1.0 + uOffset), 1e-30), uGamma);
+  return (pow(max((u + uOffset) / (1.0 + uOffset), 1e-30), uGamma) - h0) / (1.0 - h0);
+}
+
+vec3 curveEncode(vec3 y) {
+  vec3 still = step(abs(uContrast), vec3(1e-3)), m = max(abs(uContrast), vec3(1e-3));
+  vec3 low = logistic(-m / 2.0), high = logistic(m / 2.0);
+  vec3 h0 = pow(max(uOffset / (1.0 + uOffset), 1e-30), uGamma);
+  vec3 u = clamp((1.0 + uOffset) * pow(max(h0 + y * (1.0 - h0), 0.0), 1.0 / uGamma) - uOffset, 0.0, 1.0);
+  vec3 z = clamp(low + u * (high - low), 1e-6, 1.0 - 1e-6);
+  vec3 vp = (logistic(m * (u - 0.5)) - low) / (high - low), vn = 0.5 + log(z / (1.0 - z)) / m;
+  return clamp(mix(mix(vn, vp, step(0.0, uContrast)), u, still), 0.0, 1.0);
+}
+
+vec3 encode(vec3 v) {
+  vec3 a = abs(v);
+  return sign(v) * mix(curveEncode(min(a, 1.0)), 1.0 + (a - 1.0) / uSlope, step(vec3(1.0), a));
+}
+
+vec3 decode(vec3 e) {
+  vec3 a = abs(e);
+  return sign(e) * mix(curveDecode(min(a, 1.0)), 1.0 + (a - 1.0) * uSlope, step(vec3(1.0), a));
+}
+#else
 // torchspec.residual_term.encode and decode: the sRGB transfer extended to every real value (at
 // the knee either side: the two agree there).
 vec3 encode(vec3 v) {
@@ -246,6 +287,7 @@ vec3 decode(vec3 e) {
   vec3 a = abs(e), knee = vec3(12.92 * 0.0031308);
   return sign(e) * mix(a / 12.92, pow((max(a, knee) + 0.055) / 1.055, vec3(2.4)), step(knee, a));
 }
+#endif
 
 // The physical value at unit light with the pixel's residual term (ResidualTerm.apply): the
 // hemispherical harmonics of torchspec.residual_term.hsh_basis at d (phi's cosine and sine from d's
@@ -373,7 +415,8 @@ class Viewer {
     };
     const p = gl.createProgram();
     gl.attachShader(p, shader(gl.VERTEX_SHADER, VERTEX));
-    const defines = `\n#define EXTENDED ${extended ? 1 : 0}\n#define TERM ${this.m.term || 0}\n`;
+    const curve = this.m.term_encoding && this.m.term_encoding.transfer === "response" ? this.m.term_encoding : null;
+    const defines = `\n#define EXTENDED ${extended ? 1 : 0}\n#define TERM ${this.m.term || 0}\n#define CURVE ${curve ? 1 : 0}\n`;
     const source = FRAGMENT.replace("\n", defines); // after #version
     gl.attachShader(p, shader(gl.FRAGMENT_SHADER, source));
     gl.linkProgram(p);
@@ -386,6 +429,7 @@ class Viewer {
     }
     ["tGeo", "tRough", "tKd", "tKs", "tKs2", "tStd", "tPhoto"].forEach((n, i) => gl.uniform1i(this.u[n], i));
     for (let i = 0; i < 7; i++) if (this.u[`tTerm${i}`]) gl.uniform1i(this.u[`tTerm${i}`], TILE_UNITS + 1 + i);
+    if (curve) ["gamma", "offset", "contrast", "slope"].forEach((n) => gl.uniform3fv(this.u[`u${n[0].toUpperCase()}${n.slice(1)}`], curve[n]));
     gl.uniform1f(this.u.uTile, this.m.tile);
     const colours = (this.m.model_colours || []).slice(0, 8);
     gl.uniform1i(this.u.uModels, colours.length);
