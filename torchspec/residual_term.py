@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from .errors import TorchspecError
+from .io.images import Transfer
 from .lights import Lights, diffuse_directions
 from .photometric import MAD_SCALE
 from .response import ResponseCurve
@@ -133,10 +134,10 @@ class TermDomain:
     @classmethod
     def of_source(cls, source: dict | None) -> TermDomain:
         """The domain of a capture's ``source`` record (``capture.json``): its estimated camera
-        response where the import estimated one, else sRGB."""
-        if source and source.get("transfer") == "response" and source.get("response"):
-            return cls(ResponseCurve.from_json(source["response"], "capture.json source.response"))
-        return cls()
+        response where the import estimated one (read by
+        :meth:`torchspec.io.images.Transfer.of_source`), else sRGB."""
+        transfer = Transfer.of_source(source)
+        return cls(transfer.curve if transfer is not None and transfer.name == "response" else None)
 
 
 def hsh_basis(directions: Tensor, order: int = 3) -> Tensor:
