@@ -1,9 +1,11 @@
 """The package's layout against the style guide (``docs/architecture.md``): the longest modules and
-functions, and every import of an underscore name across module boundaries outside its own subpackage.
+functions, every import of an underscore name across module boundaries outside its own subpackage,
+and every tensor the package makes without saying its device.
 
 Run ``python experiments/architecture.py`` (``--json`` for the numbers as JSON); it exits 1 when a module
-is over ``MODULE_LINES`` lines, a function over ``FUNCTION_LINES`` or an underscore name crosses a
-boundary, so ``tests/test_architecture.py`` keeps the layout as it is.
+is over ``MODULE_LINES`` lines, a function over ``FUNCTION_LINES``, an underscore name crosses a
+boundary or a tensor is made without ``device=`` or a reason to be on the CPU
+(:func:`deviceless_constructors`), so ``tests/test_architecture.py`` keeps the layout as it is.
 """
 
 from __future__ import annotations
@@ -19,6 +21,12 @@ PACKAGE = ROOT / "torchspec"
 MODULE_LINES = 600
 FUNCTION_LINES = 100
 SCANNED = ("torchspec", "experiments")
+CONSTRUCTORS = frozenset(
+    "tensor as_tensor zeros ones empty full arange linspace logspace eye rand randn randint randperm".split()
+)
+"""``torch`` functions that make a tensor: in the package each names its ``device=`` (that of its
+inputs), or its line (or the line above it) says why it is on the CPU on purpose (a comment naming
+``CPU``), so that every command runs on CUDA as on the CPU."""
 
 
 def _module_name(path: Path) -> str:
@@ -111,16 +119,42 @@ def private_imports(folders: tuple[str, ...] = SCANNED) -> list[str]:
     return found
 
 
+def deviceless_constructors(root: Path = PACKAGE) -> list[str]:
+    """``path:line: code`` of each call ``torch.<constructor>(...)`` (:data:`CONSTRUCTORS`) in the
+    package without a ``device=`` keyword and without a comment naming ``CPU`` on its lines or the
+    line above (``new_*`` and ``*_like`` follow their tensor and are not listed)."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        lines = path.read_text().splitlines()
+        for node in ast.walk(ast.parse("\n".join(lines))):
+            if not (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Attribute)
+                and node.func.attr in CONSTRUCTORS
+                and isinstance(node.func.value, ast.Name)
+                and node.func.value.id == "torch"
+            ):
+                continue
+            if any(keyword.arg in ("device", None) for keyword in node.keywords):
+                continue  # device= (or **options that carry it)
+            span = lines[max(node.lineno - 2, 0) : node.end_lineno]
+            if any("#" in line and "CPU" in line.split("#", 1)[1] for line in span):
+                continue
+            found.append(f"{path.relative_to(root.parent)}:{node.lineno}: {lines[node.lineno - 1].strip()}")
+    return found
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print the numbers as JSON")
     parser.add_argument("--most", type=int, default=5, help="how many of the longest to list (default: 5)")
     args = parser.parse_args(argv)
-    mods, funcs, crossing = modules(), functions(), private_imports()
+    mods, funcs, crossing, deviceless = modules(), functions(), private_imports(), deviceless_constructors()
     over = [row for row in mods if row[1] > MODULE_LINES] + [row for row in funcs if row[1] > FUNCTION_LINES]
     if args.json:
         print(json.dumps({"modules": mods[: args.most], "functions": funcs[: args.most],
-                          "private_imports": crossing, "over_limits": over}, indent=1))
+                          "private_imports": crossing, "over_limits": over,
+                          "deviceless": deviceless}, indent=1))
     else:
         print(f"longest modules (limit {MODULE_LINES} lines):")
         for name, lines in mods[: args.most]:
@@ -131,7 +165,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"underscore names imported across modules: {len(crossing)}")
         for line in crossing:
             print(f"  {line}")
-    return 1 if over or crossing else 0
+        print(f"tensors made without device= or a reason to be on the CPU: {len(deviceless)}")
+        for line in deviceless[: args.most]:
+            print(f"  {line}")
+    return 1 if over or crossing or deviceless else 0
 
 
 if __name__ == "__main__":

@@ -39,6 +39,31 @@ def test_no_underscore_name_crosses_a_module_boundary():
     assert not crossing, "underscore names imported across modules:\n" + "\n".join(crossing)
 
 
+def test_every_tensor_the_package_makes_says_its_device():
+    deviceless = ARCHITECTURE.deviceless_constructors()
+    assert not deviceless, (
+        "tensors made without device= (that of the inputs) or a comment on the line saying why they are on the CPU:\n"
+        + "\n".join(deviceless)
+    )
+
+
+def test_the_device_check_finds_a_constructor_without_device(tmp_path):
+    package = tmp_path / "torchspec"
+    package.mkdir()
+    (package / "m.py").write_text(
+        "import torch\n"
+        "a = torch.zeros(3)\n"
+        "b = torch.zeros(3, device=a.device)\n"
+        "c = torch.tensor([1.0])  # on the CPU: a table the caller moves\n"
+        "# the CPU on purpose: read from a file\n"
+        "d = torch.arange(\n    4\n)\n"
+        "e = torch.ones_like(a)\n"
+        "f = torch.eye(\n    2,\n)\n"
+    )
+    found = ARCHITECTURE.deviceless_constructors(package)
+    assert [line.split(":")[:2] for line in found] == [["torchspec/m.py", "2"], ["torchspec/m.py", "10"]]
+
+
 def test_the_layout_script_passes():
     assert ARCHITECTURE.main(["--most", "0"]) == 0
 

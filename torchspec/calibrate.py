@@ -250,7 +250,8 @@ def _usable(r: _Responses, reflection: Tensor, layout, radial: bool, along_line:
     typical = r.width[r.lit].median()
     alike = (r.width / typical - 1.0).abs() <= WIDTH
     if float(alike[r.lit].to(r.width.dtype).mean()) < 0.5:
-        low, high = torch.quantile(r.width[r.lit], torch.tensor([0.05, 0.95], dtype=r.width.dtype)).tolist()
+        q = torch.tensor([0.05, 0.95], dtype=r.width.dtype, device=r.width.device)
+        low, high = torch.quantile(r.width[r.lit], q).tolist()
         raise CalibrationError(
             f"the capture must be of a mirror, whose pixels all see the light's one kernel: their responses' widths "
             f"must agree within {100 * WIDTH:g} %; got widths from {low:.3g} to {high:.3g} (l units, 5-95 %), "
@@ -528,18 +529,18 @@ def calibrate(
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
     stack = capture.read_frames(picked, dtype=torch.float64, nonfinite="keep")  # (K, C, H, W)
-    index = torch.tensor(picked)
+    index = torch.tensor(picked)  # on the CPU: it indexes the capture's CPU tables (exposure, irradiance, directions)
     scale = capture.exposure()[index, None] * capture.irradiance()[index]  # (K, C)
     values = (stack / scale[:, :, None, None]).mean(1).flatten(1).T  # (H W, K)
     if normal is not None:
-        normal = torch.as_tensor(normal, dtype=torch.float64)
+        normal = torch.as_tensor(normal, dtype=torch.float64, device=values.device)
         if normal.dim() == 3:
             normal = normal.reshape(-1, 3)
     try:
         result = recover_kernel(
             values,
             capture.directions()[index],
-            view=torch.tensor(capture.view, dtype=torch.float64),
+            view=torch.tensor(capture.view, dtype=torch.float64, device=values.device),
             normal=normal,
             size=size,
             extent=extent,

@@ -119,6 +119,25 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------------------
 
 
+def _add_device(command) -> None:
+    """``--device``: where the command computes (:func:`torchspec.pipeline.plan.device_of`)."""
+    command.add_argument("--device", default=None, metavar="auto|cpu|cuda[:N]",
+                         help="where to compute: auto (the default: CUDA when torch sees a GPU, else the CPU), "
+                              "cpu, cuda or cuda:N")
+
+
+def _device(parser: argparse.ArgumentParser, args: argparse.Namespace):
+    """``args.device`` checked before any work: the ``torch.device``, or ``None`` when not given."""
+    if args.device is None:
+        return None
+    from .pipeline.plan import device_of
+
+    try:
+        return device_of(args.device)
+    except TorchspecError as error:
+        parser.error(f"--device: {error}")
+
+
 def _add_overwrite(command, more: str = "") -> None:
     """The option :data:`OVERWRITE`: without it, an output that holds files is refused before any work."""
     command.add_argument(OVERWRITE, action="store_true",
@@ -134,6 +153,7 @@ def _add_simulation_commands(commands) -> None:
                       help="the folder to write (default: ./torchspec-demo)")
     demo.add_argument("--size", type=int, default=64, help="the painting's width and height in pixels (default: 64)")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_device(demo)
     _add_overwrite(demo)
 
     simulate = commands.add_parser("simulate", help="render a synthetic capture (with truth/) from a config")
@@ -181,6 +201,7 @@ def _add_fit_command(commands) -> None:
     cluster.add_argument("--workers", type=int, default=None, metavar="N",
                          help="fit the tiles on a local Dask cluster of N worker processes (needs the dask extra: "
                               "pip install 'torchspec[dask]')")
+    _add_device(fit)
 
 
 def _add_map_commands(commands) -> None:
@@ -196,6 +217,7 @@ def _add_map_commands(commands) -> None:
     render.add_argument("--no-term", action="store_true",
                         help="leave out the maps' residual term (residual_term.exr): the physical model alone")
     render.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_device(render)
     _add_overwrite(render)
 
     export = commands.add_parser("export", help="export SVBRDF maps: a Mitsuba 3 scene, a glTF 2.0 quad, 16-bit "
@@ -354,8 +376,10 @@ def _demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         parser.error(f"--size must be in 8..4096; got {args.size}")
     from . import demo
 
+    device = _device(parser, args)
     _check_output(args, args.output or demo.DEFAULT_OUTPUT)
-    demo.run(args.output, size=args.size, progress=not args.quiet, overwrite=args.overwrite)
+    demo.run(args.output, size=args.size, progress=not args.quiet, overwrite=args.overwrite,
+             device=str(device or "auto"))
     return 0
 
 
@@ -396,6 +420,8 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.residual_term is not None:
         term = args.residual_term
         config = replace(config, residual_term=term if term == "auto" else int(term))
+    if args.device is not None:
+        config = replace(config, device=str(_device(parser, args)))
     if args.threads is not None:
         if args.threads != "auto" and not args.threads.isdigit():
             parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
@@ -435,9 +461,11 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .relight import render_capture
 
+    device = _device(parser, args)
     _check_output(args)
     report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path,
-                            overwrite=args.overwrite, progress=not args.quiet, term=not args.no_term)
+                            overwrite=args.overwrite, progress=not args.quiet, term=not args.no_term,
+                            device=str(device or "auto"))
     print(f"wrote {report['frames']} frames to {args.output}")
     if report.get("psnr_db") is not None:
         print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "

@@ -45,9 +45,16 @@ def scene(size: int = 64, seed: int = 777) -> SimulationConfig:
 
 
 def run(
-    output: str | Path | None = None, *, size: int = 64, seed: int = 777, progress: bool = True, overwrite: bool = False
+    output: str | Path | None = None,
+    *,
+    size: int = 64,
+    seed: int = 777,
+    progress: bool = True,
+    overwrite: bool = False,
+    device: str = "auto",
 ) -> dict:
     """Run the demo into ``output`` (default ``./torchspec-demo``); returns ``report.json``'s content.
+    The fit computes on ``device`` (``FitConfig.device``: ``auto``, ``cpu``, ``cuda[:N]``).
 
     ``output`` is checked before any work: a folder that holds files (an earlier demo's too) is
     refused unless ``overwrite`` (:func:`torchspec.outputs.check_output`).
@@ -68,7 +75,7 @@ def run(
     # Every second frame is fitted, the others held out to test the maps' predictions.
     fitted_frames = select_frames("::2", len(capture.frames))
     held = [k for k in range(len(capture.frames)) if k not in set(fitted_frames)]
-    fit_config = FitConfig(model="auto")
+    fit_config = FitConfig(model="auto", device=device)
     result = fit(capture, config=fit_config, frames=fitted_frames, progress=progress)
     write_fit(output / "maps", result, overwrite=overwrite)
     fit_seconds = result.stats["seconds"]["total"]
@@ -79,9 +86,9 @@ def run(
     )
 
     lights = capture.lights(dtype=torch.float64)
-    view = torch.tensor(capture.view, dtype=torch.float64)
+    view = torch.tensor(capture.view, dtype=torch.float64, device=result.svbrdf.normal.device)
     stack = capture.read_frames(dtype=torch.float64)
-    index = torch.tensor(held)
+    index = torch.tensor(held)  # on the CPU: it picks from the capture's lights and frames, read on the CPU
     held_lights = lights[index]
     peak = float(stack.abs().max())
     scores = score(result.svbrdf, truth, regions)

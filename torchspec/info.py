@@ -163,7 +163,7 @@ def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
     problem = fit_problem(l)
     if problem is not None:
         notes.append(f"{capture.manifest}: torchspec fit (with lobes, its default) refuses these frames: {problem}")
-    cover = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype))
+    cover = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype, device=l.device))
     if cover is not None:
         notes.append(f"{capture.manifest}: {cover}")
     return []
@@ -206,6 +206,7 @@ def _scan(
             row["saturated"] = int(mask.sum())
             if row["saturated"]:
                 key = float(clip)
+                # on the CPU: per-pixel counts for the report, kept off the accelerator (mask.cpu())
                 counts[key] = counts.get(key, torch.zeros(mask.shape, dtype=torch.int32)) + mask.cpu()
             rows.append(row)
             bar.update()

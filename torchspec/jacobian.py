@@ -103,6 +103,7 @@ def jacobian(
     mode: str = "analytic",
     quadrature: Quadrature = Quadrature(),
     diffuse_only: bool = False,
+    isotropic: bool | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Values and Jacobian of :func:`torchspec.rendering.render` with respect to each pixel's
     parameters (:func:`parameters`).
@@ -117,6 +118,9 @@ def jacobian(
         diffuse_only: the model without its lobe (``k_s`` taken as 0, the lobe not integrated):
             the values and the same columns, those of ``k_s`` and the lobe's shape being 0.
             Analytic mode only.
+        isotropic: whether every pixel's lobe is isotropic (``alpha_x = alpha_y``: the tangent
+            frame's derivatives are not needed), as a model knows it; ``None``: read from the
+            roughness, one host synchronisation per call (:func:`jacobian_parts`).
 
     Returns:
         ``(values (*, K, C), jacobian (*, K, C, P))``.
@@ -153,7 +157,7 @@ def jacobian(
             jac = torch.stack(columns, -1)
         else:
             parts = jacobian_parts(
-                from_parameters(part, flat.channels, grey, second), lights, view, quadrature, diffuse_only
+                from_parameters(part, flat.channels, grey, second), lights, view, quadrature, diffuse_only, isotropic
             )
             value, jac = assemble(*parts)
         if values is None:
@@ -256,12 +260,14 @@ def jacobian_parts(
     view: Tensor,
     quadrature: Quadrature,
     diffuse_only: bool = False,
+    isotropic: bool | None = None,
 ) -> tuple:
     """Per pixel of a flat ``svbrdf (N,)`` and frame, what the values and every column are made
     of (:func:`assemble`): the diffuse and specular integrals ``(N, K)``, their derivatives in the
     normal and the lobe's shape ``(N, K, 3)``, ``dn/d(angles) (N, 3, 2)``, the frames' scale
     ``(1, K, C or 1)`` and the coefficients ``k_d (N, C)``, ``k_s (N, C_s)`` (then the second
-    lobe's integral, derivatives and ``k_s2``, if it has one)."""
+    lobe's integral, derivatives and ``k_s2``, if it has one). ``isotropic``: as for
+    :func:`jacobian`; a solver step passes its model's (no host synchronisation)."""
     chosen = choose_path(lights, quadrature.path)
     compiled = quadrature.compile
     like = svbrdf.diffuse
@@ -286,13 +292,14 @@ def jacobian_parts(
         no_lobe = torch.zeros_like(svbrdf.specular)
         svbrdf = SVBRDF(n, svbrdf.diffuse, no_lobe, svbrdf.roughness, rotation, svbrdf.channels)
     else:
-        spec, d_spec_n, d_spec_shape = _lobe_parts(svbrdf, lights, view, chosen, orders, rotation, compiled)
+        spec, d_spec_n, d_spec_shape = _lobe_parts(svbrdf, lights, view, chosen, orders, rotation, compiled, isotropic)
 
     scale = lights.scale[None]  # (1, K, C or 1)
     second = ()
     if svbrdf.specular2 is not None and not diffuse_only:
         lobe2 = SVBRDF(n, svbrdf.diffuse, svbrdf.specular2, svbrdf.roughness2, rotation, svbrdf.channels)
-        second = (*_lobe_parts(lobe2, lights, view, chosen, orders, rotation, compiled), svbrdf.specular2.contiguous())
+        parts = _lobe_parts(lobe2, lights, view, chosen, orders, rotation, compiled, isotropic)
+        second = (*parts, svbrdf.specular2.contiguous())
     # Contiguous coefficients: slices of the solver's parameters sit at offsets torch.compile guards on.
     return (
         diffuse,
@@ -308,13 +315,16 @@ def jacobian_parts(
     )
 
 
-def _lobe_parts(svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, orders, rotation, compiled: bool) -> tuple:
+def _lobe_parts(
+    svbrdf: SVBRDF, lights: Lights, view: Tensor, chosen: str, orders, rotation, compiled: bool, isotropic=None
+) -> tuple:
     """The lobe's integrals ``(N, K)`` and their derivatives in the normal and its shape
     ``(N, K, 3)`` (:func:`jacobian_parts`), on the path ``chosen`` with the orders
-    ``(fast, reference)``."""
+    ``(fast, reference)``; ``isotropic`` ``None``: read from the roughness (a host synchronisation)."""
     kernel, centre = lights.kernel, lights.directions
     n = svbrdf.normal
-    isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
+    if isotropic is None:
+        isotropic = bool((svbrdf.roughness[:, 0] == svbrdf.roughness[:, 1]).all())
     frames = (None, None) if isotropic else _frame_derivatives(n, rotation)
     if chosen == "point":
         pixels = lobe_frame(svbrdf, view)

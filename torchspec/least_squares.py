@@ -139,6 +139,7 @@ def normal_equations(
     *,
     quadrature: Quadrature = Quadrature(),
     diffuse_only: bool = False,
+    isotropic: bool | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The least-squares normal equations of ``r = weight (render - observed)`` in the parameters
     ``params @ select``, without the Jacobian ``(N, K, C, P)`` in memory: what Levenberg-Marquardt
@@ -149,19 +150,31 @@ def normal_equations(
         observed: ``(N, K, C)``; weight: ``(N, K, C)`` (0 drops a sample).
         select: ``(2 + C + C_s + 3, P)``: the model's parameters as combinations of this
             module's columns (:meth:`torchspec.models.Model.selection`).
-        quadrature, diffuse_only: as for :func:`torchspec.jacobian.jacobian`; with
+        quadrature, diffuse_only, isotropic: as for :func:`torchspec.jacobian.jacobian`; with
             ``quadrature.compile`` the assembly and the sums over frames are fused too.
 
     Returns:
         ``(cost (N,), J^T J (N, P, P), J^T r (N, P))``, ``cost = 0.5 |r|^2``.
     """
-    options = dict(quadrature=quadrature, diffuse_only=diffuse_only)
+    options = dict(quadrature=quadrature, diffuse_only=diffuse_only, isotropic=isotropic)
     grams = dict(gram=_normal_gram, gram_eager=_normal_gram_eager)
     return _contract(_normal, svbrdf, lights, view, observed, (weight,), select, **grams, **options)
 
 
 def _contract(
-    function, svbrdf, lights, view, observed, weights, select, *, quadrature, diffuse_only, gram=None, gram_eager=None
+    function,
+    svbrdf,
+    lights,
+    view,
+    observed,
+    weights,
+    select,
+    *,
+    quadrature,
+    diffuse_only,
+    isotropic=None,
+    gram=None,
+    gram_eager=None,
 ):
     """``function(parts, observed, *weights) -> (cost, matrix, matrix or vector, ...)`` over chunks of
     pixels, the matrices and vectors taken to the model's columns ``select``; for one lobe, ``gram``
@@ -190,7 +203,7 @@ def _contract(
     out = []
     for start in range(0, max(n, 1), chunk):
         part = svbrdf[start : start + chunk]
-        parts = jacobian_parts(part, lights, view, quadrature, diffuse_only)
+        parts = jacobian_parts(part, lights, view, quadrature, diffuse_only, isotropic)
         rows = slice(start, start + chunk)
         if channel_rows is not None and compile and part.diffuse.shape[0] > 1:
             out.append(

@@ -33,7 +33,7 @@ class LobeFrame(NamedTuple):
     inv_ax: Tensor
     inv_ay: Tensor
     scale: Tensor  # 1 / (4 pi a_x a_y), 0 where there is no lobe
-    view: tuple[float, float, float]
+    view: tuple[Tensor, Tensor, Tensor]  # 0-dim: read where they are used, never on the host
 
 
 def lobe_frame(svbrdf: SVBRDF, view: Tensor) -> LobeFrame:
@@ -57,7 +57,7 @@ def lobe_frame(svbrdf: SVBRDF, view: Tensor) -> LobeFrame:
         1.0 / safe[:, 0, None, None],
         1.0 / safe[:, 1, None, None],
         scale[:, None, None],
-        tuple(float(x) for x in view.tolist()),
+        tuple(view.to(n).unbind()),
     )
 
 
@@ -144,7 +144,7 @@ def pick(pixels: LobeFrame, index: Tensor) -> LobeFrame:
 
     def take(field):
         if isinstance(field, tuple):
-            return field if isinstance(field[0], float) else tuple(c[index] for c in field)
+            return field if field[0].dim() == 0 else tuple(c[index] for c in field)  # the view: shared
         return field[index]
 
     return LobeFrame(*(take(f) for f in pixels))

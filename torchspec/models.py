@@ -196,6 +196,7 @@ class Model:
                     select,
                     quadrature=quadrature,
                     diffuse_only=not self.lobe,
+                    isotropic=not self.anisotropic,
                 )
                 return NormalEquations(*out)
 
@@ -203,7 +204,9 @@ class Model:
 
         def fn(params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
             svbrdf = self.unpack(params, channels)
-            value, full = jacobian(svbrdf, lights, view, quadrature=quadrature, diffuse_only=not self.lobe)
+            value, full = jacobian(
+                svbrdf, lights, view, quadrature=quadrature, diffuse_only=not self.lobe, isotropic=not self.anisotropic
+            )
             wi = w[index]
             r = ((value - observed[index]) * wi).flatten(1)
             jac = self.select(full, len(channels)) * wi[..., None]

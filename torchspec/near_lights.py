@@ -53,8 +53,8 @@ def near_light(positions: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
 def block_order(height: int, width: int, block: int) -> Tensor:
     """A permutation of the ``H W`` pixels (row-major indices) that lists the image in square
     blocks of ``block x block`` pixels, block after block row by row (the last ones narrower)."""
-    rows = torch.arange(height)
-    cols = torch.arange(width)
+    # on the CPU: an index table, which its users (Tiling, render_near) move to the pixels' device
+    rows, cols = torch.arange(height), torch.arange(width)
     index = (rows[:, None] * width + cols[None, :]).reshape(height, width)
     key = (rows[:, None] // block) * math.ceil(width / block) + cols[None, :] // block  # each pixel's block
     # a stable sort by block keeps row-major order within each block

@@ -22,6 +22,7 @@ from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
 from .lights import Lights
 from .near_lights import lights_at
 from .outputs import check_output
+from .pipeline.plan import device_of
 from .pipeline.tiling import tiling_of
 from .quadrature import Quadrature
 from .rendering import TILE_PIXELS, render, render_image
@@ -85,14 +86,16 @@ def fit_positions(capture: Capture, meta: dict) -> tuple[torch.Tensor | None, st
         radius = float(record["radius"])
         return radius * directions, f"the fit's dome radius, {radius:g} widths"
     if "position" in calibrated and record.get("positions") is not None:
-        frames, found = fit.get("frames") or [], torch.tensor(record["positions"], dtype=torch.float64)
+        frames = fit.get("frames") or []
+        found = torch.tensor(record["positions"], dtype=torch.float64, device=directions.device)
         if tuple(found.shape) != (len(frames), 3) or not all(0 <= k < len(directions) for k in frames):
             raise TorchspecError(
                 f"svbrdf.json: fit.lights.positions ({tuple(found.shape)}) is not a position for each of fit.frames "
                 f"of {capture.manifest} ({len(directions)} frames): use the maps with the capture they were fitted from"
             )
         base = positions if positions is not None else found.norm(dim=-1).median() * directions
-        return base.index_put((torch.tensor(frames, dtype=torch.long),), found), "the fit's calibrated positions"
+        index = torch.tensor(frames, dtype=torch.long, device=base.device)
+        return base.index_put((index,), found), "the fit's calibrated positions"
     return positions, "the capture's positions"
 
 
@@ -115,9 +118,11 @@ def render_capture(
     overwrite: bool = False,
     progress: bool = False,
     term: bool = True,
+    device: str | torch.device = "auto",
 ) -> dict:
     """Predict a capture's frames from the maps in ``svbrdf_dir``; write them to ``output_dir``
-    (unless ``None``) and compare with the capture's frames.
+    (unless ``None``) and compare with the capture's frames. The frames are computed on
+    ``device`` (``auto``: CUDA when present, :func:`torchspec.pipeline.plan.device_of`).
 
     ``output_dir`` is checked before any work: a folder that holds files is refused unless
     ``overwrite`` (:func:`torchspec.outputs.check_output`). ``progress`` shows a bar over the
@@ -142,26 +147,30 @@ def render_capture(
         raise CaptureError(
             f"{Path(svbrdf_dir)}: the maps have channels {svbrdf.channels}, {capture.manifest} has {capture.channels}."
         )
-    lights = capture.lights(light=light, dtype=dtype)
-    view = torch.tensor(capture.view, dtype=dtype)
+    where = device_of(device)
+    svbrdf = svbrdf.to(where)
+    lights = capture.lights(light=light, dtype=dtype).to(device=where)
+    view = torch.tensor(capture.view, dtype=dtype, device=where)
     quadrature = Quadrature(path=path)
     found = None
     if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
         source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
         encoding = (maps.meta.get(MAP_NAME) or {}).get("encoding")  # the photographs' encoding; absent: sRGB
+        weight = maps.extra.get(WEIGHT_MAP)
         found = ResidualTerm.from_map(
-            maps.extra[MAP_NAME], len(svbrdf.channels), source, maps.extra.get(WEIGHT_MAP), encoding
+            maps.extra[MAP_NAME].to(where), len(svbrdf.channels), source, None if weight is None else weight.to(where),
+            encoding,
         )
     positions = fit_positions(capture, maps.meta)[0]
     if positions is not None:  # near lights: block by block, as the fit saw them
         values = render_near(
-            svbrdf.to(dtype), lights, positions.to(dtype), view, quadrature=quadrature, lobe=lobe, term=found
+            svbrdf.to(dtype), lights, positions.to(where, dtype), view, quadrature=quadrature, lobe=lobe, term=found
         )
     else:
         values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
         if found is not None:
             values = found.apply(values, lights)
-    predicted = values.permute(2, 3, 0, 1).contiguous()  # (K, C, H, W)
+    predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored
     if output_dir is not None:
         write_capture(Path(output_dir), capture, predicted.float(), overwrite=overwrite)
     # As recorded: sensor noise may dip below 0; NaN or Inf pixels (warned about) are left out of the scores.

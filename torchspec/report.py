@@ -59,7 +59,8 @@ def score(svbrdf: SVBRDF, truth: SVBRDF, regions: Tensor | None = None, matte_ks
     (mean of both axes) on the lobed regions, and the share of matte pixels whose fitted ``k_s``
     stays below ``matte_ks``; where the truth has a second lobe and the fit one too, its
     ``k_s`` and ``alpha`` (``<region>_ks2``, ``<region>_alpha2``)."""
-    s, t = svbrdf.flatten(), truth.flatten()
+    s = svbrdf.flatten()
+    t = truth.flatten().to(device=s.normal.device)  # the fit's device (a fit on CUDA, a truth read on the CPU)
     normal = torch.rad2deg(angle(s.normal.double(), t.normal.double()))
     kd = _relative(s.diffuse, t.diffuse)
     out = {
@@ -92,9 +93,10 @@ def score(svbrdf: SVBRDF, truth: SVBRDF, regions: Tensor | None = None, matte_ks
 def heldout_psnr(svbrdf: SVBRDF, lights: Lights, view: Tensor, observed: Tensor, peak: float) -> float:
     """PSNR (dB) of predicting ``observed (K, C, H, W)`` under ``lights`` from the maps, with
     ``peak`` as the signal's peak (e.g. the whole capture's maximum)."""
-    like = observed.dtype
-    predicted = render(svbrdf.to(dtype=like), lights.to(dtype=like), view.to(like)).permute(2, 3, 0, 1)
-    mse = (predicted - observed).pow(2).mean().item()
+    like, device = observed.dtype, svbrdf.normal.device  # rendered where the maps are
+    lights, view = lights.to(device=device, dtype=like), view.to(device=device, dtype=like)
+    predicted = render(svbrdf.to(dtype=like), lights, view).permute(2, 3, 0, 1)
+    mse = (predicted - observed.to(device)).pow(2).mean().item()
     return 10 * math.log10(peak * peak / mse) if mse > 0 else math.inf
 
 
@@ -206,10 +208,11 @@ def relit_strip(
     """Renders ``(count, H, W, C)`` of the maps under a light (``kernel``) circling the zenith at
     ``theta_deg``, and its directions ``(count, 3)``."""
     like = svbrdf.diffuse
-    psi = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count)
+    psi = torch.arange(count, dtype=torch.float64, device=like.device) * (2 * math.pi / count)
     radius = math.sin(math.radians(theta_deg))
     directions = from_plane(torch.stack([radius * torch.cos(psi), radius * torch.sin(psi)], -1)).to(like)
-    lights = Lights(directions, kernel, torch.ones(count, 1, dtype=like.dtype), torch.ones(count, dtype=like.dtype))
+    irradiance = torch.ones(count, 1, dtype=like.dtype, device=like.device)
+    lights = Lights(directions, kernel, irradiance, torch.ones(count, dtype=like.dtype, device=like.device))
     values = render(svbrdf, lights, view.to(like))  # (H, W, K, C)
     return values.permute(2, 0, 1, 3), directions
 
@@ -298,7 +301,7 @@ def write_report(
     s = fit.svbrdf.to(device="cpu", dtype=torch.float64)
     t = truth.to(device="cpu", dtype=torch.float64) if truth is not None else None
     count = strip.shape[0]
-    white = float(np.quantile((true_strip if true_strip is not None else strip).double().numpy(), 0.995))
+    white = float(np.quantile((true_strip if true_strip is not None else strip).double().cpu().numpy(), 0.995))
     ks, alpha = s.specular.mean(-1).numpy(), s.roughness.mean(-1).numpy()
     true_ks = t.specular.mean(-1).numpy() if t is not None else None
     true_alpha = t.roughness.mean(-1).numpy() if t is not None else None

@@ -276,6 +276,7 @@ def response_samples(codes: Tensor, count: int, *, seed: int = 0) -> Tensor:
     usable = ((median > 0.05) & (median < 0.9)).all(0).nonzero().flatten().cpu()
     if usable.numel() > count:
         generator = torch.Generator().manual_seed(seed)
+        # on the CPU: a seeded draw, the same on every device; moved below
         usable = usable[torch.randperm(usable.numel(), generator=generator)[:count]].sort().values
     return usable.to(codes.device)
 

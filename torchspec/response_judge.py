@@ -50,7 +50,7 @@ def judge_curves(
     k, c, h, w = crop.shape
     fitted = [i for i in range(k) if i % 5 != left_out]
     predicted = [i for i in range(k) if i % 5 == left_out]
-    view = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=crop.device)
     frames = tuple(
         Frame(
             file=f"frames/{i:04d}.exr", direction=tuple(float(x) for x in directions[i]), irradiance=1.0, exposure=1.0
@@ -76,8 +76,9 @@ def judge_curves(
                 warnings.simplefilter("ignore")
                 capture = write_capture(root, capture, linear.float())
                 result = fit(capture, config=FitConfig(calibrate="none", residual_term=0, compile=False), frames=fitted)
-            lights = capture.lights(dtype=torch.float64)[predicted]
-            values = render_image(result.svbrdf.to(torch.float64), lights, view).permute(2, 3, 0, 1)  # (K', C, H, W)
+            lights = capture.lights(dtype=torch.float64)[predicted].to(device=crop.device)
+            maps = result.svbrdf.to(dtype=torch.float64, device=crop.device)  # where the codes are
+            values = render_image(maps, lights, view).permute(2, 3, 0, 1)  # (K', C, H, W)
             encoded = transfer.encode(values.clamp(0, 1).movedim(1, -1)).movedim(-1, 1)
             mse = float(((encoded * 255).round() / 255 - crop[predicted]).pow(2).nanmean())
             scores[name] = math.inf if mse == 0 else 10 * math.log10(1 / mse)

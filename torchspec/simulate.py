@@ -164,9 +164,9 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".", progress: bool
     centres = layout(config.layout)
     k = centres.shape[0]
     kernel = _kernel(config.light)
-    irradiance = torch.full((k, 1), config.irradiance, dtype=dtype)
-    lights = Lights(centres, kernel, irradiance, torch.ones(k, dtype=dtype))
-    view = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+    irradiance = torch.full((k, 1), config.irradiance, dtype=dtype, device=centres.device)
+    lights = Lights(centres, kernel, irradiance, torch.ones(k, dtype=dtype, device=centres.device))
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=centres.device)
     values = render_image(truth, lights, view, progress=progress, desc="simulate")  # (H, W, K, C)
     recorded, saturated = sense(values.permute(2, 3, 0, 1), config.sensor)  # (K, C, H, W)
     light = {"kernel": config.light.kernel, "domain": config.light.domain, "sigma": config.light.sigma}

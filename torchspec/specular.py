@@ -137,8 +137,9 @@ def locate_peak(
             image, period=layout.period[::-1], method=method, num_coefficients=num_coefficients, kernel=kernel
         )
         position = found.position.flip(-1)  # (y, x) -> (x, y)
-        spacing = torch.tensor([p / n for p, n in zip(layout.period, (nx, ny), strict=True)], dtype=residual.dtype)
-        period = torch.tensor(layout.period, dtype=residual.dtype)
+        like = {"dtype": residual.dtype, "device": residual.device}
+        spacing = torch.tensor([p / n for p, n in zip(layout.period, (nx, ny), strict=True)], **like)
+        period = torch.tensor(layout.period, **like)
         # Positions past the last cell by more than half a cell belong before the first one.
         position = torch.where(position > period - 0.5 * spacing, position - period, position)
         peak = position + start

@@ -185,8 +185,8 @@ def sphere_directions(frames: torch.Tensor, circle: Circle, *, level: float = 0.
     """
     k, _, h, w = frames.shape
     dtype = torch.float64
-    rows = torch.arange(h, dtype=dtype)[:, None].expand(h, w)
-    cols = torch.arange(w, dtype=dtype)[None, :].expand(h, w)
+    rows = torch.arange(h, dtype=dtype, device=frames.device)[:, None].expand(h, w)
+    cols = torch.arange(w, dtype=dtype, device=frames.device)[None, :].expand(h, w)
     inside = (cols - circle.cx) ** 2 + (rows - circle.cy) ** 2 <= (0.97 * circle.r) ** 2  # off the rim
     if not inside.any():
         raise TorchspecError(f"the sphere's circle {circle} holds no pixel of the {w}x{h} frames.")
@@ -207,7 +207,7 @@ def sphere_directions(frames: torch.Tensor, circle: Circle, *, level: float = 0.
     nz = (1 - nx * nx - ny * ny).clamp(min=1e-6).sqrt()
     normal = torch.stack([nx, ny, nz], -1)
     normal = normal / normal.norm(dim=-1, keepdim=True)
-    direction = 2 * normal[:, 2:3] * normal - torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+    direction = 2 * normal[:, 2:3] * normal - torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=frames.device)
     uncertainty = torch.rad2deg(2 * spread / (circle.r * normal[:, 2])).clamp(max=180)
     return SphereCalibration(direction, uncertainty, torch.stack([cx, cy], -1), circle)
 

@@ -261,12 +261,13 @@ def _smooth_field(shape: tuple[int, ...], scale: float, generator: torch.Generat
     # Blurring twice (the noise is white) doubles the variance of the kernel.
     sigma = scale / math.sqrt(2.0)
     pad = math.ceil(3.0 * sigma)
+    # CPU on purpose: the seeded draw is the same on every device (the maps are cast at the end)
     noise = torch.randn(*batch, height + 2 * pad, width + 2 * pad, generator=generator, dtype=_F64)
     # The blur by FFT costs the same for any scale; the kernel spans at most 2 pad + 1 pixels,
     # so the cropped output never sees the wrap-around of the circular convolution.
     spectrum = torch.fft.rfft2(noise)
     for axis, length in ((-2, height + 2 * pad), (-1, width + 2 * pad)):
-        taps = torch.arange(length, dtype=_F64)
+        taps = torch.arange(length, dtype=_F64, device=noise.device)
         taps = torch.minimum(taps, length - taps)  # circular distance to tap 0
         kernel = torch.where(taps <= pad, torch.exp(-0.5 * (taps / sigma) ** 2), 0.0)
         kernel = kernel / torch.linalg.vector_norm(kernel)  # unit variance after each 1D pass
@@ -290,9 +291,10 @@ def _pigments(config: PaintingConfig) -> tuple[Tensor, Tensor]:
     g = _generator(config.seed, _PIGMENT_COLOURS)
     # Stratified lightness puts dark and light pigments on every canvas, and a tint around it keeps
     # the colours earthy rather than saturated primaries.
+    # CPU on purpose (the next three draws): seeded, they are the same on every device
     strata = torch.randperm(config.pigments, generator=g).to(_F64)[:, None]
-    lightness = (strata + torch.rand(config.pigments, 1, generator=g, dtype=_F64)) / config.pigments
-    tint = torch.rand(config.pigments, 3, generator=g, dtype=_F64) - 0.5
+    lightness = (strata + torch.rand(config.pigments, 1, generator=g, dtype=_F64)) / config.pigments  # CPU: seeded
+    tint = torch.rand(config.pigments, 3, generator=g, dtype=_F64) - 0.5  # CPU: seeded
     colours = lo + (hi - lo) * (lightness + 0.4 * tint).clamp(0.0, 1.0)
     fields = _smooth_field(
         (config.pigments, config.height, config.width), config.pigment_scale, _generator(config.seed, _PIGMENT_FIELDS)
@@ -305,7 +307,7 @@ def _weave(config: PaintingConfig, rows: Tensor, cols: Tensor) -> tuple[Tensor, 
     """Height gradient ``(d/dcol, d/drow)`` of a plain weave: threads along both image axes
     passing over and under each other, an egg-crate ``sin(k col) sin(k row)``."""
     g = _generator(config.seed, _WEAVE)
-    phase = 2 * math.pi * torch.rand(2, generator=g, dtype=_F64)
+    phase = 2 * math.pi * torch.rand(2, generator=g, dtype=_F64)  # CPU on purpose: the seeded draw
     k = 2 * math.pi / config.weave_period
     slope = config.weave_amp * math.tan(math.radians(config.max_tilt_deg))
     a, b = k * cols + phase[0], k * rows + phase[1]
@@ -318,11 +320,12 @@ def _strokes(config: PaintingConfig, kd: Tensor, colours: Tensor) -> tuple[Tenso
     each carrying one of the pigments."""
     g = _generator(config.seed, _STROKES)
     size = (config.height, config.width)
-    grad_c, grad_r, kd = torch.zeros(size, dtype=_F64), torch.zeros(size, dtype=_F64), kd.clone()
+    grad_c = torch.zeros(size, dtype=_F64, device=kd.device)
+    grad_r, kd = torch.zeros_like(grad_c), kd.clone()
     tan_max = math.tan(math.radians(config.max_tilt_deg))
     max_profile_slope = 8.0 / (3.0 * math.sqrt(3.0))  # max |d/ds (1 - s^2)^2|, at s = 1/sqrt(3)
     for _ in range(config.strokes):
-        draw = torch.rand(8, generator=g, dtype=_F64).tolist()
+        draw = torch.rand(8, generator=g, dtype=_F64).tolist()  # CPU on purpose: a seeded draw
         centre_c, centre_r = draw[0] * config.width, draw[1] * config.height
         angle = math.pi * draw[2]
         width = config.stroke_width[0] + (config.stroke_width[1] - config.stroke_width[0]) * draw[3]
@@ -336,8 +339,8 @@ def _strokes(config: PaintingConfig, kd: Tensor, colours: Tensor) -> tuple[Tenso
         reach = 0.5 * math.hypot(length, width)
         r0, r1 = max(0, math.floor(centre_r - reach)), min(config.height, math.ceil(centre_r + reach) + 1)
         c0, c1 = max(0, math.floor(centre_c - reach)), min(config.width, math.ceil(centre_c + reach) + 1)
-        dr = torch.arange(r0, r1, dtype=_F64)[:, None] - centre_r
-        dc = torch.arange(c0, c1, dtype=_F64)[None, :] - centre_c
+        dr = torch.arange(r0, r1, dtype=_F64, device=kd.device)[:, None] - centre_r
+        dc = torch.arange(c0, c1, dtype=_F64, device=kd.device)[None, :] - centre_c
         c, s = math.cos(angle), math.sin(angle)
         along, across = (dc * c + dr * s) * (2.0 / length), (dr * c - dc * s) * (2.0 / width)
         # A flat-topped envelope along the stroke: (1 - t^4)^2 = bump(t^2).
@@ -375,7 +378,7 @@ def _gilded_normals(config: PaintingConfig, gilded: GildedConfig) -> Tensor:
     """Normals ``(H, W, 3)`` of the gold leaf: one overall lean plus gentle undulations."""
     g = _generator(config.seed, _GILDED)
     tan_max = math.tan(math.radians(gilded.max_tilt_deg))
-    lean, azimuth = torch.rand(2, generator=g, dtype=_F64).tolist()
+    lean, azimuth = torch.rand(2, generator=g, dtype=_F64).tolist()  # CPU on purpose: a seeded draw
     waves = 0.3 * tan_max * _smooth_field((2, config.height, config.width), config.pigment_scale, g)
     grad_c = waves[0] - 0.7 * tan_max * lean * math.cos(2 * math.pi * azimuth)
     grad_r = waves[1] + 0.7 * tan_max * lean * math.sin(2 * math.pi * azimuth)
@@ -389,7 +392,7 @@ def _varnish(config: PaintingConfig, eligible: Tensor) -> tuple[Tensor, Tensor, 
     blob, ks_field, alpha_field = _smooth_field((3, config.height, config.width), config.varnish_scale, g)
     count = round(config.varnish_fraction * int(eligible.sum()))
     order = torch.argsort(torch.where(eligible, blob, torch.full_like(blob, -math.inf)).flatten(), descending=True)
-    mask = torch.zeros(blob.numel(), dtype=torch.bool)
+    mask = torch.zeros(blob.numel(), dtype=torch.bool, device=blob.device)
     mask[order[:count]] = True
     # The normal CDF maps a unit Gaussian field to an evenly spread one in (0, 1).
     ks_lo, ks_hi = config.ks_range
@@ -434,8 +437,10 @@ def painting(
     """
     _check_painting(config)
     size = (config.height, config.width)
+    # The maps are built in float64 where the seeded fields are drawn, and cast to dtype and device
+    # at the end: CPU on purpose, so that a seed gives the same maps on every device.
     rows = torch.arange(config.height, dtype=_F64)[:, None].expand(size)
-    cols = torch.arange(config.width, dtype=_F64)[None, :].expand(size)
+    cols = torch.arange(config.width, dtype=_F64)[None, :].expand(size)  # CPU on purpose: as rows
 
     colours, kd = _pigments(config)
     weave_c, weave_r = _weave(config, rows, cols)
@@ -444,10 +449,12 @@ def painting(
 
     gilded = config.gilded
     box = (
-        _gilded_mask(gilded.box, rows, cols, size) if gilded is not None else torch.zeros(size, dtype=torch.bool)
+        _gilded_mask(gilded.box, rows, cols, size)
+        if gilded is not None
+        else torch.zeros(size, dtype=torch.bool, device=rows.device)
     )
     varnished, ks_grey, alpha_iso = _varnish(config, ~box)
-    regions = torch.full(size, MATTE, dtype=torch.int64)
+    regions = torch.full(size, MATTE, dtype=torch.int64, device=rows.device)
     regions[varnished] = VARNISHED
     ks = torch.where(varnished, ks_grey, 0.0)[..., None].expand(*size, 3).clone()
     roughness = torch.where(varnished, alpha_iso, 0.0)[..., None].expand(*size, 2).clone()
@@ -465,9 +472,9 @@ def painting(
         regions[box] = GILDED
         inside = box[..., None]
         normal = torch.where(inside, _gilded_normals(config, gilded), normal)
-        kd = torch.where(inside, torch.tensor(gilded.kd, dtype=_F64), kd)
-        ks = torch.where(inside, torch.tensor(gilded.ks, dtype=_F64), ks)
-        roughness = torch.where(inside, torch.tensor(gilded.alpha, dtype=_F64), roughness)
+        kd = torch.where(inside, torch.tensor(gilded.kd, dtype=_F64, device=kd.device), kd)
+        ks = torch.where(inside, torch.tensor(gilded.ks, dtype=_F64, device=ks.device), ks)
+        roughness = torch.where(inside, torch.tensor(gilded.alpha, dtype=_F64, device=roughness.device), roughness)
 
     def cast(t: Tensor) -> Tensor:
         return t.to(device=device, dtype=dtype)
@@ -516,7 +523,7 @@ def mirror(
     size = (config.height, config.width)
 
     def constant(values: tuple[float, ...]) -> Tensor:
-        return torch.tensor(values, dtype=_F64).expand(*size, len(values)).to(device=device, dtype=dtype).contiguous()
+        return torch.tensor(values, dtype=_F64, device=device).expand(*size, len(values)).to(dtype=dtype).contiguous()
 
     svbrdf = SVBRDF(
         normal=constant(normal),

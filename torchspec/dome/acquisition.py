@@ -252,7 +252,7 @@ def _frame(job: dict, k: int) -> Frame:
 
 def _checked(image, k: int, job: dict, size: tuple[int, int] | None) -> Tensor:
     """The camera's frame ``k`` as ``(C, H, W)`` float32, checked against the capture."""
-    image = torch.as_tensor(image)
+    image = torch.as_tensor(image)  # checked where the camera made it; moved to the CPU below, to be written
     count = len(job["channels"])
     if image.dim() != 3 or image.shape[0] != count or (size is not None and tuple(image.shape[1:]) != size):
         want = f"({count}, {size[0]}, {size[1]})" if size is not None else f"({count}, H, W)"

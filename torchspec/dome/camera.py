@@ -190,7 +190,7 @@ class SimulatedCamera:
         """Frame ``index`` under the light centred on ``direction`` ``(3,)``: ``(C, H, W)`` in the
         maps' dtype and on their device."""
         like = self.svbrdf.diffuse
-        centre = torch.as_tensor(direction).to(dtype=like.dtype, device=like.device).reshape(1, 3)
+        centre = torch.as_tensor(direction, device=like.device).to(dtype=like.dtype).reshape(1, 3)
         ones = torch.ones(1, dtype=like.dtype, device=like.device)
         lights = Lights(centre, self.kernel, self.irradiance, ones)
         values = render(self.svbrdf, lights, self.view, quadrature=Quadrature(path=self.path))  # (H, W, 1, C)

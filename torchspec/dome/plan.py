@@ -92,6 +92,7 @@ class LightSettings:
             if not ok:
                 raise AcquisitionError(f"{what}; got {got!r}.")
         if self.table is not None:
+            # CPU on purpose: the kernel image as read from its file (a tensor given stays where it is)
             object.__setattr__(self, "table", torch.as_tensor(self.table))
         self.kernel()  # the kernel must be one the renderer accepts
 

@@ -83,15 +83,15 @@ class RtiFit:
 
 
 def hemisphere_directions(
-    count: int = FIT_LIGHTS, theta_max_deg: float = FIT_THETA_MAX_DEG, dtype=torch.float64
+    count: int = FIT_LIGHTS, theta_max_deg: float = FIT_THETA_MAX_DEG, dtype=torch.float64, device=None
 ) -> Tensor:
     """``(count, 3)`` unit directions spread evenly (equal solid angle, a Fibonacci spiral) over the
-    cap of polar angles ``0 .. theta_max_deg``; deterministic."""
+    cap of polar angles ``0 .. theta_max_deg``; deterministic; of ``dtype`` on ``device``."""
     if count < HSH_TERMS:
         raise ExportError(f"an HSH fit needs at least {HSH_TERMS} lights; got {count}.")
     if not 0 < theta_max_deg < 90:
         raise ExportError(f"theta_max_deg must be in (0, 90) degrees; got {theta_max_deg}.")
-    index = torch.arange(count, dtype=dtype) + 0.5
+    index = torch.arange(count, dtype=dtype, device=device) + 0.5
     z = 1 - index / count * (1 - math.cos(math.radians(theta_max_deg)))
     phi = index * math.pi * (3 - math.sqrt(5))
     r = (1 - z * z).clamp(min=0).sqrt()
@@ -248,10 +248,14 @@ def fit_rti(
     svbrdf = checked_svbrdf(maps)
     if not (math.isfinite(irradiance) and irradiance > 0):
         raise ExportError(f"the irradiance must be a positive number; got {irradiance}.")
-    directions = hemisphere_directions() if directions is None else torch.as_tensor(directions, dtype=torch.float64)
+    device = svbrdf.diffuse.device
+    if directions is None:
+        directions = hemisphere_directions(device=device)
+    else:
+        directions = torch.as_tensor(directions, dtype=torch.float64, device=device)
     if directions.dim() != 2 or directions.shape[1] != 3 or directions.shape[0] < HSH_TERMS:
         raise ExportError(f"directions must be (K, 3) with K >= {HSH_TERMS}; got {tuple(directions.shape)}.")
-    if not bool(torch.isclose(directions.norm(dim=-1), torch.ones(()).double()).all()) or bool(
+    if not bool(torch.isclose(directions.norm(dim=-1), directions.new_ones(())).all()) or bool(
         (directions[:, 2] <= 0).any()
     ):
         raise ExportError("directions must be unit vectors above the horizon (z > 0).")

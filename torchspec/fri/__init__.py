@@ -112,7 +112,7 @@ def _bands(num_coefficients, dims: int, *, grid: tuple[int, ...] | None, scatter
 
 
 def _check_samples(samples) -> Tensor:
-    samples = torch.as_tensor(samples)
+    samples = torch.as_tensor(samples)  # a tensor keeps its device; a list or array lands on the CPU
     if samples.is_complex() or samples.dtype not in (torch.float32, torch.float64):
         raise TorchspecError(
             f"samples must be a real float32 or float64 tensor; got {samples.dtype}. "
@@ -369,7 +369,7 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses, ker
                 )
         batch = samples.shape[: samples.dim() - dims]
     else:
-        positions = torch.as_tensor(positions)
+        positions = torch.as_tensor(positions)  # a tensor keeps its device (checked below); a list: the CPU
         if positions.dtype != samples.dtype or positions.device != samples.device:
             raise TorchspecError(
                 f"positions must match samples' dtype and device ({samples.dtype}, {samples.device}); "

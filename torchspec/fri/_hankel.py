@@ -40,7 +40,9 @@ def cadzow(seq: Tensor, rank: int, iterations: int) -> Tensor:
     rows = rows_for(length, rank)
     if rows * (length - rows + 1) <= length:  # nothing to average: already the whole sequence
         return seq
-    index = (torch.arange(rows)[:, None] + torch.arange(length - rows + 1)).reshape(-1).to(seq.device)
+    index = (
+        torch.arange(rows, device=seq.device)[:, None] + torch.arange(length - rows + 1, device=seq.device)
+    ).reshape(-1)
     count = torch.bincount(index, minlength=length).to(seq.real.dtype)
     for _ in range(iterations):
         h = hankel(seq, rows)

@@ -102,16 +102,13 @@ def _dictionary(freq: Tensor, bands: tuple[int, ...]) -> _Dictionary:
     return _Dictionary(u2[:, 0], log_width, families, tuple(penalty))
 
 
-_NEIGHBOURS = torch.tensor([-1, 0, 1])
-
-
 def _refined_gaussian(r: Tensor, scores: Tensor, dictionary: _Dictionary) -> tuple[Tensor, Tensor]:
     """Best Gaussian envelope, ``log c`` refined by a parabola through the best three scores:
     ``(amplitude (B, 1), unit atom (B, P))``."""
     size = scores.shape[-1]
     k = scores.argmax(-1, keepdim=True)
     inner = k.clamp(1, size - 2)
-    sm, s0, sp = scores.gather(-1, inner + _NEIGHBOURS.to(inner.device)).unbind(-1)
+    sm, s0, sp = scores.gather(-1, inner + torch.arange(-1, 2, device=inner.device)).unbind(-1)
     curv = (sm - 2.0 * s0 + sp).clamp(max=-torch.finfo(scores.dtype).tiny)  # < 0 at a maximum
     offset = (0.5 * (sm - sp) / curv).clamp(-1.0, 1.0)[:, None]
     offset = torch.where(inner == k, offset, (k - inner).to(offset.dtype))  # at the ends: no refinement
@@ -204,7 +201,7 @@ def _grid_start(yr: Tensor, yi: Tensor, band: int, kernel: Tensor | None = None)
     weight = torch.hypot(yr, yi) / m if kernel is None else kernel.expand_as(yr)
     h = torch.cat([weight * yr, weight * yi], -1) @ torch.cat([torch.cos(arg), -torch.sin(arg)], 0)
     k = h.argmax(-1, keepdim=True)
-    hm, h0, hp = h.gather(-1, torch.remainder(k + _NEIGHBOURS.to(k.device), size)).unbind(-1)
+    hm, h0, hp = h.gather(-1, torch.remainder(k + torch.arange(-1, 2, device=k.device), size)).unbind(-1)
     curv = (hm - 2.0 * h0 + hp).clamp(max=-torch.finfo(h.dtype).tiny)  # < 0 at a maximum
     offset = (0.5 * (hm - hp) / curv).clamp(-0.5, 0.5)
     return anchor + (phi[k[:, 0]] + offset * (2.0 * math.pi / size))[:, None]

@@ -246,17 +246,20 @@ class Capture:
 
     def directions(self) -> torch.Tensor:
         """``(K, 3)`` float64 light centre directions."""
+        # CPU on purpose: a small table from the manifest (JSON); callers move it with .to(...)
         return torch.tensor([frame.direction for frame in self.frames], dtype=torch.float64).reshape(-1, 3)
 
     def irradiance(self) -> torch.Tensor:
         """``(K, C)`` float64 irradiance per frame and channel."""
         values = [frame.irradiance for frame in self.frames]
+        # CPU on purpose: a small table from the manifest (JSON); callers move it with .to(...)
         return torch.tensor(values, dtype=torch.float64).reshape(-1, len(self.channels))
 
     def positions(self) -> torch.Tensor | None:
         """``(K, 3)`` float64 near-light positions (``Frame.position``), or ``None`` for distant lights."""
         if not self.frames or self.frames[0].position is None:
             return None
+        # CPU on purpose: a small table from the manifest (JSON); callers move it with .to(...)
         return torch.tensor([frame.position for frame in self.frames], dtype=torch.float64).reshape(-1, 3)
 
     @property
@@ -266,6 +269,7 @@ class Capture:
 
     def exposure(self) -> torch.Tensor:
         """``(K,)`` float64 exposure per frame."""
+        # CPU on purpose: a small table from the manifest (JSON); callers move it with .to(...)
         return torch.tensor([frame.exposure for frame in self.frames], dtype=torch.float64)
 
     def lights(self, *, light: str | Path | dict | None = None, dtype: torch.dtype = torch.float64) -> Lights:

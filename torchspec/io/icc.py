@@ -89,7 +89,7 @@ class ColourProfile:
     @property
     def is_srgb(self) -> bool:
         """Whether the profile is sRGB within :data:`SRGB_TOLERANCE` (matrix and curves)."""
-        x = torch.linspace(0, 1, 256, dtype=torch.float64)
+        x = torch.linspace(0, 1, 256, dtype=torch.float64)  # CPU on purpose: a check of the profile read from a file
         curves = max(float((curve(x) - SRGB_CURVE(x)).abs().max()) for curve in self.curves)
         return curves < SRGB_TOLERANCE and float(np.abs(self.matrix - np.eye(3)).max()) < SRGB_TOLERANCE
 

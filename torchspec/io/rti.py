@@ -267,6 +267,7 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directio
         if photo.pixels.shape[2] != size[2]:  # grey among colour frames: the grey replicated
             notes.append(f"{image}: a greyscale photograph among colour ones; its grey is used for R, G and B.")
             pixels = pixels.expand(-1, -1, 3)
+        # CPU on purpose: with the photograph's pixels, decoded from its file into a numpy stack
         clipped = (pixels >= CLIP).any(-1, keepdim=True) if first.clipped else torch.zeros(size[:2] + (1,), dtype=bool)
         saturated.append(int(clipped.sum()))
         if transfer is not None and transfer.name == "auto":  # codes kept: decoded once the curve is known
@@ -325,7 +326,7 @@ def _decode_auto(stack: np.ndarray, directions: torch.Tensor, notes: list[str]):
     the first is kept unless another predicts better by :data:`JUDGE_MARGIN`;
     where no curve can be estimated, sRGB (noted)."""
     k, c, h, w = stack.shape
-    generator = torch.Generator().manual_seed(0)
+    generator = torch.Generator().manual_seed(0)  # CPU on purpose: a seeded draw, reproducible, indexes numpy
     drawn = torch.randperm(h * w, generator=generator)[: 8 * RESPONSE_PIXELS].sort().values
     rows, cols = (drawn // w).numpy(), (drawn % w).numpy()
     codes = torch.from_numpy(np.ascontiguousarray(stack[:, :, rows, cols])).double()  # (K, C, N)
@@ -426,6 +427,7 @@ def import_rti(
     output.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{output.name}.import-", dir=output.parent))
     try:
+        # CPU on purpose: parsed from the light file, written to the capture's files
         directions = torch.tensor([entry.direction for entry in lights.entries], dtype=torch.float64)
         directions = directions / directions.norm(dim=-1, keepdim=True)
         stack, transfer, encoding, exifs, image_notes, saturated, profiles, response = _read_stack(
@@ -471,6 +473,7 @@ def import_rti(
     for note in notes:
         warnings.warn(note, stacklevel=2)
     written = read_capture(output)
+    # CPU on purpose: parsed from the light file
     positions = None if lights.positions is None else torch.tensor(lights.positions, dtype=torch.float64)
     return Imported(
         written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes), positions, response

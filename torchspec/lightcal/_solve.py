@@ -130,6 +130,7 @@ def _sample(count: int, sample: int, device, seed: int = 0) -> Tensor:
     """A deterministic subset of ``sample`` flat pixel indices (all when ``count <= sample``)."""
     if count <= sample:
         return torch.arange(count, device=device)
+    # on the CPU: a seeded draw, the same on every device; moved below
     chosen = torch.randperm(count, generator=torch.Generator().manual_seed(seed))[:sample]
     return chosen.sort().values.to(device)
 

@@ -50,9 +50,12 @@ Per problem, all state lives in tensors of shape ``(N,)``:
   ``inf``.
 
 Converged and failed problems are frozen. The loop runs at most ``max_iterations`` steps; every
-``check_every`` steps (and before the first) it counts the running problems, which is the only
-host synchronisation: it stops when none is left and otherwise drops the finished ones, so
-``residual_fn`` is then called on a compacted subset of the rows, with their indices.
+``check_every`` steps (and before the first) it counts the running problems, which is the solver's
+only host synchronisation: it stops when none is left and otherwise drops the finished ones, so
+``residual_fn`` is then called on a compacted subset of the rows, with their indices. The models'
+residual functions add none under point lights (``tests/test_host_sync.py``); under an extended
+kernel they still pick, once per step each, the pixel-frame pairs whose diffuse clamp and whose
+lobe reach the horizon.
 
 References:
     Marquardt, "An algorithm for least-squares estimation of nonlinear parameters", SIAM J.

@@ -441,6 +441,7 @@ def _with_level(client, job: _Job, report: dict, progress: bool, retries: int) -
         peaks = []
         with progress_bar(len(bands), unit="band", desc="saturation level", enabled=progress) as bar:
             for top, count, read in _map(client, _peak_of_rows, job, bands, retries, lambda rows: f"rows {rows[0]}"):
+                # on the CPU: the workers' Python numbers, reduced to one Python float below
                 peaks.append((torch.tensor(top, dtype=job.view.dtype), torch.tensor(count)))
                 report["bytes_read"] += read
                 bar.update()

@@ -60,16 +60,32 @@ def frame_warnings(capture: Capture, picked: list[int]) -> list[str]:
     :func:`torchspec.layout.coverage_warning`."""
     if len(picked) < 3:
         return []
-    l = capture.directions()[torch.tensor(picked)][:, :2]
-    found = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype))
+    l = capture.directions()[torch.tensor(picked)][:, :2]  # on the CPU: the capture's manifest, checked once
+    found = coverage_warning(l, torch.tensor(capture.view, dtype=l.dtype, device=l.device))
     return [f"{capture.root}: {found}"] if found else []
 
 
-def device_of(name: str) -> torch.device:
-    """The device of ``FitConfig.device``: ``auto`` is CUDA when present, else the CPU."""
-    if name == "auto":
+def device_of(name: str | torch.device) -> torch.device:
+    """The device of ``FitConfig.device`` (or ``--device``): ``auto`` is CUDA when present, else the
+    CPU; ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Raises:
+        TorchspecError: a name torch does not know, or a CUDA device this machine lacks."""
+    if str(name) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as error:
+        raise TorchspecError(f"the device must be auto, cpu, cuda or cuda:N; got {name!r} ({error}).") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0 or (device.index or 0) >= count:
+            raise TorchspecError(
+                f"the device {name!r} is not on this machine: torch sees {count} CUDA device(s) "
+                f"(torch {torch.__version__}, CUDA {torch.version.cuda or 'none: a CPU build'}). "
+                "Use --device cpu or auto."
+            )
+    return device
 
 
 def tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, reserved: int) -> int:
@@ -143,7 +159,7 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     if config.residual_term == AUTO:  # photographs: the term carries what the physics misses, where it predicts
         config = replace(config, residual_term=TERM_FOR_PHOTOGRAPHS if capture.extra.get("source") else 0)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
-    l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]
+    l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]  # on the CPU: the manifest, checked once
     problem = fit_problem(l, lobe=config.model != "diffuse")
     if problem is not None:
         raise TorchspecError(f"{capture.root}: the frames cannot be fitted: {problem}")
@@ -152,7 +168,7 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     dtype = getattr(torch, config.dtype)
     device = device_of(config.device)
     everything = capture.lights(dtype=dtype)
-    index = torch.tensor(picked)
+    index = torch.tensor(picked)  # on the CPU, as the capture's lights: picked there, then moved to the device
     lights = Lights(
         everything.directions[index], everything.kernel, everything.irradiance[index], everything.exposure[index]
     ).to(device=device)

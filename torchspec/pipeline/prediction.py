@@ -70,7 +70,7 @@ def light_folds(directions: Tensor, folds: int, regions: bool = True) -> Tensor:
     rows = torch.round(plane[:, 1] / max(float(_spacing(plane)), 1e-9)).long()
     order = sorted(range(k), key=lambda i: (-int(rows[i]), float(plane[i, 0])))
     shift = 1 if folds <= 3 else 2
-    scattered = torch.empty(k, dtype=torch.long)
+    scattered = torch.empty(k, dtype=torch.long)  # on the CPU, as plane: filled frame by frame, moved at the end
     row, rank, at = None, 0, -1
     for i in order:
         if int(rows[i]) != row:
@@ -78,13 +78,13 @@ def light_folds(directions: Tensor, folds: int, regions: bool = True) -> Tensor:
         scattered[i] = (rank + shift * at) % folds
         rank += 1
     if bool((torch.bincount(scattered, minlength=folds) < 0.5 * k / folds).any()):  # short rows
-        scattered[torch.tensor(order)] = torch.arange(k) % folds
+        scattered[torch.tensor(order)] = torch.arange(k) % folds  # on the CPU, as scattered
     schemes = [scattered]
     if regions:
         centred = plane - plane.mean(0)
         azimuth = torch.atan2(centred[:, 1], centred[:, 0])
-        sector = torch.empty(k, dtype=torch.long)
-        sector[torch.argsort(azimuth)] = (torch.arange(k) * folds) // k
+        sector = torch.empty(k, dtype=torch.long)  # on the CPU, as plane: moved with the schemes at the end
+        sector[torch.argsort(azimuth)] = (torch.arange(k) * folds) // k  # on the CPU, as sector
         schemes.append(sector)
     return torch.stack(schemes).to(device)
 

@@ -74,7 +74,7 @@ class Tiling:
         if self.order is None:
             return parts
         inverse = torch.empty_like(self.order)
-        inverse[self.order] = torch.arange(self.order.numel())
+        inverse[self.order] = torch.arange(self.order.numel(), device=self.order.device)
         return [merge_tiles(parts, inverse)]
 
 

@@ -154,7 +154,7 @@ class LevelCache:
         (and a line on stderr) when its file is missing, of other bytes or CRC than the index says."""
         folder, index = self.found
         path, (height, width) = folder / f"level_{level}.bin", self.shapes[level]
-        out = torch.empty(len(self.dtypes), height, width)
+        out = torch.empty(len(self.dtypes), height, width)  # CPU on purpose: read from the cache's file
         try:
             entry, crc = index["files"][str(level)], 0
             with open(path, "rb") as handle:
@@ -209,7 +209,7 @@ class LevelCache:
                 if pause is not None:
                     pause()
                 with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf, as in the tile
-                    data = np.ascontiguousarray(plane.numpy().astype(dtype))
+                    data = np.ascontiguousarray(plane.cpu().numpy().astype(dtype))
                 crc, size = zlib.crc32(data, crc), size + data.nbytes
                 handle.write(data.data)
         return {"bytes": size, "crc32": crc}

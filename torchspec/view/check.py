@@ -49,9 +49,9 @@ def model_maps(
     (``alpha`` in ``[0.2, 0.5]``) broader than its first (``[0.05, 0.15]`` by default)."""
     if model not in MODEL_TYPES:
         raise TorchspecError(f"model must be one of {MODEL_TYPES}; got {model!r}.")
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)  # on the CPU: a seeded generator, the maps reproducible
 
-    def uniform(low, high, *shape):
+    def uniform(low, high, *shape):  # CPU on purpose: the seeded CPU generator's draws
         return low + (high - low) * torch.rand(height, width, *shape, generator=g, dtype=torch.float64)
 
     normal = normal_from_angles(uniform(-math.radians(25), math.radians(25), 2))
@@ -69,13 +69,14 @@ def model_maps(
     if model == "diffuse":
         alpha = torch.zeros_like(alpha)
     svbrdf = SVBRDF(normal, kd, ks, alpha, rotation, specular2=ks2, roughness2=alpha2).to(torch.float32)
+    # CPU on purpose (as the maps above): the seeded CPU generator's draws
     flags = torch.where(torch.rand(height, width, generator=g) < 0.1, float(bit(UNTRUSTED[0])), 0.0)
-    extra = {
-        "model": torch.full((height, width), float(MODEL_CODES.index(model))),
-        "quality": torch.rand(height, width, generator=g),
+    extra = {  # CPU on purpose, as the maps above: the seeded CPU generator's draws
+        "model": torch.full((height, width), float(MODEL_CODES.index(model))),  # CPU, with the maps
+        "quality": torch.rand(height, width, generator=g),  # CPU: the seeded generator
         "flags": flags,
-        "std_normal_deg": torch.rand(height, width, generator=g),
-        "std_diffuse": 0.01 * torch.rand(height, width, 3, generator=g),
+        "std_normal_deg": torch.rand(height, width, generator=g),  # CPU: the seeded generator
+        "std_diffuse": 0.01 * torch.rand(height, width, 3, generator=g),  # CPU: the seeded generator
     }
     meta = {
         "model_codes": list(MODEL_CODES),
@@ -93,10 +94,12 @@ def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1, enco
     maps' ``meta`` as a fit records it; ``None``: sRGB, nothing recorded)."""
     height, width = maps.svbrdf.shape
     channels = len(maps.svbrdf.channels)
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)  # on the CPU: a seeded generator, the term reproducible
+    # CPU on purpose (this line and the next three): the seeded CPU generator's draws
     coefficients = size * (2 * torch.rand(height, width, TERMS[order], channels, generator=g) - 1)
-    chosen = torch.rand(height, width, generator=g) < 0.75
-    blended = chosen & (torch.rand(height, width, generator=g) < 0.5)
+    chosen = torch.rand(height, width, generator=g) < 0.75  # CPU: the seeded generator
+    blended = chosen & (torch.rand(height, width, generator=g) < 0.5)  # CPU: the seeded generator
+    # CPU on purpose: the seeded CPU generator's draws
     weight = torch.where(blended, torch.rand(height, width, generator=g), torch.ones(height, width))
     term = ResidualTerm(coefficients * chosen[..., None, None], chosen, weight)
     meta = maps.meta if encoding is None else {**maps.meta, MAP_NAME: {"encoding": encoding}}
@@ -123,19 +126,20 @@ def reference_srgb(
     near light of unit irradiance at the image's centre, rendered as ``torchspec render`` renders
     it (:func:`torchspec.relight.render_near`: block by block) or, ``each_pixel``, at each pixel
     (:func:`render_each_pixel`)."""
-    one = torch.ones(1, 1, dtype=dtype)
-    view = torch.tensor(view, dtype=dtype)
+    device = svbrdf.normal.device
+    one = torch.ones(1, 1, dtype=dtype, device=device)
+    view = torch.tensor(view, dtype=dtype, device=device)
     if position is None:
-        lights = Lights(torch.tensor([light], dtype=dtype), kernel or Kernel("point"), one, one[0])
+        lights = Lights(torch.tensor([light], dtype=dtype, device=device), kernel or Kernel("point"), one, one[0])
         value = render_image(svbrdf.to(dtype), lights, view)
         value = value if term is None else term.apply(value, lights)
     else:
-        at = torch.tensor([position], dtype=dtype)
+        at = torch.tensor([position], dtype=dtype, device=device)
         lights = Lights(at / at.norm(), kernel or Kernel("point"), one, one[0])
         value = (render_each_pixel if each_pixel else render_near)(svbrdf.to(dtype), lights, at, view, term=term)
     value = (value[:, :, 0] * exposure).clamp(0.0, 1.0)
     value = value.expand(*value.shape[:2], 3) if value.shape[-1] == 1 else value[..., :3]
-    return torch.round(encode(value) * 255.0).to(torch.uint8).numpy()
+    return torch.round(encode(value) * 255.0).to(torch.uint8).cpu().numpy()
 
 
 def render_each_pixel(
@@ -161,7 +165,8 @@ def render_each_pixel(
             weight = None if term.weight is None else term.weight.reshape(-1)[index]
             part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight, domain=term.domain)
             values = part.apply(values, near)
-        parts.append(values.reshape(n, n, k, -1)[torch.arange(n), torch.arange(n)])  # each pixel's own lights
+        own = torch.arange(n, device=values.device)
+        parts.append(values.reshape(n, n, k, -1)[own, own])  # each pixel's own lights
     return torch.cat(parts).reshape(height, width, k, -1)
 
 
@@ -180,8 +185,8 @@ def lobe_width(svbrdf: SVBRDF, view=(0.0, 0.0, 1.0)) -> np.ndarray:
     the narrower of each pixel's lobes (Ward's, linearised about the mirror direction:
     :func:`torchspec.lobe.lobe_moments`); ``inf`` where a pixel has no lobe."""
     flat = svbrdf.to(torch.float64).flatten()
-    view = torch.tensor(view, dtype=torch.float64)
-    width = torch.full(flat.shape, math.inf, dtype=torch.float64)
+    view = torch.tensor(view, dtype=torch.float64, device=flat.normal.device)
+    width = torch.full(flat.shape, math.inf, dtype=torch.float64, device=flat.normal.device)
     for lobe in (flat, flat.second()):
         if lobe is None:
             continue
@@ -190,4 +195,4 @@ def lobe_width(svbrdf: SVBRDF, view=(0.0, 0.0, 1.0)) -> np.ndarray:
         fwhm = math.sqrt(8.0 * math.log(2.0)) * smallest.clamp(min=0.0).sqrt().reshape(-1)
         has = (lobe.specular.amax(-1) > 0) & (lobe.roughness.amin(-1) > 0)
         width = torch.where(has, torch.minimum(width, fwhm), width)
-    return width.reshape(svbrdf.shape).numpy()
+    return width.reshape(svbrdf.shape).cpu().numpy()

@@ -120,7 +120,7 @@ def _spacing(offsets: np.ndarray, weights: np.ndarray) -> float:
 
 
 def _gaussian(kernel: Kernel, order: int) -> tuple[np.ndarray, np.ndarray]:
-    grid, weight = hermite(order, torch.zeros((), dtype=torch.float64))
+    grid, weight = hermite(order, torch.zeros((), dtype=torch.float64))  # CPU on purpose: nodes for the page's JSON
     offsets, weights = kernel.sigma * grid.numpy(), weight.numpy()
     if kernel.domain == "angular":  # solid angle over tangent-plane area: sin g / g
         weights = weights * np.sinc(np.linalg.norm(offsets, axis=-1) / math.pi)
@@ -130,8 +130,8 @@ def _gaussian(kernel: Kernel, order: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _merged(kernel: Kernel, order: int) -> tuple[np.ndarray, np.ndarray]:
     """The reference nodes about the zenith merged into at most ``order x order`` cells."""
-    zenith = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
-    one = torch.ones(1, 1, dtype=torch.float64)
+    zenith = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)  # CPU on purpose: nodes for the page's JSON
+    one = torch.ones(1, 1, dtype=torch.float64)  # CPU on purpose: nodes for the page's JSON
     fine = max(24, Quadrature().orders(kernel)[1])  # a tabulated kernel: two radii a pixel of its table
     direction, weight = (t[0].numpy() for t in nodes(Lights(zenith, kernel, one, one[0]), order=fine))
     offsets = direction[:, :2]
@@ -155,9 +155,9 @@ def _merged(kernel: Kernel, order: int) -> tuple[np.ndarray, np.ndarray]:
 def _diffuse_table(kernel: Kernel) -> np.ndarray:
     """:attr:`LightQuadrature.diffuse` of a Gaussian kernel (symmetric about its centre, so its
     effective direction depends on the centre's distance from the zenith only)."""
-    rho = torch.linspace(0.0, DIFFUSE_REACH, DIFFUSE_ROWS, dtype=torch.float64)
+    rho = torch.linspace(0.0, DIFFUSE_REACH, DIFFUSE_ROWS, dtype=torch.float64)  # CPU on purpose: a table for JSON
     centre = torch.stack([rho, torch.zeros_like(rho), torch.sqrt(1.0 - rho * rho)], -1)
-    ones = torch.ones(DIFFUSE_ROWS, 1, dtype=torch.float64)
+    ones = torch.ones(DIFFUSE_ROWS, 1, dtype=torch.float64)  # CPU on purpose: a table for the page's JSON
     direction = diffuse_directions(Lights(centre, kernel, ones, ones[:, 0]))
     return direction[:, [0, 2]].numpy()
 
@@ -181,7 +181,7 @@ def light_quadrature(kernel: Kernel | None, order: int = 8) -> LightQuadrature:
         size = f"{'sigma' if kernel.kind == 'gaussian' else 'radius'} {kernel.sigma:g}"
     label = f"the capture's {kernel.kind} kernel ({size}, {kernel.domain}), {len(weights)} nodes"
     gaussian = kernel.kind == "gaussian" and kernel.domain == "projected"
-    points, weight = hermite(FAST_ORDER, torch.zeros((), dtype=torch.float64))
+    points, weight = hermite(FAST_ORDER, torch.zeros((), dtype=torch.float64))  # CPU on purpose: for the JSON
     return LightQuadrature(
         kernel.kind,
         kernel.domain == "angular",

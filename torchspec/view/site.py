@@ -79,7 +79,7 @@ def term_encoding(meta: dict) -> dict:
     if domain.curve is None:
         return {"transfer": "srgb"}
     curve = domain.curve
-    slope = curve.slope_at_one(torch.ones(curve.channels, dtype=torch.float64)).tolist()
+    slope = curve.slope_at_one(torch.ones(curve.channels, dtype=torch.float64)).tolist()  # CPU on purpose: JSON
     three = {"gamma": curve.gamma, "offset": curve.offset, "contrast": curve.contrast, "slope": slope}
     return {"transfer": "response", **{k: [float(v[i % len(v)]) for i in range(3)] for k, v in three.items()}}
 

@@ -82,16 +82,17 @@ def _planes(maps: Maps) -> dict[str, torch.Tensor]:
     """Every plane of :data:`TEXTURES` at level 0, ``(H, W)`` float32 (0 where the maps lack it)."""
     svbrdf, extra = maps.svbrdf, maps.extra
     height, width = svbrdf.shape
-    zero = torch.zeros(1, 1).expand(height, width)
+    device = svbrdf.normal.device
+    zero = torch.zeros(1, 1, device=device).expand(height, width)
     planes = {}
     for axis, name in enumerate("xyz"):
         planes[f"normal_{name}"] = svbrdf.normal[..., axis]
     planes["rotation"] = zero if svbrdf.rotation is None else svbrdf.rotation
     planes["alpha_x"], planes["alpha_y"] = svbrdf.roughness[..., 0], svbrdf.roughness[..., 1]
-    second = svbrdf.roughness2 if svbrdf.roughness2 is not None else torch.zeros(1, 1, 2).expand(height, width, 2)
+    second = svbrdf.roughness2 if svbrdf.roughness2 is not None else zero[..., None].expand(height, width, 2)
     planes["alpha2_x"], planes["alpha2_y"] = second[..., 0], second[..., 1]
     for prefix, value in (("kd", svbrdf.diffuse), ("ks", svbrdf.specular), ("ks2", svbrdf.specular2)):
-        value = torch.zeros(1, 1, 3).expand(height, width, 3) if value is None else _rgb(value)
+        value = zero[..., None].expand(height, width, 3) if value is None else _rgb(value)
         for c, name in enumerate("rgb"):
             planes[f"{prefix}_{name}"] = value[..., c]
     for name in ("quality", "model", "flags", "std_normal_deg"):
@@ -128,11 +129,11 @@ def term_planes(maps: Maps) -> dict[str, torch.Tensor]:
     value = value[..., None] if value.dim() == 2 else value
     term = ResidualTerm.from_map(value, channels, f"{MAP_NAME}.exr", maps.extra.get(WEIGHT_MAP))
     coefficients = _rgb(term.coefficients)  # (H, W, J, 3)
-    weight = torch.ones(coefficients.shape[:2]) if term.weight is None else term.weight
+    weight = torch.ones(coefficients.shape[:2], device=coefficients.device) if term.weight is None else term.weight
     planes = {"term_weight": weight}
     for j in range(coefficients.shape[2]):
         planes.update({f"term_{j}_{c}": coefficients[:, :, j, i] for i, c in enumerate("rgb")})
-    zero = torch.zeros(1, 1).expand(*coefficients.shape[:2])
+    zero = torch.zeros(1, 1, device=coefficients.device).expand(*coefficients.shape[:2])
     for _, _, names in term_textures(coefficients.shape[2]):
         planes.update({name: zero for name in names if name.startswith("term_pad")})
     return {name: plane.float() for name, plane in planes.items()}
@@ -278,7 +279,7 @@ class Pyramid:
     def _stream(self, level: int) -> torch.Tensor:
         """Level ``level`` from level 0's rows, read in bands (a multiple of ``2^level`` rows)."""
         height, width = self.levels[level]
-        out = torch.empty(len(self.names), height, width)
+        out = torch.empty(len(self.names), height, width)  # on the CPU: its tiles are sent and cached as files
         band = 2**level * max(1, self.tile_size // 2**level)
         for start in range(0, self.size[0], band):
             self._pause()
@@ -403,7 +404,7 @@ class Pyramid:
         for _, dtype, planes in self.textures:
             padded = np.zeros((n, n, 4), dtype=np.dtype(dtype).newbyteorder("<"))
             with np.errstate(over="ignore"):  # float16: beyond 65504 is Inf (an undetermined deviation's)
-                padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].numpy()
+                padded[: block.shape[0], : block.shape[1]] = block[..., first : first + len(planes)].cpu().numpy()
             parts.append(padded.tobytes())
             first += len(planes)
         return b"".join(parts)

@@ -1,0 +1,97 @@
+"""No host synchronisation inside a solver step: every operation that makes the host wait for the
+device (a tensor read as a Python value, a shape that depends on the data) is caught while
+:func:`torchspec.lm.solver`'s step runs, for every model and light kernel. On the CPU nothing
+waits, but the same operations would on CUDA; the solver's check every few steps
+(``LMConfig.check_every``) is then the only synchronisation."""
+
+import traceback
+
+import pytest
+import torch
+from torch.overrides import TorchFunctionMode
+
+import torchspec.lm.solver as lm_solver
+from torchspec.brdf import SVBRDF
+from torchspec.geometry import normalize
+from torchspec.lights import Kernel, Lights
+from torchspec.lm import LMConfig, bounded, solve
+from torchspec.models import MODELS, get_model
+from torchspec.quadrature import Quadrature
+from torchspec.simulate import LayoutConfig, layout
+
+VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+SYNCS = {"item", "tolist", "nonzero", "argwhere", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy",
+         "masked_select", "unique", "unique_consecutive", "nonzero_static"}
+"""Operations that wait for the device's result (on CUDA)."""
+
+
+class HostSyncs(TorchFunctionMode):
+    """Records each synchronising operation (:data:`SYNCS`, a boolean mask as an index, or
+    ``where`` with one argument) run while the mode is on."""
+
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        name = getattr(func, "__name__", str(func))
+        masked = name in ("__getitem__", "__setitem__") and _has_mask(args[1])
+        if name in SYNCS or masked or (name == "where" and len(args) == 1):
+            caller = next(f for f in reversed(traceback.extract_stack()[:-1]) if "/torchspec/" in f.filename)
+            self.seen.append(f"{name} at {caller.filename.split('/torchspec/')[-1]}:{caller.lineno}")
+        return func(*args, **(kwargs or {}))
+
+
+def _has_mask(index) -> bool:
+    parts = index if isinstance(index, tuple) else (index,)
+    return any(isinstance(p, torch.Tensor) and p.dtype == torch.bool for p in parts)
+
+
+def _problem(kernel: Kernel, count: int = 6):
+    g = torch.Generator().manual_seed(0)
+    normal = normalize(torch.cat([0.1 * torch.randn(count, 2, generator=g, dtype=torch.float64),
+                                  torch.ones(count, 1, dtype=torch.float64)], -1))
+    kd = 0.2 + 0.5 * torch.rand(count, 3, generator=g, dtype=torch.float64)
+    ks = 0.1 + 0.2 * torch.rand(count, 3, generator=g, dtype=torch.float64)
+    alpha = 0.05 + 0.1 * torch.rand(count, 2, generator=g, dtype=torch.float64)
+    svbrdf = SVBRDF(normal, kd, ks, alpha, torch.rand(count, generator=g, dtype=torch.float64))
+    centres = layout(LayoutConfig(kind="grid", nx=6, ny=6, extent=0.6, radius=0.8))
+    k = centres.shape[0]
+    lights = Lights(centres, kernel, torch.ones(k, 1, dtype=torch.float64), torch.ones(k, dtype=torch.float64))
+    observed = torch.rand(count, k, 3, generator=g, dtype=torch.float64)
+    weight = torch.ones(count, k, dtype=torch.float64)
+    weight[:, 0] = 0
+    return svbrdf, lights, observed, weight
+
+
+EXTENDED_PICKS = pytest.mark.xfail(
+    strict=True,
+    reason="not yet: under an extended kernel each step still picks, with one nonzero each, the pixel-frame pairs "
+    "whose diffuse clamp (diffuse.py) and whose lobe (nodes.py fallback_rule) reach the horizon (issue 36)",
+)
+
+
+@pytest.mark.parametrize(
+    "kernel",
+    [Kernel("point"), pytest.param(Kernel("gaussian", sigma=0.08), marks=EXTENDED_PICKS)],
+    ids=["point", "gaussian"],
+)
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_a_solver_step_does_not_wait_for_the_device(name, kernel, monkeypatch):
+    model = get_model(name)
+    svbrdf, lights, observed, weight = _problem(kernel)
+    bounds = model.bounds(3)
+    params = bounds.to_free(model.pack(svbrdf))
+    fn = model.residuals(observed, weight, lights, VIEW, ("R", "G", "B"), quadrature=Quadrature(), normal=True)
+    recorder, steps = HostSyncs(), []
+    step = lm_solver._step
+
+    def watched(*args, **kwargs):
+        steps.append(1)
+        with recorder:
+            return step(*args, **kwargs)
+
+    monkeypatch.setattr(lm_solver, "_step", watched)
+    result = solve(bounded(fn, bounds), params, config=LMConfig(max_iterations=3, check_every=4))
+    assert steps and torch.isfinite(result.cost).all()
+    assert not recorder.seen, f"host synchronisations inside a solver step: {sorted(set(recorder.seen))}"
