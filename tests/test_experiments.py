@@ -507,3 +507,23 @@ def test_neighbour_correction_is_the_weighted_mean_of_the_nearest_errors():
     assert float(correction(directions, fitted, own, predicted, 2)) == pytest.approx(float(expected))
     flat = torch.full_like(own, 0.9)
     assert float(correction(directions, fitted, flat, predicted, 5)) == pytest.approx(0.9)
+
+
+def test_bench_gpu_runs(tmp_path):
+    """On the CPU at a tiny size: every part runs and the two fits of one capture agree exactly."""
+    out = _main(
+        "bench_gpu",
+        tmp_path,
+        f"size: 10\ngrid: 6\nextent: 0.6\ncache: {tmp_path / 'cache'}\ndevice: cpu\ncpu_threads: 2\n"
+        "large_width: 24\nlarge_height: 16\nlarge_frames: 12\nbudget_s: 400\n",
+    )
+    for label in ("default cold", "default warm", "ward-iso cold", "ward-iso warm", "default cpu"):
+        row = out["fits"][label]
+        assert row["pixels_per_second"] > 0 and row["peak_mb"] > 0 and row["device"] == "cpu", label
+    agreement = out["agreement"]
+    assert agreement["same_model"] == 1 and agreement["normal_deg_p99"] == 0 and agreement["untrusted_only_one"] == 0
+    large = out["large"]
+    assert large["frames"] == 12 and large["pixels"] == 24 * 16
+    assert large["import_note"] == "" and large["fit_note"] == "", large
+    assert large["jpegs_to_maps_seconds"] > 0 and "total" in large["fit_stage_seconds"]
+    assert json.loads((tmp_path / "tiny.json").read_text())["large"]["frames"] == 12

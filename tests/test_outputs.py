@@ -162,7 +162,7 @@ def test_demo_overwrite_is_passed_on(tmp_path, monkeypatch):
     out.mkdir()
     (out / "report.json").write_text("{}")  # an earlier demo
     assert main(["demo", "-o", str(out), "--quiet", "--overwrite"]) == 0
-    assert calls == [(out, {"size": 64, "progress": False, "overwrite": True})]
+    assert calls == [(out, {"size": 64, "progress": False, "overwrite": True, "device": "auto"})]
 
 
 def test_a_fit_is_refused_over_earlier_maps_and_resumes_without_overwrite(capture, maps, tmp_path, capsys):

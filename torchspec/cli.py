@@ -160,6 +160,7 @@ def _add_simulation_commands(commands) -> None:
     simulate.add_argument("config", type=Path, help="a simulation config (YAML), e.g. configs/sim_painting.yaml")
     simulate.add_argument("-o", "--output", type=Path, required=True, help="the capture folder to write")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_device(simulate)
     _add_overwrite(simulate)
 
 
@@ -388,8 +389,9 @@ def _simulate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from .simulate import SimulationConfig, simulate, write_simulation
 
     config = load_config(args.config, SimulationConfig)
+    device = _device(parser, args)
     _check_output(args)
-    simulation = simulate(config, root=args.output, progress=not args.quiet)
+    simulation = simulate(config, root=args.output, progress=not args.quiet, device=device or "cpu")
     result = write_simulation(args.output, simulation, overwrite=args.overwrite)
     print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
           f"{''.join(result.channels)}, with truth/")

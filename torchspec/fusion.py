@@ -5,19 +5,26 @@ compiled once per process and kept, with the kind of sizes that suits it.
   first axis of the tensor arguments with ``rows`` rows: pixels, pairs); the others with every
   size dynamic. Fixed sizes suit the node rules and integrations; dynamic ones suit the clamp's
   integral and the sums over frames.
-- A function's Python floats (the view, a kernel's width) are constants of the graph.
+- A function's Python floats (a kernel's width) are constants of the graph; the view is passed as
+  0-dim tensors (:class:`torchspec.lobe.LobeFrame`), read on the device, never on the host.
+- Float32 products keep full precision (no TensorFloat32): the maps' tolerances are set by it.
+  Inductor's warning that TF32 cores are left unused is silenced, since a user cannot act on it.
 - Sizes that happen to be equal are not taken to be the same size (no duck shapes).
 """
 
 from __future__ import annotations
 
 import functools
+import warnings
 
 import torch
 import torch.fx.experimental._config as fx_config
 from torch import Tensor
 
 __all__ = ["FIXED_SIZES", "compiled", "fused"]
+
+# torch._inductor warns once per process on a GPU with TF32 cores; the precision is torchspec's choice
+warnings.filterwarnings("ignore", message="TensorFloat32 tensor cores for float32 matrix multiplication")
 
 FIXED_SIZES = set()
 """The functions compiled with fixed sizes but for their batch (:func:`compiled`)."""

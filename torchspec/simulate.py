@@ -147,21 +147,25 @@ def _kernel(config: LightConfig) -> Kernel:
     return Kernel(config.kernel, config.domain, config.sigma, config.power)
 
 
-def simulate(config: SimulationConfig, *, root: Path | str = ".", progress: bool = False) -> Simulation:
+def simulate(
+    config: SimulationConfig, *, root: Path | str = ".", progress: bool = False, device: torch.device | str = "cpu"
+) -> Simulation:
     """Render ``config``'s scene under its lights and record it (float64 inside, float32 out);
-    ``progress`` shows a bar over the rows rendered (on stderr, when it is a terminal)."""
+    ``progress`` shows a bar over the rows rendered (on stderr, when it is a terminal). The
+    rendering runs on ``device``; the scene and the noise are drawn on the CPU from their seeds,
+    so a config gives the same capture on every device (to rounding). The result is on the CPU."""
     dtype = torch.float64
     if config.scene.kind == "painting":
-        truth, regions = painting(config.scene.painting, dtype=dtype)
+        truth, regions = painting(config.scene.painting, dtype=dtype, device=device)
     elif config.scene.kind == "mirror":
-        truth, regions = mirror(config.scene.mirror, dtype=dtype)
+        truth, regions = mirror(config.scene.mirror, dtype=dtype, device=device)
     else:
         raise ConfigError(f"scene.kind must be 'painting' or 'mirror'; got {config.scene.kind!r}.")
     count = len(config.channels)
     if truth.diffuse.shape[-1] != count:
         raise ConfigError(f"channels: the list names {count} channels but the scene has {truth.diffuse.shape[-1]}.")
     truth = replace(truth, channels=tuple(config.channels))
-    centres = layout(config.layout)
+    centres = layout(config.layout).to(device)
     k = centres.shape[0]
     kernel = _kernel(config.light)
     irradiance = torch.full((k, 1), config.irradiance, dtype=dtype, device=centres.device)
@@ -195,7 +199,8 @@ def simulate(config: SimulationConfig, *, root: Path | str = ".", progress: bool
         frames=frames,
         extra={"generator": {"name": config.name, "torchspec": asdict(config)}},
     )
-    return Simulation(capture, recorded.to(torch.float32), saturated, truth.to(torch.float32), regions, light)
+    recorded, saturated, regions = recorded.float().cpu(), saturated.cpu(), regions.cpu()
+    return Simulation(capture, recorded, saturated, truth.to(torch.float32).to("cpu"), regions, light)
 
 
 def write_simulation(path: Path | str, simulation: Simulation, *, overwrite: bool = False) -> Capture:
