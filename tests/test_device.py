@@ -153,3 +153,18 @@ def test_the_commands_take_a_device_and_refuse_one_that_is_missing(painting, tmp
     assert read_svbrdf(tmp_path / "maps").meta["fit"]["device"] == "cpu"
     out = tmp_path / "render"
     assert main(["render", str(tmp_path / "maps"), "--capture", str(painting), "-o", str(out), "--device", "cpu"]) == 0
+
+
+def test_tiles_fill_a_gpu_and_cut_the_image_on_the_cpu(monkeypatch):
+    from torchspec.pipeline.plan import GPU_SHARE, TILES, plan
+
+    free = {"bytes": 100 * 2**30}
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free["bytes"], 140 * 2**30))
+    cuda, shape = torch.device("cuda"), (144, 3, 512, 512, 4)
+    assert plan(FitConfig(), *shape, cuda)[1] == 512 * 512  # the whole capture, one tile
+    free["bytes"] = 4 * 2**30
+    small = plan(FitConfig(), *shape, cuda)[1]
+    stack = 144 * 3 * 4 * 512 * 512
+    assert 256 <= small < 512 * 512 and stack < GPU_SHARE * free["bytes"]
+    assert plan(FitConfig(), *shape)[1] <= 512 * 512 // TILES  # the CPU: progress, resumption, threads
+    assert plan(FitConfig(tile=4096), *shape, cuda)[1] == 4096  # a tile asked for is kept

@@ -256,7 +256,7 @@ def fit_on_cluster(
     k, c, h, w = len(picked), len(capture.channels), capture.height, capture.width
     pixels = h * w
     itemsize = torch.finfo(view.dtype).bits // 8
-    config, tile = plan(config, k, c, h, w, itemsize)
+    config, tile = plan(config, k, c, h, w, itemsize, view.device)
     _warn_small_tiles(config, tile, k * c * pixels * itemsize)
     folder = Path(checkpoint).resolve()
     folder.mkdir(parents=True, exist_ok=True)

@@ -79,7 +79,7 @@ def fit(
 
     k, c, h, w = stack.shape
     pixels = h * w
-    config, tile = plan(config, k, c, h, w, stack.element_size())
+    config, tile = plan(config, k, c, h, w, stack.element_size(), stack.device)
     tiling = tiling_of(h, w, tile, job.positions)
     flat = tiling.pixels(stack.flatten(2))  # (K, C, H W) in the fit's order (a view for row-major tiles)
     kinds = [tiling.pixels(m) for m in kinds]

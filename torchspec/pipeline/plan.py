@@ -22,6 +22,7 @@ from ..residual_term import TermDomain
 from .settings import AUTO, COMPILE_PIXELS, FitConfig, select_frames
 
 __all__ = [
+    "GPU_SHARE",
     "MIN_TILE",
     "RUNTIME_BYTES",
     "TERM_FOR_PHOTOGRAPHS",
@@ -40,6 +41,8 @@ TERM_FOR_PHOTOGRAPHS = 3
 ``source``): on the RTI captures of ``../shared/data/rti`` the order-3 term relit left-out
 photographs at or above HSH, where the physical model alone was below it
 (``experiments/results/rti_relight.json``)."""
+GPU_SHARE = 0.8
+"""The share of a GPU's free memory (when the fit starts) that its tiles are sized to."""
 RUNTIME_BYTES = 768 * 2**20
 """What a fit holds besides its stack and tiles: the torch runtime and fixed work arrays."""
 TILES = 16
@@ -88,9 +91,12 @@ def device_of(name: str | torch.device) -> torch.device:
     return device
 
 
-def tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, reserved: int) -> int:
-    """Pixels per tile: ``config.tile``, or what fits in ``memory_gib`` after ``reserved`` bytes
-    (the stack and its masks) and :data:`RUNTIME_BYTES` (at least 256, at most 131072)."""
+def tile_size(
+    config: FitConfig, frames: int, channels: int, itemsize: int, reserved: int, budget: float | None = None
+) -> int:
+    """Pixels per tile: ``config.tile``, or what fits in ``budget`` bytes (default ``memory_gib``)
+    after ``reserved`` bytes (the stack and its masks) and :data:`RUNTIME_BYTES` (at least 256, at
+    most 131072 within ``memory_gib``; a larger ``budget``, a GPU's, lifts that cap)."""
     if config.tile:
         return config.tile
     p = max(get_model(name).size(channels) for name in (config.ladder if config.model == AUTO else (config.model,)))
@@ -98,21 +104,30 @@ def tile_size(config: FitConfig, frames: int, channels: int, itemsize: int, rese
     # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
     # for transients (a conservative bound: the solver takes normal equations from Jacobian chunks).
     per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
-    available = config.memory_gib * 2**30 - reserved - RUNTIME_BYTES
-    return int(max(256, min(1 << 17, available / (2 * per_pixel))))
+    given = config.memory_gib * 2**30 if budget is None else budget
+    available = given - reserved - RUNTIME_BYTES
+    cap = 1 << 17 if budget is None else max(1 << 17, int(available / (2 * per_pixel)))
+    return int(max(256, min(cap, available / (2 * per_pixel))))
 
 
-def plan(config: FitConfig, k: int, c: int, h: int, w: int, itemsize: int) -> tuple[FitConfig, int]:
+def plan(
+    config: FitConfig, k: int, c: int, h: int, w: int, itemsize: int, device: torch.device | None = None
+) -> tuple[FitConfig, int]:
     """The settings with ``compile`` decided and the pixels per tile of a fit of a ``(K, C, H, W)``
-    stack of ``itemsize``-byte values: ``FitConfig.tile``, or what the memory allows (:func:`tile_size`)
-    but no more than a :data:`TILES`-th of the image unless that is below :data:`MIN_TILE`."""
+    stack of ``itemsize``-byte values on ``device`` (default the CPU): ``FitConfig.tile``, or what
+    the memory allows (:func:`tile_size`). On the CPU the budget is ``memory_gib`` and the image is
+    also cut into at least :data:`TILES` tiles (of at least :data:`MIN_TILE` pixels: progress,
+    resumption, threads). On a GPU the budget is :data:`GPU_SHARE` of its free memory (the stack
+    lives there too), and a tile may hold the whole image: a GPU is fed best by large batches."""
     if config.compile is None:
         config = replace(config, compile=h * w >= COMPILE_PIXELS)
     reserved = (k * c * itemsize + 3 * k) * h * w  # the stack, three bool masks
-    tile = tile_size(config, k, c, itemsize, reserved)
-    if not config.tile:  # sized by memory: also cut into TILES tiles of at least MIN_TILE pixels
+    gpu = device is not None and device.type == "cuda"
+    budget = GPU_SHARE * torch.cuda.mem_get_info(device)[0] if gpu and not config.tile else None
+    tile = tile_size(config, k, c, itemsize, reserved, budget)
+    if not config.tile and not gpu:  # sized by memory: also cut into TILES tiles of at least MIN_TILE pixels
         tile = min(tile, max(MIN_TILE, -(-h * w // TILES)))
-    return config, tile
+    return config, min(tile, h * w) if gpu else tile
 
 
 @dataclass(frozen=True)
