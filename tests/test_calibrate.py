@@ -380,3 +380,11 @@ def test_calibrate_then_render_with_its_json(tmp_path, capsys):
     (tmp_path / "kernel.exr").unlink()
     assert main([*render, str(light_only), "-o", str(tmp_path / "x")]) == 2
     assert "light.file must be a readable EXR" in capsys.readouterr().err
+
+
+@needs_data
+def test_a_calibration_computes_on_the_device_and_returns_to_the_cpu(device):
+    on_device = calibrate(DATA / "mirror-dev-1d", size=16, device=device)
+    on_cpu = calibrate(DATA / "mirror-dev-1d", size=16)
+    assert on_device.table.device.type == "cpu" and on_device.used.device.type == "cpu"
+    torch.testing.assert_close(on_device.table, on_cpu.table, rtol=1e-9, atol=1e-9)

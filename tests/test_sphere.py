@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import DEVICES
 from PIL import Image
 
 from torchspec.cli import main
@@ -54,12 +55,14 @@ def test_circle_from_mask():
     assert circle.r == pytest.approx(CIRCLE.r, abs=0.1)
 
 
-def test_command_line_writes_an_lp(tmp_path):
+@pytest.mark.parametrize("device", [None, *DEVICES])
+def test_command_line_writes_an_lp(tmp_path, device):
     frames = _sphere_frames(LIGHTS)
     for k, frame in enumerate(frames):
         Image.fromarray((frame.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(tmp_path / f"s.{k}.png")
     args = ["calibrate-sphere", str(tmp_path), "-o", str(tmp_path / "out" / "dome.lp")]
-    assert main(args + ["--circle", str(CIRCLE.cx), str(CIRCLE.cy), str(CIRCLE.r)]) == 0
+    on = [] if device is None else ["--device", device]
+    assert main(args + ["--circle", str(CIRCLE.cx), str(CIRCLE.cy), str(CIRCLE.r), *on]) == 0
     lights = read_light_file(tmp_path / "out" / "dome.lp")
     assert [e.name for e in lights.entries] == [f"s.{k}.png" for k in range(4)]
     got = torch.tensor([e.direction for e in lights.entries], dtype=torch.float64)

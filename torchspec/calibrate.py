@@ -508,8 +508,10 @@ def calibrate(
     symmetry: str = "auto",
     mirror_alpha: float = 0.0,
     smoothing: float = DEFAULT_SMOOTHING,
+    device: torch.device | str = "cpu",
 ) -> Calibration:
-    """Calibrate the light kernel from a mirror capture (:func:`recover_kernel` on its frames).
+    """Calibrate the light kernel from a mirror capture (:func:`recover_kernel` on its frames),
+    computed on ``device``; the result is on the CPU.
 
     Args:
         capture: a :class:`~torchspec.io.Capture` or its folder; its light may be ``unknown``.
@@ -528,9 +530,9 @@ def calibrate(
 
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
-    stack = capture.read_frames(picked, dtype=torch.float64, nonfinite="keep")  # (K, C, H, W)
+    stack = capture.read_frames(picked, dtype=torch.float64, device=device, nonfinite="keep")  # (K, C, H, W)
     index = torch.tensor(picked)  # on the CPU: it indexes the capture's CPU tables (exposure, irradiance, directions)
-    scale = capture.exposure()[index, None] * capture.irradiance()[index]  # (K, C)
+    scale = (capture.exposure()[index, None] * capture.irradiance()[index]).to(stack.device)  # (K, C)
     values = (stack / scale[:, :, None, None]).mean(1).flatten(1).T  # (H W, K)
     if normal is not None:
         normal = torch.as_tensor(normal, dtype=torch.float64, device=values.device)
@@ -539,7 +541,7 @@ def calibrate(
     try:
         result = recover_kernel(
             values,
-            capture.directions()[index],
+            capture.directions()[index].to(values.device),
             view=torch.tensor(capture.view, dtype=torch.float64, device=values.device),
             normal=normal,
             size=size,
@@ -552,7 +554,7 @@ def calibrate(
         raise CalibrationError(f"{capture.root}: {error}") from None
     h, w = capture.height, capture.width
     stats = {**result.stats, "capture": str(capture.root), "image": [h, w]}
-    return Calibration(result.table, result.extent, result.reflection, result.used, stats)
+    return Calibration(result.table.cpu(), result.extent, result.reflection.cpu(), result.used.cpu(), stats)
 
 
 def kernel_outputs(path: str | Path, *, overwrite: bool = False, flag: str = "overwrite=True") -> Path:

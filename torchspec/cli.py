@@ -68,6 +68,7 @@ def _add_import_command(commands) -> None:
     where = sphere.add_mutually_exclusive_group()
     where.add_argument("--mask", type=Path, help="an image, white on the sphere (default: the outline is found)")
     where.add_argument("--circle", type=float, nargs=3, metavar=("CX", "CY", "R"), help="the sphere's outline, pixels")
+    _add_device(sphere)
 
 
 def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -80,7 +81,8 @@ def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace)
     images = photographs(args.folder)
     if len(images) < 1:
         raise TorchspecError(f"{args.folder} must hold the sphere's photographs; got none.")
-    frames = torch.stack([torch.from_numpy(read_photo(path).pixels).permute(2, 0, 1) for path in images])
+    device = _device(parser, args) or "cpu"
+    frames = torch.stack([torch.from_numpy(read_photo(path).pixels).permute(2, 0, 1) for path in images]).to(device)
     if args.circle:
         circle = Circle(*args.circle)
     else:
@@ -269,6 +271,7 @@ def _add_capture_commands(commands) -> None:
     calibrate.add_argument("--mirror-alpha", type=float, default=0.0,
                            help="the mirror's roughness (Ward alpha), deconvolved (default: 0, a perfect mirror)")
     calibrate.add_argument("--frames", default=None, help="frames to use, as for fit (default: all)")
+    _add_device(calibrate)
     _add_overwrite(calibrate, " (the kernel EXR and its .json)")
 
 
@@ -520,8 +523,9 @@ def _calibrate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int
     from .calibrate import calibrate, kernel_outputs, write_kernel
 
     kernel_outputs(args.output, overwrite=args.overwrite, flag=OVERWRITE)
+    device = _device(parser, args)
     result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
-                       symmetry=args.symmetry, mirror_alpha=args.mirror_alpha)
+                       symmetry=args.symmetry, mirror_alpha=args.mirror_alpha, device=device or "cpu")
     light = write_kernel(args.output, result, overwrite=True)  # checked above, before the calibration
     print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
     print(result.summary())
