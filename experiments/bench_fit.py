@@ -58,7 +58,8 @@ class Settings:
     fit: FitConfig = field(default_factory=FitConfig)
 
 
-def _capture(settings: Settings) -> Path:
+def _capture(settings: Settings, device: str = "cpu") -> Path:
+    """The simulated capture (cached in ``settings.cache``), rendered on ``device`` when made."""
     key = json.dumps(
         {
             k: v
@@ -82,7 +83,8 @@ def _capture(settings: Settings) -> Path:
         sensor=SensorConfig(photons_per_unit=settings.photons_per_unit, seed=settings.seed),
     )
     start = time.perf_counter()
-    write_simulation(folder, simulate(config, root=folder), overwrite=True)  # a cache: an unfinished one is redone
+    simulation = simulate(config, root=folder, device=device)
+    write_simulation(folder, simulation, overwrite=True)  # a cache: an unfinished one is redone
     print(f"simulated {folder} in {time.perf_counter() - start:.0f} s")
     return folder
 
