@@ -121,8 +121,9 @@ def private_imports(folders: tuple[str, ...] = SCANNED) -> list[str]:
 
 def deviceless_constructors(root: Path = PACKAGE) -> list[str]:
     """``path:line: code`` of each call ``torch.<constructor>(...)`` (:data:`CONSTRUCTORS`) in the
-    package without a ``device=`` keyword and without a comment naming ``CPU`` on its lines or the
-    line above (``new_*`` and ``*_like`` follow their tensor and are not listed)."""
+    package without a ``device=`` or ``generator=`` keyword (a seeded draw is made on its
+    generator's device) and without a comment naming ``CPU`` on its lines or the line above
+    (``new_*`` and ``*_like`` follow their tensor and are not listed)."""
     found = []
     for path in sorted(root.rglob("*.py")):
         lines = path.read_text().splitlines()
@@ -135,8 +136,8 @@ def deviceless_constructors(root: Path = PACKAGE) -> list[str]:
                 and node.func.value.id == "torch"
             ):
                 continue
-            if any(keyword.arg in ("device", None) for keyword in node.keywords):
-                continue  # device= (or **options that carry it)
+            if any(keyword.arg in ("device", "generator", None) for keyword in node.keywords):
+                continue  # device=, a generator's draw (on its device), or **options that carry either
             span = lines[max(node.lineno - 2, 0) : node.end_lineno]
             if any("#" in line and "CPU" in line.split("#", 1)[1] for line in span):
                 continue

@@ -59,6 +59,7 @@ def test_the_device_check_finds_a_constructor_without_device(tmp_path):
         "d = torch.arange(\n    4\n)\n"
         "e = torch.ones_like(a)\n"
         "f = torch.eye(\n    2,\n)\n"
+        "g = torch.rand(2, generator=torch.Generator())\n"
     )
     found = ARCHITECTURE.deviceless_constructors(package)
     assert [line.split(":")[:2] for line in found] == [["torchspec/m.py", "2"], ["torchspec/m.py", "10"]]

@@ -51,7 +51,7 @@ def model_maps(
         raise TorchspecError(f"model must be one of {MODEL_TYPES}; got {model!r}.")
     g = torch.Generator().manual_seed(seed)  # on the CPU: a seeded generator, the maps reproducible
 
-    def uniform(low, high, *shape):  # CPU on purpose: the seeded CPU generator's draws
+    def uniform(low, high, *shape):
         return low + (high - low) * torch.rand(height, width, *shape, generator=g, dtype=torch.float64)
 
     normal = normal_from_angles(uniform(-math.radians(25), math.radians(25), 2))
@@ -69,14 +69,13 @@ def model_maps(
     if model == "diffuse":
         alpha = torch.zeros_like(alpha)
     svbrdf = SVBRDF(normal, kd, ks, alpha, rotation, specular2=ks2, roughness2=alpha2).to(torch.float32)
-    # CPU on purpose (as the maps above): the seeded CPU generator's draws
     flags = torch.where(torch.rand(height, width, generator=g) < 0.1, float(bit(UNTRUSTED[0])), 0.0)
-    extra = {  # CPU on purpose, as the maps above: the seeded CPU generator's draws
-        "model": torch.full((height, width), float(MODEL_CODES.index(model))),  # CPU, with the maps
-        "quality": torch.rand(height, width, generator=g),  # CPU: the seeded generator
+    extra = {
+        "model": torch.full((height, width), float(MODEL_CODES.index(model))),  # on the CPU, with the maps
+        "quality": torch.rand(height, width, generator=g),
         "flags": flags,
-        "std_normal_deg": torch.rand(height, width, generator=g),  # CPU: the seeded generator
-        "std_diffuse": 0.01 * torch.rand(height, width, 3, generator=g),  # CPU: the seeded generator
+        "std_normal_deg": torch.rand(height, width, generator=g),
+        "std_diffuse": 0.01 * torch.rand(height, width, 3, generator=g),
     }
     meta = {
         "model_codes": list(MODEL_CODES),
@@ -95,12 +94,10 @@ def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1, enco
     height, width = maps.svbrdf.shape
     channels = len(maps.svbrdf.channels)
     g = torch.Generator().manual_seed(seed)  # on the CPU: a seeded generator, the term reproducible
-    # CPU on purpose (this line and the next three): the seeded CPU generator's draws
     coefficients = size * (2 * torch.rand(height, width, TERMS[order], channels, generator=g) - 1)
-    chosen = torch.rand(height, width, generator=g) < 0.75  # CPU: the seeded generator
-    blended = chosen & (torch.rand(height, width, generator=g) < 0.5)  # CPU: the seeded generator
-    # CPU on purpose: the seeded CPU generator's draws
-    weight = torch.where(blended, torch.rand(height, width, generator=g), torch.ones(height, width))
+    chosen = torch.rand(height, width, generator=g) < 0.75
+    blended = chosen & (torch.rand(height, width, generator=g) < 0.5)
+    weight = torch.where(blended, torch.rand(height, width, generator=g), torch.ones(height, width))  # CPU: as g
     term = ResidualTerm(coefficients * chosen[..., None, None], chosen, weight)
     meta = maps.meta if encoding is None else {**maps.meta, MAP_NAME: {"encoding": encoding}}
     return Maps(maps.svbrdf, meta, {**maps.extra, MAP_NAME: term.to_map(), WEIGHT_MAP: weight})
