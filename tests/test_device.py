@@ -9,34 +9,24 @@ from pathlib import Path
 import pytest
 import torch
 from capture_cases import write_painting
+from pixel_cases import grid_lights, random_svbrdf
 
-from torchspec.brdf import SVBRDF
 from torchspec.errors import TorchspecError
-from torchspec.geometry import angle, normalize
+from torchspec.geometry import angle
 from torchspec.io import read_svbrdf
 from torchspec.jacobian import jacobian
-from torchspec.lights import Kernel, Lights
+from torchspec.lights import Kernel
 from torchspec.lm import LMConfig, bounded, solve
 from torchspec.models import get_model
 from torchspec.pipeline import FitConfig, fit, write_fit
 from torchspec.pipeline.plan import device_of
 from torchspec.relight import render_capture
 from torchspec.rendering import render
-from torchspec.simulate import LayoutConfig, layout
 
 
-def _scene(count: int = 8, kernel: Kernel | None = None):
-    g = torch.Generator().manual_seed(11)
-    tilt = 0.15 * torch.randn(count, 2, generator=g, dtype=torch.float64)
-    normal = normalize(torch.cat([tilt, torch.ones(count, 1, dtype=torch.float64)], -1))
-    kd = 0.2 + 0.5 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    ks = 0.1 + 0.3 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    alpha = 0.06 + 0.1 * torch.rand(count, 2, generator=g, dtype=torch.float64)
-    svbrdf = SVBRDF(normal, kd, ks, alpha, torch.rand(count, generator=g, dtype=torch.float64))
-    centres = layout(LayoutConfig(kind="grid", nx=7, ny=7, extent=0.7, radius=0.8))
-    k = centres.shape[0]
-    kernel = kernel or Kernel("gaussian", sigma=0.06)
-    lights = Lights(centres, kernel, torch.ones(k, 1, dtype=torch.float64), torch.ones(k, dtype=torch.float64))
+def _scene(kernel: Kernel | None = None):
+    svbrdf = random_svbrdf(8, torch.Generator().manual_seed(11))
+    lights = grid_lights(kernel or Kernel("gaussian", sigma=0.06), n=7, extent=0.7)
     return svbrdf, lights, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
 

@@ -8,16 +8,14 @@ import traceback
 
 import pytest
 import torch
+from pixel_cases import grid_lights, random_svbrdf
 from torch.overrides import TorchFunctionMode
 
 import torchspec.lm.solver as lm_solver
-from torchspec.brdf import SVBRDF
-from torchspec.geometry import normalize
-from torchspec.lights import Kernel, Lights
+from torchspec.lights import Kernel
 from torchspec.lm import LMConfig, bounded, solve
 from torchspec.models import MODELS, get_model
 from torchspec.quadrature import Quadrature
-from torchspec.simulate import LayoutConfig, layout
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 SYNCS = {"item", "tolist", "nonzero", "argwhere", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy",
@@ -49,17 +47,9 @@ def _has_mask(index) -> bool:
 
 def _problem(kernel: Kernel, count: int = 6):
     g = torch.Generator().manual_seed(0)
-    normal = normalize(torch.cat([0.1 * torch.randn(count, 2, generator=g, dtype=torch.float64),
-                                  torch.ones(count, 1, dtype=torch.float64)], -1))
-    kd = 0.2 + 0.5 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    ks = 0.1 + 0.2 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    alpha = 0.05 + 0.1 * torch.rand(count, 2, generator=g, dtype=torch.float64)
-    svbrdf = SVBRDF(normal, kd, ks, alpha, torch.rand(count, generator=g, dtype=torch.float64))
-    centres = layout(LayoutConfig(kind="grid", nx=6, ny=6, extent=0.6, radius=0.8))
-    k = centres.shape[0]
-    lights = Lights(centres, kernel, torch.ones(k, 1, dtype=torch.float64), torch.ones(k, dtype=torch.float64))
-    observed = torch.rand(count, k, 3, generator=g, dtype=torch.float64)
-    weight = torch.ones(count, k, dtype=torch.float64)
+    svbrdf, lights = random_svbrdf(count, g), grid_lights(kernel)
+    observed = torch.rand(count, lights.directions.shape[0], 3, generator=g, dtype=torch.float64)
+    weight = torch.ones(observed.shape[:2], dtype=torch.float64)
     weight[:, 0] = 0
     return svbrdf, lights, observed, weight
 

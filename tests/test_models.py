@@ -1,41 +1,21 @@
 import pytest
 import torch
+from pixel_cases import grid_lights, random_svbrdf
 
-from torchspec.brdf import SVBRDF
-from torchspec.geometry import normalize
-from torchspec.lights import Kernel, Lights
+from torchspec.lights import Kernel
 from torchspec.models import MODELS, get_model
 from torchspec.quadrature import Quadrature
 from torchspec.rendering import render
-from torchspec.simulate import LayoutConfig, layout
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
 
 def _svbrdf(count=5, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    normal = normalize(
-        torch.cat(
-            [0.1 * torch.randn(count, 2, generator=g, dtype=torch.float64), torch.ones(count, 1, dtype=torch.float64)],
-            -1,
-        )
-    )
-    kd = 0.2 + 0.5 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    ks = 0.1 + 0.2 * torch.rand(count, 3, generator=g, dtype=torch.float64)
-    alpha = 0.05 + 0.1 * torch.rand(count, 2, generator=g, dtype=torch.float64)
-    rotation = torch.rand(count, generator=g, dtype=torch.float64)
-    return SVBRDF(normal, kd, ks, alpha, rotation)
+    return random_svbrdf(count, torch.Generator().manual_seed(seed))
 
 
 def _lights():
-    centres = layout(LayoutConfig(kind="grid", nx=6, ny=6, extent=0.6, radius=0.8))
-    k = centres.shape[0]
-    return Lights(
-        centres,
-        Kernel("gaussian", sigma=0.08),
-        torch.ones(k, 1, dtype=torch.float64),
-        torch.ones(k, dtype=torch.float64),
-    )
+    return grid_lights(Kernel("gaussian", sigma=0.08))
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
