@@ -106,8 +106,8 @@ def tile_size(
     per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
     given = config.memory_gib * 2**30 if budget is None else budget
     available = given - reserved - RUNTIME_BYTES
-    cap = 1 << 17 if budget is None else max(1 << 17, int(available / (2 * per_pixel)))
-    return int(max(256, min(cap, available / (2 * per_pixel))))
+    fits = available / (2 * per_pixel)
+    return int(max(256, fits if budget is not None else min(1 << 17, fits)))
 
 
 def plan(
