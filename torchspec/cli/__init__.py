@@ -1,0 +1,79 @@
+"""The ``torchspec`` command: :func:`main` runs one subcommand (:mod:`torchspec.cli.commands`) of the
+parser :func:`~torchspec.cli.parser.build_parser` builds, and turns its errors into exit statuses."""
+
+from __future__ import annotations
+
+import io
+import os
+import shlex
+import sys
+import traceback
+import warnings
+
+from .._version import __version__
+from ..errors import TorchspecError
+from ..pipeline.checkpoint import CHECKPOINT
+from .commands import COMMANDS
+from .parser import OVERWRITE, build_parser
+
+__all__ = ["BUG", "CHECKPOINT", "COMMANDS", "OVERWRITE", "PIPE_CLOSED", "build_parser", "main"]
+
+BUG = 70
+"""The exit status of an internal error (a bug in torchspec): ``EX_SOFTWARE`` of ``sysexits.h``."""
+PIPE_CLOSED = 141
+"""The exit status when the reader of stdout closed it (``torchspec info | head -2``): 128 + SIGPIPE,
+what a shell reports for a command a closed pipe stopped, as ``yes | head`` does."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``torchspec`` command line ``argv`` (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit status: 0 on success; 2 for a usage error or input torchspec refuses (a
+        :class:`~torchspec.errors.TorchspecError`, or an ``OSError`` of a path), printed in one line
+        without a traceback; 130 for an interrupted fit or acquisition; 70 (``EX_SOFTWARE``) for a bug,
+        printed with its traceback and a request to report it.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line(args.command)
+            status = COMMANDS[args.command](parser, args)
+        sys.stdout.flush()  # a reader that stopped (torchspec info | head -2) shows here, not at exit
+        return status
+    except BrokenPipeError:  # the reader of stdout stopped reading: nothing to say, and no one to say it to
+        _silence_stdout()
+        return PIPE_CLOSED
+    except (TorchspecError, OSError) as exc:  # the user's input or filesystem: say what and where, no traceback
+        print(f"torchspec {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception:  # anything else is a bug in torchspec
+        traceback.print_exc()
+        line = " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+        print(f"torchspec {args.command}: internal error: this is a bug in torchspec {__version__}; please report it "
+              f"with the traceback above and the command line: torchspec {line}", file=sys.stderr)
+        return BUG
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so that Python's flush at exit does not fail on the closed pipe."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, io.UnsupportedOperation):  # no file descriptor (a captured stdout)
+        pass
+
+
+def _warning_line(command: str):
+    """A ``warnings.showwarning`` that prints a warning as one line naming the command (no source line)."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"torchspec {command}: warning: {message}", file=file or sys.stderr)
+
+    return show
+

@@ -1,0 +1,292 @@
+"""The ``torchspec`` subcommands: each a function ``(parser, args) -> exit status``, in :data:`COMMANDS`."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import shutil
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from ..errors import TorchspecError
+from ..outputs import check_output
+from ..pipeline.checkpoint import CHECKPOINT
+from .parser import OVERWRITE
+
+__all__ = ["COMMANDS", "device_option"]
+
+
+def device_option(parser: argparse.ArgumentParser, args: argparse.Namespace):
+    """``args.device`` checked before any work: the ``torch.device``, or ``None`` when not given."""
+    if args.device is None:
+        return None
+    from ..pipeline.plan import device_of
+
+    try:
+        return device_of(args.device)
+    except TorchspecError as error:
+        parser.error(f"--device: {error}")
+
+
+
+def _rerun() -> str:
+    """The command line that continues the interrupted command of ``sys.argv``: the same, with ``--resume``."""
+    again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
+    return f"torchspec {again} --resume"
+
+
+def _check_output(args: argparse.Namespace, path: Path | None = None, **rule) -> Path:
+    """``args.output`` (or ``path``) checked before any work (:func:`torchspec.outputs.check_output`)."""
+    return check_output(args.output if path is None else path, overwrite=args.overwrite, flag=OVERWRITE, **rule)
+
+def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import torch
+
+    from ..io.images import read_photo
+    from ..io.rti import photographs
+    from ..sphere import Circle, circle_from_mask, find_sphere, sphere_directions, write_lp
+
+    images = photographs(args.folder)
+    if len(images) < 1:
+        raise TorchspecError(f"{args.folder} must hold the sphere's photographs; got none.")
+    device = device_option(parser, args) or "cpu"
+    frames = torch.stack([torch.from_numpy(read_photo(path).pixels).permute(2, 0, 1) for path in images]).to(device)
+    if args.circle:
+        circle = Circle(*args.circle)
+    else:
+        circle = circle_from_mask(args.mask) if args.mask else find_sphere(frames)
+    result = sphere_directions(frames, circle)
+    write_lp(args.output, [path.name for path in images], result)
+    found = "" if args.circle or args.mask else "found "
+    print(f"wrote {args.output}: {len(images)} lights from a sphere {found}at ({circle.cx:.1f}, {circle.cy:.1f}), "
+          f"radius {circle.r:.1f} px; uncertainty {float(result.uncertainty_deg.median()):.2f} deg (median), "
+          f"{float(result.uncertainty_deg.max()):.2f} deg (largest)")
+    return 0
+
+
+def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import warnings
+
+    from ..io.rti import import_rti
+    from ..response import describe_response
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the notes are printed below, once each
+        result = import_rti(args.source, args.output, transfer=args.transfer, overwrite=args.overwrite,
+                            progress=not args.quiet)
+    for note in result.notes:
+        print(f"torchspec import: note: {note}", file=sys.stderr)
+    estimated = result.transfer.name == "response"
+    transfer = describe_response(result.response.to_json()) if estimated else result.transfer
+    capture = result.capture
+    print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
+          f"{''.join(capture.channels)} from {result.light_file.path} (images matched by {result.matched}; "
+          f"transfer {transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
+          f"{shlex.quote(str(args.output))}")
+    return 0
+
+
+def _demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if not 8 <= args.size <= 4096:
+        parser.error(f"--size must be in 8..4096; got {args.size}")
+    from .. import demo
+
+    device = device_option(parser, args)
+    _check_output(args, args.output or demo.DEFAULT_OUTPUT)
+    demo.run(args.output, size=args.size, progress=not args.quiet, overwrite=args.overwrite,
+             device=str(device or "auto"))
+    return 0
+
+
+def _simulate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..simulate import SimulationConfig, simulate, write_simulation
+
+    config = load_config(args.config, SimulationConfig)
+    device = device_option(parser, args)
+    _check_output(args)
+    simulation = simulate(config, root=args.output, progress=not args.quiet, device=device or "cpu")
+    result = write_simulation(args.output, simulation, overwrite=args.overwrite)
+    print(f"wrote {args.output}: {len(result.frames)} frames of {result.width}x{result.height} "
+          f"{''.join(result.channels)}, with truth/")
+    return 0
+
+
+def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
+    """``torchspec fit --scheduler/--workers``: the same fit, its tiles on a Dask cluster."""
+    from ..pipeline import ClusterError, connect, fit_on_cluster
+
+    try:
+        with connect(args.scheduler, workers=args.workers) as client:
+            return fit_on_cluster(args.capture, client, checkpoint=checkpoint, config=config, frames=args.frames,
+                                  progress=not args.quiet, resume=args.resume)
+    except ClusterError as error:  # printed by main like an unreadable file: the message names the address or tile
+        raise OSError(str(error)) from error
+
+
+def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..pipeline import FitConfig, FitInterrupted, fit, write_fit
+
+    config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
+    if args.model is not None:
+        config = replace(config, model=args.model)
+    if args.calibrate is not None:
+        config = replace(config, calibrate=args.calibrate)
+    if args.residual_term is not None:
+        term = args.residual_term
+        config = replace(config, residual_term=term if term == "auto" else int(term))
+    if args.device is not None:
+        config = replace(config, device=str(device_option(parser, args)))
+    if args.threads is not None:
+        if args.threads != "auto" and not args.threads.isdigit():
+            parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
+        config = replace(config, threads=args.threads if args.threads == "auto" else int(args.threads))
+    checkpoint = args.output / CHECKPOINT
+    if args.workers is not None and args.workers < 1:
+        parser.error(f"--workers must be >= 1; got {args.workers}")
+    _check_output(args, job=CHECKPOINT)  # its own checkpoint: --resume decides
+    if args.overwrite and not args.resume:
+        shutil.rmtree(checkpoint, ignore_errors=True)  # an unfinished fit there: dropped, as asked
+    try:
+        if args.scheduler is None and args.workers is None:
+            result = fit(
+                args.capture,
+                config=config,
+                frames=args.frames,
+                progress=not args.quiet,
+                checkpoint=checkpoint,
+                resume=args.resume,
+            )
+        else:
+            result = _fit_on_cluster(args, config, checkpoint)
+    except FitInterrupted as stop:
+        print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
+              f"continue with: {_rerun()}", file=sys.stderr)
+        return 130
+    write_fit(args.output, result, overwrite=True)  # checked above, before the fit
+    shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
+    stats = result.stats
+    print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
+          f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
+          f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
+          f"median relative residual {stats['median_residual']:.2e}")
+    return 0
+
+
+def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from ..relight import render_capture
+
+    device = device_option(parser, args)
+    _check_output(args)
+    report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path,
+                            overwrite=args.overwrite, progress=not args.quiet, term=not args.no_term,
+                            device=str(device or "auto"))
+    print(f"wrote {report['frames']} frames to {args.output}")
+    if report.get("psnr_db") is not None:
+        print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
+              f"relative RMS error {100 * report['relative_rms']:.2f} %")
+    return 0
+
+
+def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from ..export import export
+
+    _check_output(args)
+    written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance,
+                     overwrite=args.overwrite, capture=args.capture, progress=args.to == "web")
+    print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
+    if args.to == "mitsuba" and args.light is None:
+        print("  lit by a directional light at 45 deg elevation from the upper left (the default); "
+              "choose another with --light X Y Z")
+    return 0
+
+
+def _view(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from ..view import open_site, serve
+
+    site = open_site(args.svbrdf, args.capture, title=args.svbrdf.name, cache=not args.no_cache)
+    server = serve(site, args.port)
+    print(f"torchspec view: http://127.0.0.1:{server.server_address[1]}/ (Ctrl-C to stop)", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
+        site.close()
+    return 0
+
+
+def _info(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import json
+
+    from ..info import UNUSABLE, format_report, inspect_capture
+
+    report = inspect_capture(args.capture, progress=not args.quiet)  # the bar goes to stderr
+    print(json.dumps(report, indent=2, allow_nan=False) if args.json else format_report(report))
+    return 2 if report["verdict"] == UNUSABLE else 0
+
+
+def _calibrate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import json
+
+    from ..calibrate import calibrate, kernel_outputs, write_kernel
+
+    kernel_outputs(args.output, overwrite=args.overwrite, flag=OVERWRITE)
+    device = device_option(parser, args)
+    result = calibrate(args.capture, frames=args.frames, normal=args.normal, size=args.size, extent=args.extent,
+                       symmetry=args.symmetry, mirror_alpha=args.mirror_alpha, device=device or "cpu")
+    light = write_kernel(args.output, result, overwrite=True)  # checked above, before the calibration
+    print(f"wrote {args.output} and {args.output.with_suffix('.json')}")
+    print(result.summary())
+    print(f"capture manifest light entry (kernel file beside capture.json): {json.dumps(light)}")
+    return 0
+
+
+def _dome_emulator(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    import math
+
+    from ..dome.emulator import serve
+
+    return serve(speed=math.radians(args.speed), arm_speed=args.arm_speed, faults=args.fault,
+                 stall_seconds=args.stall_seconds, homed=not args.unhomed)
+
+
+def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from ..dome.acquisition import PLAN, AcquisitionInterrupted, AcquisitionStopped, acquire, load_light, open_camera
+    from ..dome.client import DomeClient
+
+    check_output(args.output, overwrite=args.overwrite or args.resume, job=PLAN, flag=OVERWRITE)
+
+    light = load_light(args.light)
+    camera = open_camera(args.camera, light, channels=args.channels.split(","), pattern=args.pattern,
+                         timeout=args.frame_timeout, trigger=args.trigger)
+    try:
+        with DomeClient(args.port, timeout=args.timeout, move_timeout=args.move_timeout) as client:
+            capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
+                              resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
+    except (AcquisitionStopped, AcquisitionInterrupted) as stop:
+        print(f"torchspec acquire: {stop} Continue with: {_rerun()}", file=sys.stderr)
+        return 130 if isinstance(stop, AcquisitionInterrupted) else 1
+    print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
+          f"{''.join(capture.channels)}")
+    return 0
+
+
+COMMANDS = {
+    "demo": _demo,
+    "simulate": _simulate,
+    "fit": _fit,
+    "render": _render,
+    "export": _export,
+    "view": _view,
+    "info": _info,
+    "calibrate": _calibrate,
+    "dome-emulator": _dome_emulator,
+    "acquire": _acquire,
+    "import": _import,
+    "calibrate-sphere": _calibrate_sphere,
+}
+"""Each subcommand's function: ``(parser, args) -> exit status``."""
