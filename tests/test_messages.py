@@ -125,3 +125,21 @@ def test_warnings_are_one_line_for_the_command(capture, tmp_path):
     assert done.returncode == 0, done.stderr
     assert "torchspec render: warning: " in done.stderr and "unknown top-level key(s) ['comment']" in done.stderr
     assert ".py:" not in done.stderr and "warnings.warn" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("given", ["folder", "dirs.lp", "lights.txt"])
+def test_an_rti_folder_or_light_file_given_to_fit_says_import_it_first(tmp_path, capsys, given):
+    """Issue 37, point 3: pointed at an RTI folder (photographs + .lp) or its light file, ``fit``
+    and ``info`` say to run ``torchspec import`` first, not that capture.json is missing or that
+    the .lp is not JSON."""
+    rti = tmp_path / "rti"
+    rti.mkdir()
+    (rti / "image00.jpg").write_bytes(b"")
+    (rti / ("lights.txt" if given == "lights.txt" else "dirs.lp")).write_text("1\nimage00.jpg 0 0 1\n")
+    path = rti if given == "folder" else rti / given
+    assert main(["fit", str(path), "-o", str(tmp_path / "maps")]) == 2
+    err = capsys.readouterr().err
+    assert f"import it first with: torchspec import {path} -o CAPTURE" in err
+    assert "capture.json must exist" not in err and "JSON" not in err
+    assert f"torchspec import {path}" in _info(path, capsys)
+    assert not (tmp_path / "maps").exists()

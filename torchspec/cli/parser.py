@@ -9,28 +9,43 @@ from pathlib import Path
 from .._version import __version__
 from ..pipeline.checkpoint import CHECKPOINT
 
-__all__ = ["OVERWRITE", "add_device", "add_overwrite", "build_parser"]
+__all__ = ["OVERWRITE", "WORKFLOW", "add_device", "add_overwrite", "build_parser"]
 
 OVERWRITE = "--overwrite"
 """The option that lets a command write into an output that holds other work."""
+
+WORKFLOW = """\
+from photographs to relit maps (an RTI folder: JPEGs and their .lp light file):
+  torchspec import FOLDER -o CAPTURE          read the photographs and lights (or: FOLDER/dirs.lp)
+  torchspec info CAPTURE                      check it: frames, lights, clipped pixels, a verdict
+  torchspec fit CAPTURE -o MAPS               fit the maps; previews in MAPS/previews/
+  torchspec view MAPS --capture CAPTURE       relight them in the browser
+
+then: torchspec render MAPS (relit images), torchspec export MAPS --to rti|gltf|mitsuba|web|...
+try it first on a simulated painting: torchspec demo
+each command's options: torchspec COMMAND --help"""
+"""The workflow ``torchspec --help`` shows under its commands."""
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of the ``torchspec`` command line: one subcommand per entry of :data:`COMMANDS`."""
     parser = argparse.ArgumentParser(
         prog="torchspec",
-        description="Reflectance of nearly flat objects from a few HDR photographs under an extended light.",
+        description="Reflectance maps (normal, diffuse, specular, roughness) of nearly flat objects - paintings, "
+        "reliefs, coins - from photographs lit from many directions: an RTI capture (JPEG + .lp), a light dome's "
+        "or OpenEXR frames.",
+        epilog=WORKFLOW,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"torchspec {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
-    _add_simulation_commands(commands)
+    _add_import_command(commands)  # in the order of WORKFLOW: import, info, fit, render/export/view
+    _add_capture_commands(commands)
     _add_fit_command(commands)
     _add_map_commands(commands)
-    _add_capture_commands(commands)
+    _add_simulation_commands(commands)
     _add_dome_commands(commands)
-    _add_import_command(commands)
     return parser
-
 
 
 def _add_import_command(commands) -> None:

@@ -11,6 +11,7 @@ missing frames.
 from __future__ import annotations
 
 import operator
+import shlex
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -419,6 +420,18 @@ def _not_a_capture(path: Path) -> None:
             f"{path} is an image, not a capture: pass the folder that holds {MANIFEST} "
             "(photographs become a capture with: torchspec import SOURCE -o CAPTURE)."
         )
+    rti = is_file and (suffix in RTI_LIGHT_FILES or path.name.lower() == "lights.txt")
+    if not is_file and not (path / MANIFEST).exists():  # an RTI folder: photographs and their light file
+        rti = any(p.suffix.lower() in RTI_LIGHT_FILES for p in path.iterdir() if p.is_file())
+    if rti:
+        raise CaptureError(
+            f"{path} is an RTI capture (photographs and their light file), not yet a torchspec capture: import it "
+            f"first with: torchspec import {shlex.quote(str(path))} -o CAPTURE, then: torchspec fit CAPTURE -o MAPS."
+        )
+
+
+RTI_LIGHT_FILES = (".lp", ".relight", ".dome")
+"""The light files of RTI tools (``torchspec import`` reads them; so does a ``lights.txt``)."""
 
 
 def _is_file(path: Path, key: str) -> bool:
