@@ -24,6 +24,8 @@ from torchspec.io.exr import read_exr
 from torchspec.layout import mirror_point
 from torchspec.lights import Kernel, Lights
 from torchspec.pipeline import FitConfig, fit, write_fit
+from torchspec.pipeline.checks import overshoot
+from torchspec.pipeline.samples import TileSamples
 from torchspec.rendering import render
 
 F64 = torch.float64
@@ -155,6 +157,7 @@ def test_a_fit_flags_few_good_pixels_and_writes_its_flags(painting, tmp_path):
     assert bool(result.checks["peak_misfit"][lobed & ~weak].isfinite().all())
     assert bool(result.checks["peak_misfit"][~lobed | weak].isnan().all())
     assert float(weak.double().mean()) < 0.05
+    assert result.stats["flags"]["implausible"] == 0  # its maps render what its photographs show
     assert result.stats["flags"] == describe(result.flags) and result.stats["untrusted"] == int(bad.sum())
     write_fit(tmp_path / "maps", result)
     meta = json.loads((tmp_path / "maps" / "svbrdf.json").read_text())
@@ -170,7 +173,7 @@ def test_without_a_noise_estimate_only_the_solver_flags(painting):
     assert int((result.flags.to(torch.int32) & ~allowed).abs().sum()) == 0
 
 
-@pytest.mark.parametrize("name", ["flag_peak_misfit", "flag_astray", "flag_reach"])
+@pytest.mark.parametrize("name", ["flag_peak_misfit", "flag_astray", "flag_reach", "flag_overshoot"])
 def test_thresholds_are_checked(name):
     with pytest.raises(ValueError, match=f"FitConfig.{name} must be > 0"):
         FitConfig(**{name: 0.0})
@@ -183,3 +186,56 @@ def test_a_lobe_lost_in_the_noise_is_weak(scene):
     _, _, strong = residual_samples(truth, observed, inverse, lights, VIEW)
     _, _, faint = residual_samples(_pixels(peaks, k_s=1e-6), observed, inverse, lights, VIEW)
     assert float(strong.min()) > 10 * WEAK_LOBE_SNR and float(faint.max()) < 0.01 * WEAK_LOBE_SNR
+
+
+def _overshoot(maps: SVBRDF, y: torch.Tensor, lights: Lights) -> torch.Tensor:
+    valid = torch.ones(y.shape[:2], dtype=torch.bool)
+    data = TileSamples.of(y, valid, y.mean((1, 2)), lights, VIEW, maps.channels)
+    return overshoot(maps, y, data, FitConfig())
+
+
+def test_overshoot_is_one_where_the_maps_render_the_photographs(scene):
+    truth, lights, _, _, _ = scene
+    clean = render(truth, lights, VIEW, quadrature=FitConfig().rule)  # the fit's own quadrature: exactly 1
+    assert torch.allclose(_overshoot(truth, clean, lights), torch.ones(clean.shape[0], dtype=F64), rtol=1e-12)
+    reference = render(truth, lights, VIEW)  # photographs rendered exactly: 1 within the fit's quadrature error
+    assert torch.allclose(_overshoot(truth, reference, lights), torch.ones(clean.shape[0], dtype=F64), rtol=1e-3)
+
+
+def test_a_lobe_grown_on_clipped_samples_is_implausible(scene):
+    """Issue 37, point 1: a lobe whose height its clipped samples do not bound (k_s far above the
+    truth's) renders far above the photographs' clipping level at the capture's own lights: flagged
+    ``implausible`` by the ratio of the render to the brightest recorded value; the truth is not."""
+    truth, lights, _, _, _ = scene
+    rule = FitConfig().rule
+    clean = render(truth, lights, VIEW, quadrature=rule)
+    clip = float(clean.amax((1, 2)).median())  # the brighter half of the highlights clipped
+    recorded = clean.clamp(max=clip)
+    grown = SVBRDF(truth.normal, truth.diffuse, 100 * truth.specular, truth.roughness, None, truth.channels)
+    ratio = _overshoot(grown, recorded, lights)
+    expected = render(grown, lights, VIEW, quadrature=rule).amax((1, 2)) / clean.amax((1, 2)).clamp(max=clip)
+    assert torch.allclose(ratio, expected, rtol=1e-12)
+    flagged = ratio > FitConfig().flag_overshoot
+    assert float(flagged.double().mean()) > 0.9
+    honest = _overshoot(truth, recorded, lights)  # the truth renders up to peak / clip: a few times at most
+    assert float(honest.max()) < FitConfig().flag_overshoot
+    assert torch.allclose(honest, clean.amax((1, 2)) / clean.amax((1, 2)).clamp(max=clip), rtol=1e-12)
+
+
+def test_a_black_pixel_is_not_implausible(scene):
+    """The recorded brightness is floored at 1 % of a white surface's value: a black pixel whose maps
+    render black has ratio 0, one rendering a faint value is measured against the floor."""
+    _, lights, _, _, _ = scene
+    maps = SVBRDF(
+        VIEW.expand(2, 3).clone(),
+        torch.tensor([[0.0], [1e-4]], dtype=F64),
+        torch.zeros(2, 1, dtype=F64),
+        torch.full((2, 2), ALPHA, dtype=F64),
+        None,
+        ("Y",),
+    )
+    ratio = _overshoot(maps, torch.zeros(2, lights.directions.shape[0], 1, dtype=F64), lights)
+    floor = 0.01 / math.pi  # unit irradiance and exposure
+    assert float(ratio[0]) == 0.0
+    brightest = float(render(maps, lights, VIEW, quadrature=FitConfig().rule)[1].amax())
+    assert math.isclose(float(ratio[1]), brightest / floor, rel_tol=1e-12)

@@ -58,6 +58,7 @@ FLAGS = (
     "misfit",  # the chosen model leaves a residual above the noise (chi^2 test)
     "weak_lobe",  # the lobe's part of the values is below WEAK_LOBE_SNR noise units: no lobe established
     "poor_fit",  # the chosen model leaves a misfit far above the noise: no model of the ladder explains the pixel
+    "implausible",  # the maps render far above anything the pixel's photographs recorded (FitConfig.flag_overshoot)
 )
 """The bits of ``flags``: bit ``i`` is ``1 << i`` for ``FLAGS[i]``."""
 
@@ -65,7 +66,7 @@ WEAK_LOBE_SNR = 4.0
 """A lobe whose part of a pixel's values has a norm below this many noise standard deviations is
 ``weak_lobe`` (a lobe fitted to pure noise reaches ~2-3: its three parameters absorb that much)."""
 
-UNTRUSTED = ("diverged", "few_samples", "undetermined", "peak_misfit", "astray", "poor_fit")
+UNTRUSTED = ("diverged", "few_samples", "undetermined", "peak_misfit", "astray", "poor_fit", "implausible")
 """The flags that mark a pixel's estimate as unusable (``quality`` 0)."""
 
 

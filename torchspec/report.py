@@ -40,6 +40,7 @@ __all__ = [
     "score",
     "shared_limit",
     "stat_label",
+    "write_fit_previews",
     "write_previews",
     "write_report",
 ]
@@ -225,10 +226,11 @@ def write_previews(
     residual: Tensor | None = None,
     quality: Tensor | None = None,
     truth: SVBRDF | None = None,
+    white: float = 1.0,
 ) -> list[Path]:
     """PNG previews of fitted maps (leading dims ``(H, W)``) in ``folder``, each enlarged and
     titled, scalar maps with a colourbar: ``normal.png`` (``RGB = (n + 1) / 2``), ``diffuse.png``
-    (sRGB-encoded), ``specular.png`` and ``roughness.png`` (false colour, the scale from 0 to the
+    (sRGB-encoded, ``white`` shown white), ``specular.png`` and ``roughness.png`` (false colour, the scale from 0 to the
     99th percentile of the fit and ``truth``: one outlier does not squash it), ``specular2.png``
     and ``roughness2.png`` for a second lobe (where some pixel has one), and where given
     ``model.png`` (the model codes of :data:`torchspec.pipeline.MODEL_CODES` in
@@ -245,7 +247,8 @@ def write_previews(
         written.append(path)
 
     save("normal.png", ((s.normal.numpy() + 1) / 2).clip(0, 1), "normal (RGB = (n + 1) / 2)")
-    save("diffuse.png", _rgb(display(s.diffuse.numpy(), 1.0)), "diffuse k_d (sRGB)")
+    shown = "diffuse k_d (sRGB)" + (f", {white:.3g} shown white" if white != 1.0 else "")
+    save("diffuse.png", _rgb(display(s.diffuse.numpy(), white)), shown)
     ks, alpha = s.specular.mean(-1).numpy(), s.roughness.mean(-1).numpy()
     true_ks = t.specular.mean(-1).numpy() if t is not None else None
     true_alpha = t.roughness.mean(-1).numpy() if t is not None else None
@@ -375,3 +378,66 @@ def relit_title(theta_deg: float) -> str:
         f"relit by a light circling the zenith, {theta_deg:g} deg from it (elevation {90 - theta_deg:g} deg above "
         "the surface)"
     )
+
+
+PREVIEW_LIGHT = (-0.5, 0.5, 0.7071)
+"""The direction of ``relit.png``'s light in :func:`write_fit_previews`: 45 degrees above the
+horizon from the upper left, the usual raking light of a photographed relief (the fitted frame
+nearest to it is taken)."""
+
+PREVIEW_PIXELS = 1024
+"""The longest side of :func:`write_fit_previews`' maps: a larger fit is shown one pixel in N."""
+
+
+def write_fit_previews(folder: str | Path, fit, capture, *, largest: int = PREVIEW_PIXELS) -> list[Path]:
+    """PNG previews of a fit (:class:`torchspec.pipeline.Fit`) of ``capture``
+    (:class:`torchspec.io.Capture`) in ``folder``: :func:`write_previews`' maps (``k_d`` white at
+    its 99th percentile), the model, residual and quality maps, and ``relit.png``: the photograph
+    of the fitted frame whose light is nearest :data:`PREVIEW_LIGHT` beside the maps relit by that
+    frame's light (the physical model alone, as a renderer uses the maps; a near light taken as
+    distant), both encoded alike for display, white at the photograph's 99th percentile. A fit of
+    more than ``largest`` pixels a side is shown one pixel in ``ceil(side / largest)``. Returns the
+    paths written."""
+    h, w = fit.quality.shape
+    step = max(1, math.ceil(max(h, w) / largest))
+    pick = (slice(None, None, step), slice(None, None, step))
+    svbrdf = fit.svbrdf[pick].to(device="cpu", dtype=torch.float64)
+    kd = svbrdf.diffuse.flatten()
+    white = float(torch.quantile(kd[:: max(1, kd.numel() // 1_000_000)], 0.99)) if kd.numel() else 1.0
+    written = write_previews(
+        folder, svbrdf, model=fit.model[pick], residual=fit.residual[pick], quality=fit.quality[pick],
+        white=white if white > 0 else 1.0,
+    )  # fmt: skip
+    lights = capture.lights(dtype=torch.float64)
+    frames = list(fit.stats["frames"])
+    toward = torch.tensor(PREVIEW_LIGHT, dtype=torch.float64, device=lights.directions.device)
+    k = frames[int((lights.directions[frames] @ toward).argmax())]
+    view = torch.tensor(capture.view, dtype=torch.float64, device=lights.directions.device)
+    relit = render(svbrdf.flatten(), lights[[k]], view).reshape(*svbrdf.shape, -1)  # (h, w, C)
+    photo = capture.read_frames([k], dtype=torch.float64, nonfinite="keep")[0].permute(1, 2, 0)[pick]
+    finite = photo[photo.isfinite()]
+    top = float(torch.quantile(finite[:: max(1, finite.numel() // 1_000_000)], 0.99)) if finite.numel() else 1.0
+    path = Path(folder) / "relit.png"
+    _side_by_side(
+        path,
+        [_rgb(display(torch.nan_to_num(photo).numpy(), top)), _rgb(display(relit.numpy(), top))],
+        [f"photograph: frame {k} ({capture.frames[k].file})", "the maps relit by its light (no residual term)"],
+    )
+    return [*written, path]
+
+
+def _side_by_side(path: Path, images: list[np.ndarray], titles: list[str]) -> None:
+    """``images`` side by side, each titled, in one PNG (written atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(images), figsize=(4.4 * len(images), 4.6))
+    for ax, image, title in zip(axes, images, titles, strict=True):
+        ax.imshow(image, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    save_figure(fig, path, dpi=100)

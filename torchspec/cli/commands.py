@@ -128,6 +128,7 @@ def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
 def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..pipeline import FitConfig, FitInterrupted, fit, write_fit
+    from ..pipeline.verdict import summary_lines
 
     config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
     if args.model is not None:
@@ -167,11 +168,14 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return 130
     write_fit(args.output, result, overwrite=True)  # checked above, before the fit
     shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
-    stats = result.stats
-    print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
-          f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
-          f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
-          f"median relative residual {stats['median_residual']:.2e}")
+    previews = None
+    if not args.no_previews:
+        from ..io import read_capture
+        from ..report import write_fit_previews
+
+        previews = write_fit_previews(args.output / "previews", result, read_capture(args.capture))
+    for line in summary_lines(result.stats, str(args.output), capture=str(args.capture), previews=previews):
+        print(line)
     return 0
 
 

@@ -115,6 +115,8 @@ def _add_fit_command(commands) -> None:
     fit.add_argument("--frames", default=None,
                      help="frames to fit: 'all', a slice like '::2' (every second) or a list like '0,3,10-19'")
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("--no-previews", action="store_true",
+                     help="write the maps only, no PNG previews in OUTPUT/previews/")
     fit.add_argument("--model", default=None,
                      choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
                      help="auto (default): each pixel's model by what it predicts of frames left out of its fit; "

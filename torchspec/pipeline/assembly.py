@@ -23,6 +23,7 @@ from .settings import MODEL_CODES, FitConfig
 from .smoothing import PlainFit, smooth
 from .tile import TileResult
 from .tiling import sum_counts
+from .verdict import LOW_QUALITY, trust_warnings
 
 __all__ = ["STALLED_SHARE", "assemble", "run_stats", "stalled_warning"]
 
@@ -129,6 +130,7 @@ def assemble(
     if stalled is not None:
         stats["warnings"] = [*stats.get("warnings", []), stalled]
         warnings.warn(stalled, FitWarning, stacklevel=3)
+    stats["warnings"] = [*stats.get("warnings", []), *trust_warnings(stats)]  # in words a user can act on
     return replace(joined, stats=stats)
 
 
@@ -177,6 +179,7 @@ def _tile_stats(fit: Fit, parts: list[TileResult], stats: dict, smoothed: int | 
         "median_residual": float(fit.residual.median()),
         "flags": describe(fit.flags),
         "untrusted": int(untrusted(fit.flags).sum()),
+        "low_quality": int((fit.quality < LOW_QUALITY).sum()),
         # FitConfig.smooth: the pixels whose lobe the neighbours' term took away (None: not smoothed).
         "smoothed": smoothed,
         # FitConfig.residual_term: the pixels that carry one (None: not fitted).

@@ -5,19 +5,21 @@ them (:class:`Checks`) and its quality.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
+from ..brdf import SVBRDF
 from ..flags import WEAK_LOBE_SNR, bit, peak_checks, untrusted
 from ..lm import CONVERGED, DIVERGED
 from ..models import get_model
+from ..rendering import render
 from .samples import TileSamples
 from .selection import Choice
 from .settings import MODEL_CODES, FitConfig
 
-__all__ = ["Checks", "check_choice", "solver_flags", "quality_of", "with_flags"]
+__all__ = ["Checks", "check_choice", "overshoot", "solver_flags", "quality_of", "with_flags"]
 
 
 @dataclass(frozen=True)
@@ -86,3 +88,20 @@ def check_choice(choice: Choice, data: TileSamples, few: Tensor, config: FitConf
         ("poor_fit", ~lobed & choice.misfit & (data.relative_rms(choice.cost) > config.trust_rms)),
     )
     return flags, Checks(peak_misfit, astray)
+
+
+def overshoot(svbrdf: SVBRDF, y: Tensor, data: TileSamples, config: FitConfig) -> Tensor:
+    """``(n,)``: the brightest value the fitted maps ``svbrdf`` render at the tile's frames (the
+    physical model, at every frame the fit read: its clipped and masked samples too) over the
+    brightest value the pixel recorded, ``y (n, K, C)`` (any finite sample: a clipped one shows its
+    clipping level), floored at 1 % of a white Lambertian surface's value under the brightest light
+    (a dark pixel's ratio means nothing).
+
+    Near 1 where the model explains the photographs. Far above (``FitConfig.flag_overshoot``: the
+    ``implausible`` flag) where a lobe grew without bound on samples the fit did not use: a clipped
+    highlight (censored, so any height above the clipping level fits it), a masked frame."""
+    rule = replace(config.rule, compile=False)  # one forward render: not worth compiling
+    predicted = render(svbrdf, data.lights, data.view, quadrature=rule).amax((1, 2))
+    recorded = torch.where(y.isfinite(), y, torch.zeros_like(y)).amax((1, 2))
+    floor = 0.01 * data.scale.amax() / math.pi
+    return predicted / torch.maximum(recorded, floor)

@@ -70,6 +70,10 @@ class FitConfig:
         flag_peak_misfit, flag_astray, flag_reach: the thresholds of the ``peak_misfit`` and
             ``astray`` flags and the neighbourhood of the peak (:mod:`torchspec.flags`; they need
             the noise: ``uncertainty`` or ``auto``); ``experiments/stability.py`` chose the defaults.
+        flag_overshoot: a pixel whose fitted maps render, at some frame of the fit, more than this
+            many times the brightest value its photographs recorded is flagged ``implausible``,
+            untrusted (:func:`~torchspec.pipeline.checks.overshoot`: a lobe grown without bound where
+            its samples were clipped or masked; the photographs show nothing of the kind).
         smooth: spatial regularisation of ``auto``'s choice between a lobe and none (a matte region
             of a painting is contiguous): the criterion of a pixel gains ``smooth`` for each of its
             four neighbours on the other side of that choice, and the image's total is lowered pixel
@@ -202,6 +206,7 @@ class FitConfig:
     uncertainty: bool = True
     flag_peak_misfit: float = 3.0
     flag_astray: float = 2.0
+    flag_overshoot: float = 10.0
     flag_reach: float = 1.5
     init: str = "fri"
     detect: float = 5.0
@@ -291,7 +296,7 @@ class FitConfig:
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"FitConfig.dtype must be 'float32' or 'float64'; got {self.dtype!r}.")
         positive = ("detect", "noise_floor", "naive_alpha", "memory_gib")
-        for name in (*positive, "flag_peak_misfit", "flag_astray", "flag_reach"):
+        for name in (*positive, "flag_peak_misfit", "flag_astray", "flag_reach", "flag_overshoot"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FitConfig.{name} must be > 0; got {getattr(self, name)!r}.")
         if self.threads != AUTO and (

@@ -19,7 +19,7 @@ from ..rendering import render
 from ..residual_term import ResidualTerm, TermDomain, blend, fit_term
 from ..threads import fit_threads
 from .checkpoint import save_tile
-from .checks import Checks, check_choice, quality_of
+from .checks import Checks, check_choice, overshoot, quality_of, with_flags
 from .prediction import held_out_refit, light_folds
 from .samples import TileSamples
 from .selection import select_models
@@ -122,6 +122,7 @@ def fit_pixels(
     t0 = time.perf_counter()
     few = valid.sum(-1) < 3
     flags, checks = check_choice(choice, data, few, config)
+    flags = with_flags(flags, ("implausible", overshoot(choice.svbrdf, y, data, config) > config.flag_overshoot))
     times["checks"] = time.perf_counter() - t0
 
     term = None
