@@ -338,6 +338,17 @@ def test_output_holding_the_photographs_is_refused(tmp_path):
     assert len(list((tmp_path / "rti").iterdir())) == 6
 
 
+def test_an_output_under_a_file_is_named(tmp_path, capsys):
+    """``import -o FILE/capture``: one line naming the file in the way (not a raw ``[Errno 17]``)."""
+    lp = _capture(tmp_path / "rti")
+    (tmp_path / "somefile").write_text("not a folder")
+    assert main(["import", str(lp), "-o", str(tmp_path / "somefile" / "capture"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'somefile'} is a file, not a folder" in err and "Errno" not in err
+    assert err.count("\n") == 1  # one line, no traceback
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rti", "somefile"]
+
+
 def test_command_line(tmp_path, capsys):
     lp = _capture(tmp_path / "rti")
     assert main(["import", str(lp), "-o", str(tmp_path / "out"), "--quiet"]) == 0

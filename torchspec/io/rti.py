@@ -44,6 +44,7 @@ from tqdm.auto import tqdm
 
 from .._version import __version__
 from ..errors import TorchspecError
+from ..outputs import check_output
 from ..response import ResponseError, ResponseEstimate, estimate_response, response_samples
 from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
@@ -253,6 +254,9 @@ def _exposures(exifs: list[dict[str, float]], images: list[Path], notes: list[st
 def _check_output(output: Path, overwrite: bool) -> None:
     if output.exists() and not output.is_dir():
         raise RTIImportError(f"{output} must be a folder to write the capture in; got a file.")
+    # A file where a parent folder must be, or a folder that takes no new file: named (the content
+    # rule is import's own: an output that holds files is replaced whole, only with overwrite).
+    check_output(output, overwrite=True)
     if output.is_dir() and any(output.iterdir()) and not overwrite:
         raise RTIImportError(
             f"{output} already holds files; refusing to replace them. Choose an empty or new folder, or pass "
