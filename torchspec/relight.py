@@ -127,7 +127,9 @@ def render_capture(
     ``output_dir`` is checked before any work: a folder that holds files is refused unless
     ``overwrite`` (:func:`torchspec.outputs.check_output`). ``progress`` shows a bar over the
     pixels (on stderr). A residual term in the maps (``residual_term.exr``,
-    :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false.
+    :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false; the
+    frames are then clamped at 0 where the term takes them below black, as a photograph holds no
+    negative light (the output is a capture that ``info`` and ``read_capture`` read).
 
     Returns:
         ``{"frames", "psnr_db", "relative_rms", "per_frame_psnr_db", "predicted"}``; the
@@ -170,6 +172,8 @@ def render_capture(
         values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
         if found is not None:
             values = found.apply(values, lights)
+    if found is not None:  # a smooth term can dip below black (a cast shadow); a frame holds no negative light
+        values = values.clamp(min=0)
     predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored
     if output_dir is not None:
         write_capture(Path(output_dir), capture, predicted.float(), overwrite=overwrite)
