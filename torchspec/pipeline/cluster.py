@@ -284,7 +284,6 @@ def fit_on_cluster(
     except KeyboardInterrupt as interrupt:
         raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
     ordered = [parts[first] for first in firsts]
-    threads = client.nthreads()
     stats = run_stats(
         capture=capture,
         picked=picked,
@@ -295,14 +294,16 @@ def fit_on_cluster(
         resumed=len(done),
         seconds={**seconds, "read": report.pop("read"), "masks": report.pop("masks")},  # worker-seconds; total: wall
         masked=_masked(ordered, capture),
-        cluster={
-            "scheduler": client.scheduler.address,
-            "workers": len(threads),
-            "threads": sum(threads.values()),
-            **report,
-        },
+        lights=None,  # as written: lights to calibrate are refused above (_distant)
+        cluster=_cluster_record(client, report),
     )
     return assemble(ordered, height=h, width=w, channels=capture.channels, stats=stats, started=started)
+
+
+def _cluster_record(client, report: dict) -> dict:
+    """``stats["distributed"]``: the scheduler, the workers and their threads, and ``report``."""
+    threads = client.nthreads()
+    return {"scheduler": client.scheduler.address, "workers": len(threads), "threads": sum(threads.values()), **report}
 
 
 def _refuse_stale_tiles(folder: Path, done: dict) -> None:

@@ -115,8 +115,8 @@ def fit(
         resumed=len(done),
         seconds={"read": read_seconds, "masks": mask_seconds},
         masked=masks.counts(),
+        lights=calibration,
     )
-    stats["lights"] = calibration
     # clock: when the masks began
     return assemble(
         tiling.restore(parts), height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds
