@@ -21,7 +21,7 @@ from .errors import TorchspecError
 from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
 from .lights import Lights
 from .near_lights import lights_at
-from .outputs import check_output
+from .outputs import check_apart, check_output
 from .pipeline.plan import device_of
 from .pipeline.tiling import tiling_of
 from .quadrature import Quadrature
@@ -125,8 +125,9 @@ def render_capture(
     ``device`` (``auto``: CUDA when present, :func:`torchspec.pipeline.plan.device_of`).
 
     ``output_dir`` is checked before any work: a folder that holds files is refused unless
-    ``overwrite`` (:func:`torchspec.outputs.check_output`). ``progress`` shows a bar over the
-    pixels (on stderr). A residual term in the maps (``residual_term.exr``,
+    ``overwrite`` (:func:`torchspec.outputs.check_output`); the capture's folder or the maps', one
+    inside them or one holding them, always (:func:`torchspec.outputs.check_apart`). ``progress``
+    shows a bar over the pixels (on stderr). A residual term in the maps (``residual_term.exr``,
     :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false; the
     frames are then clamped at 0 where the term takes them below black, as a photograph holds no
     negative light (the output is a capture that ``info`` and ``read_capture`` read).
@@ -136,6 +137,8 @@ def render_capture(
         predicted frames are ``(K, C, H, W)``.
     """
     if output_dir is not None:
+        check_apart(output_dir, capture_dir, "the capture")  # its frames would be replaced by the predicted ones
+        check_apart(output_dir, svbrdf_dir, "the maps' folder")
         check_output(output_dir, overwrite=overwrite)
     maps = read_svbrdf(svbrdf_dir)
     capture = read_capture(capture_dir)

@@ -10,7 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..errors import TorchspecError
-from ..outputs import check_output
+from ..outputs import check_apart, check_output
 from ..pipeline.checkpoint import CHECKPOINT
 from .parser import OVERWRITE
 
@@ -146,6 +146,7 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")
+    check_apart(args.output, args.capture, "the capture")
     _check_output(args, job=CHECKPOINT)  # its own checkpoint: --resume decides
     if args.overwrite and not args.resume:
         shutil.rmtree(checkpoint, ignore_errors=True)  # an unfinished fit there: dropped, as asked
