@@ -47,7 +47,7 @@ from ..photometric import peak_of, sample_masks, saturation_level
 from ..progress import bar as progress_bar
 from ..residual_term import TermDomain
 from .assembly import assemble, run_stats
-from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, tile_name
+from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, refuse_unfinished, tile_name
 from .plan import RUNTIME_BYTES, plan, setup
 from .result import Fit
 from .settings import FitConfig
@@ -250,6 +250,7 @@ def fit_on_cluster(
         >>> write_fit("maps", result)  # doctest: +SKIP
     """
     started = time.perf_counter()
+    refuse_unfinished(Path(checkpoint), resume)  # before any work
     begun = _distant(setup(capture, config, frames))
     config, picked, lights, view = begun.config, begun.picked, begun.lights, begun.view
     capture = replace(begun.capture, root=begun.capture.root.resolve())  # the workers' working folders differ
