@@ -3,6 +3,7 @@ maps equal the in-process fit's bit for bit (both with one torch thread), also w
 killed mid-fit, and either engine resumes the other's checkpoint."""
 
 import importlib
+import json
 import os
 import signal
 import socket
@@ -218,6 +219,15 @@ def test_the_cli_fits_on_a_scheduler(capture, client, reference, tmp_path, capsy
     maps, expected = read_svbrdf(output), read_svbrdf(tmp_path / "in-process")
     for name in MAPS:
         _equal(getattr(maps.svbrdf, name), getattr(expected.svbrdf, name), name)
+    # svbrdf.json as JSON text: the same, timings and the cluster's own record (distributed) left out
+    assert _without_timings(output) == _without_timings(tmp_path / "in-process")
+
+
+def _without_timings(folder) -> str:
+    meta = json.loads((folder / "svbrdf.json").read_text())
+    for key in ("seconds", "pixels_per_second", "distributed"):
+        meta["fit"].pop(key, None)
+    return json.dumps(meta, indent=1)
 
 
 def test_a_smoothed_choice_spans_the_tasks(capture, client, tmp_path):

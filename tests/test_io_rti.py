@@ -128,6 +128,24 @@ def test_missing_images_are_each_named(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_lines_beyond_the_count_naming_missing_images_are_ignored(tmp_path):
+    """A dome file whose count (4) and folder (4 images) agree, and a 5th line naming an image that
+    is not there: the 4 counted lights are imported, with a note naming the line ignored; an image
+    missing within the count is still refused."""
+    folder = tmp_path / "rti"
+    _capture(folder, count=4)
+    lp = _lp(folder, [f"img{k:02d}.png" for k in range(5)], count=4)
+    ignored = r"the 4 counted lines are used and the line beyond the count \(line 6\) is ignored"
+    with pytest.warns(UserWarning, match=ignored):
+        imported = import_rti(lp, tmp_path / "out")
+    assert len(imported.capture.frames) == 4 and [p.name for p in imported.images][-1] == "img03.png"
+    assert "'img04.png'" in imported.notes[0] and not any("the 5 lines are used" in n for n in imported.notes)
+    assert read_capture(tmp_path / "out").extra["source"]["lines"] == [2, 3, 4, 5]
+    (folder / "img02.png").unlink()
+    with pytest.raises(RTIImportError, match=r"2 of 5 images are missing.*'img02.png' \(line 4\)"):
+        import_rti(lp, tmp_path / "out2")
+
+
 def test_images_matched_by_order_when_no_name_matches(tmp_path):
     lp = _capture(tmp_path / "rti")
     _lp(tmp_path / "rti", [f"other{k}.jpg" for k in range(5)])
@@ -318,6 +336,17 @@ def test_output_holding_the_photographs_is_refused(tmp_path):
     with pytest.raises(RTIImportError, match="must not hold the capture's own files"):
         import_rti(lp, tmp_path / "rti", overwrite=True)
     assert len(list((tmp_path / "rti").iterdir())) == 6
+
+
+def test_an_output_under_a_file_is_named(tmp_path, capsys):
+    """``import -o FILE/capture``: one line naming the file in the way (not a raw ``[Errno 17]``)."""
+    lp = _capture(tmp_path / "rti")
+    (tmp_path / "somefile").write_text("not a folder")
+    assert main(["import", str(lp), "-o", str(tmp_path / "somefile" / "capture"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'somefile'} is a file, not a folder" in err and "Errno" not in err
+    assert err.count("\n") == 1  # one line, no traceback
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rti", "somefile"]
 
 
 def test_command_line(tmp_path, capsys):

@@ -143,3 +143,35 @@ def test_an_rti_folder_or_light_file_given_to_fit_says_import_it_first(tmp_path,
     assert "capture.json must exist" not in err and "JSON" not in err
     assert f"torchspec import {path}" in _info(path, capsys)
     assert not (tmp_path / "maps").exists()
+
+
+@pytest.mark.parametrize(
+    "command, stops",
+    [
+        (["import", "{tmp}/rti", "-o", "{tmp}/imported"], "torchspec.io.rti.read_photo"),
+        (["info", "{capture}"], "torchspec.info.inspect_capture"),
+        (["render", "{capture}/truth", "--capture", "{capture}", "-o", "{tmp}/r"], "torchspec.relight.render_image"),
+        (["export", "{capture}/truth", "-o", "{tmp}/web", "--to", "web"], "torchspec.export.export"),
+    ],
+)
+def test_ctrl_c_anywhere_is_one_line_and_exit_130(capture, tmp_path, monkeypatch, capsys, command, stops):
+    """Ctrl-C in any command (here in the middle of its work): one line naming the command, exit 130,
+    no traceback; an interrupted import leaves nothing behind."""
+    from PIL import Image
+
+    rti = tmp_path / "rti"
+    rti.mkdir()
+    lines = ["4"]
+    for k, (x, y) in enumerate([(0.5, 0), (0, 0.5), (-0.5, 0), (0, -0.5)]):
+        Image.new("RGB", (4, 4), (40 * k, 80, 120)).save(rti / f"img{k}.png")
+        lines.append(f"img{k}.png {x} {y} 0.866")
+    (rti / "dirs.lp").write_text("\n".join(lines) + "\n")
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stops, stopped)
+    argv = [part.format(tmp=tmp_path, capture=capture) for part in command]
+    assert main([*argv, "--quiet"] if command[0] != "export" else argv) == 130
+    assert capsys.readouterr().err == f"torchspec {command[0]}: interrupted (Ctrl-C).\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rti"]  # nothing written, no temporary left

@@ -5,6 +5,7 @@ lit by a dome of near lights against the same fit that takes the lights as dista
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -205,9 +206,15 @@ def test_lights_the_photographs_do_not_determine_are_kept_with_a_warning(tmp_pat
     from torchspec.pipeline import FitWarning
 
     capture, _ = _lambertian_with_gains(tmp_path, torch.ones(25, dtype=D), scramble=0.8)
-    with pytest.warns(FitWarning, match="not calibrated from the photographs"):
+    with pytest.warns(FitWarning, match="not calibrated from the photographs") as caught:
         result = fit(capture, config=FitConfig(model="diffuse", compile=False))
     assert result.stats["lights"]["calibrated"] == []
+    # The warning keeps its figures and says what they mean and what the user can do.
+    message = str(next(w.message for w in caught if "not calibrated" in str(w.message)))
+    assert re.search(r"explains \d+ % of the pixels with a median relative misfit of [\d.]+ % per frame", message)
+    assert "calibrating needs at least 80 % and at most 5 %" in message and "gloss, shadows or relief" in message
+    assert "Nothing needs doing if every frame was lit alike" in message and "pass --calibrate gains" in message
+    assert message == result.stats["lights"]["refused"]
 
 
 def test_auto_keeps_a_dome_radius_the_photographs_show_where_it_refuses_their_gains(tmp_path):

@@ -243,3 +243,39 @@ def test_acquire_overwrite_starts_afresh(tmp_path):
         _run(out, layout="grid:4x4")
     assert len(_run(out, layout="grid:4x4", overwrite=True).frames) == 4
     assert len(torchspec.read_capture(out).frames) == 4
+
+
+def test_an_output_over_its_capture_is_refused_before_any_work(capture, maps, tmp_path, capsys, monkeypatch):
+    """``fit CAP -o CAP --overwrite`` (and an output inside the capture, or holding it), and
+    ``render -o CAP``: refused in one line naming both, whatever --overwrite says, before any
+    work; the capture is left as it was. The Python API refuses alike."""
+    import shutil
+    from dataclasses import fields
+
+    from torchspec.pipeline import Fit
+
+    cap = tmp_path / "work" / "capture"
+    shutil.copytree(capture, cap)
+    before = {p.relative_to(cap): p.stat().st_mtime_ns for p in cap.rglob("*")}
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the fit began")
+
+    monkeypatch.setattr("torchspec.pipeline.in_process.setup", no_work)
+    for out, where in ((cap, "is"), (cap / "maps", "lies inside"), (tmp_path / "work", "holds")):
+        assert main(["fit", str(cap), "-o", str(out), "--quiet", "--overwrite"]) == 2
+        err = capsys.readouterr().err
+        assert err == (
+            f"torchspec fit: error: the output {out} {where} the capture {cap}; writing there would mix the output "
+            f"with what the command reads. Choose a folder outside {cap}.\n"
+        )
+    assert main(["render", str(maps), "--capture", str(cap), "-o", str(cap), "--quiet", "--overwrite"]) == 2
+    assert f"the output {cap} is the capture {cap}" in capsys.readouterr().err
+    with pytest.raises(OutputError, match="lies inside the capture"):
+        torchspec.relight.render_capture(maps, cap, cap / "relit", overwrite=True)
+    with pytest.raises(OutputError, match="is the maps' folder"):
+        torchspec.relight.render_capture(maps, cap, maps, overwrite=True)
+    result = Fit(**{f.name: None for f in fields(Fit)} | {"stats": {"capture": str(cap)}})
+    with pytest.raises(OutputError, match="is the capture"):
+        torchspec.write_fit(cap, result, overwrite=True)
+    assert {p.relative_to(cap): p.stat().st_mtime_ns for p in cap.rglob("*")} == before

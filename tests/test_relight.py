@@ -114,3 +114,28 @@ def test_render_takes_the_dome_radius_or_positions_the_fit_calibrated(painting, 
     write_svbrdf(tmp_path / "wrong", maps, meta={**maps.meta, "fit": placed})
     with pytest.raises(TorchspecError, match=r"fit\.lights\.positions"):
         render_capture(tmp_path / "wrong", painting, None)
+
+
+def test_a_render_with_a_residual_term_below_black_is_a_capture_info_reads(painting, tmp_path):
+    """A residual term that dips below black at a pixel (as a smooth term does in a cast shadow):
+    the rendered frames are clamped at 0, so ``info`` and ``read_capture`` read the toolkit's own
+    render; elsewhere the frames are the maps' prediction."""
+    from torchspec.io import read_svbrdf, write_svbrdf
+    from torchspec.residual_term import MAP_NAME, ResidualTerm
+
+    truth = read_svbrdf(painting / "truth")
+    height, width = truth.svbrdf.shape
+    channels = len(truth.svbrdf.channels)
+    coefficients = torch.zeros(height, width, 9, channels)
+    coefficients[2, 3, 0] = -5.0  # the constant harmonic: far below black under every light
+    term = ResidualTerm(coefficients, coefficients.ne(0).any(-1).any(-1))
+    write_svbrdf(tmp_path / "maps", truth.svbrdf, meta=truth.meta, extra={MAP_NAME: term.to_map()})
+    out = tmp_path / "out"
+    assert main(["render", str(tmp_path / "maps"), "--capture", str(painting), "-o", str(out), "--quiet"]) == 0
+    frames = read_capture(out).read_frames(dtype=torch.float64)  # refused before: negative pixels
+    assert float(frames.min()) == 0.0 and bool((frames[:, :, 2, 3] == 0).all())
+    physical = render_capture(painting / "truth", painting, None)["predicted"].double()
+    mask = torch.ones(height, width, dtype=torch.bool)
+    mask[2, 3] = False
+    assert torch.equal(frames[..., mask], physical[..., mask].float().double())
+    assert main(["info", str(out), "--quiet"]) == 0

@@ -14,7 +14,7 @@ import pytest
 import torch
 from capture_cases import write_small_painting
 
-from torchspec.cli import CHECKPOINT
+from torchspec.cli import CHECKPOINT, main
 from torchspec.io import read_svbrdf
 from torchspec.pipeline import FitConfig, FitInterrupted, fit
 
@@ -89,6 +89,81 @@ def test_unfinished_tiles_are_never_dropped_silently(capture, tmp_path, monkeypa
     _interrupted(capture, folder, monkeypatch)
     with pytest.raises(ValueError, match=r"unfinished fit \(1 tile\(s\) done\).*--resume"):
         fit(capture, config=CONFIG, checkpoint=folder)
+
+
+def _no_work(monkeypatch):
+    """Make the start of a fit's work (its setup: the manifest, then reading, calibrating) or a
+    cluster's start fail the test."""
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("work began before the refusal")
+
+    for where in ("in_process.setup", "cluster.setup", "connect"):
+        monkeypatch.setattr(f"torchspec.pipeline.{where}", no_work)
+
+
+def test_an_unfinished_fit_is_refused_before_any_work(capture, tmp_path, monkeypatch, capsys):
+    """Without --resume (or --overwrite), an output holding an unfinished fit is refused before the
+    frames are read or the lights calibrated (or a cluster started), by the API and the CLI."""
+    from torchspec.pipeline import fit_on_cluster
+
+    output = tmp_path / "maps"
+    _interrupted(capture, output / CHECKPOINT, monkeypatch)
+    _no_work(monkeypatch)
+    with pytest.raises(ValueError, match=r"unfinished fit \(1 tile\(s\) done\).*--resume"):
+        fit(capture, config=CONFIG, checkpoint=output / CHECKPOINT)
+    with pytest.raises(ValueError, match=r"unfinished fit \(1 tile\(s\) done\).*--resume"):
+        fit_on_cluster(capture, None, config=CONFIG, checkpoint=output / CHECKPOINT)
+    for extra in ([], ["--workers", "1"]):
+        assert main(["fit", str(capture), "-o", str(output), "--quiet", *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("torchspec fit: error: ") and "unfinished fit (1 tile(s) done)" in err, err
+    assert len(list((output / CHECKPOINT).glob("tile-*.pt"))) == 1
+
+
+def test_ctrl_c_before_any_tile_says_so_in_one_line(capture, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the frames are read or the lights calibrated (before any tile), or in the first
+    tile: one line saying nothing is written and the command to run again, exit 130, and no
+    checkpoint left that would refuse that command."""
+    import torchspec.pipeline.in_process as in_process
+
+    output = tmp_path / "maps"
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(in_process, "calibrated", stopped)
+    assert main(["fit", str(capture), "-o", str(output), "--quiet"]) == 130
+    err = capsys.readouterr().err
+    assert err.startswith("torchspec fit: interrupted before any tile was saved: nothing is written. Run it again "
+                          "with: torchspec "), err
+    assert err.count("\n") == 1 and "Traceback" not in err and not (output / CHECKPOINT).exists()
+    monkeypatch.undo()
+    _interrupt_after(monkeypatch, 0)  # in the first tile: the checkpoint holds its job, no tile
+    assert main(["fit", str(capture), "-o", str(output), "--quiet", "--config", str(_config(tmp_path))]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted before any tile was saved" in err and err.count("\n") == 1
+    assert not (output / CHECKPOINT).exists()
+
+
+def _config(tmp_path: Path) -> Path:
+    path = tmp_path / "fit.yaml"
+    path.write_text("tile: 36\n")
+    return path
+
+
+def test_ctrl_c_after_the_tiles_says_what_is_saved(capture, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the maps are written: the tiles are saved, and the line says how to continue."""
+    output = tmp_path / "maps"
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("torchspec.pipeline.write_fit", stopped)
+    assert main(["fit", str(capture), "-o", str(output), "--quiet", "--config", str(_config(tmp_path))]) == 130
+    err = capsys.readouterr().err
+    assert err.startswith(f"torchspec fit: interrupted: 4 tiles are saved in {output / CHECKPOINT}; continue with: ")
+    assert err.rstrip().endswith("--resume") and err.count("\n") == 1
 
 
 @pytest.mark.parametrize(

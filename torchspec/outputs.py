@@ -3,6 +3,8 @@
 - the output can be written: no file stands where its folder must be (or where a parent folder
   must be), and the nearest existing folder accepts a new file (a real probe, so a read-only
   filesystem or a folder without permission is found, not guessed);
+- the output is apart from what the command reads (:func:`check_apart`): not the input folder,
+  inside it or holding it;
 - the output holds no other work: a non-empty folder (or an existing file) is refused unless the
   caller passes ``overwrite``, with one line naming the path and the flag. A folder that holds the
   command's own resumable job (its ``job`` marker: a fit's checkpoint, an acquisition's plan) is
@@ -21,7 +23,7 @@ from pathlib import Path
 
 from .errors import TorchspecError
 
-__all__ = ["OutputError", "TEMPORARY", "check_output", "content"]
+__all__ = ["OutputError", "TEMPORARY", "check_apart", "check_output", "content"]
 
 TEMPORARY = re.compile(r"\..+\.part(\.[^.]+)?$")
 """The names :func:`torchspec.atomic.atomic_path` writes to before its rename: not content."""
@@ -120,3 +122,33 @@ def check_output(
     if path.exists() and not overwrite:
         raise OutputError(f"the output {path} exists; add {flag} to replace it, or choose another name.")
     return path
+
+
+def check_apart(output: str | Path, source: str | Path, what: str) -> None:
+    """Refuse an ``output`` folder that is the folder ``source`` the command reads (``what`` names it:
+    ``the capture``), lies inside it, or holds it: the output would be mixed with its input (and, with
+    ``overwrite``, the input's files of the same names replaced).
+
+    Raises:
+        OutputError: naming both paths.
+
+    Example:
+        >>> check_apart("work/maps", "work/capture", "the capture")  # siblings: fine
+        >>> check_apart("work/capture", "work/capture", "the capture")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        torchspec.outputs.OutputError: the output work/capture is the capture work/capture; ...
+    """
+    out, read = Path(output).resolve(), Path(source).resolve()
+    if out == read:
+        where = "is"
+    elif out.is_relative_to(read):
+        where = "lies inside"
+    elif read.is_relative_to(out):
+        where = "holds"
+    else:
+        return
+    raise OutputError(
+        f"the output {output} {where} {what} {source}; writing there would mix the output with what the command "
+        f"reads. Choose a folder outside {source}."
+    )

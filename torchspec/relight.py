@@ -21,7 +21,7 @@ from .errors import TorchspecError
 from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
 from .lights import Lights
 from .near_lights import lights_at
-from .outputs import check_output
+from .outputs import check_apart, check_output
 from .pipeline.plan import device_of
 from .pipeline.tiling import tiling_of
 from .quadrature import Quadrature
@@ -125,15 +125,20 @@ def render_capture(
     ``device`` (``auto``: CUDA when present, :func:`torchspec.pipeline.plan.device_of`).
 
     ``output_dir`` is checked before any work: a folder that holds files is refused unless
-    ``overwrite`` (:func:`torchspec.outputs.check_output`). ``progress`` shows a bar over the
-    pixels (on stderr). A residual term in the maps (``residual_term.exr``,
-    :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false.
+    ``overwrite`` (:func:`torchspec.outputs.check_output`); the capture's folder or the maps', one
+    inside them or one holding them, always (:func:`torchspec.outputs.check_apart`). ``progress``
+    shows a bar over the pixels (on stderr). A residual term in the maps (``residual_term.exr``,
+    :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false; the
+    frames are then clamped at 0 where the term takes them below black, as a photograph holds no
+    negative light (the output is a capture that ``info`` and ``read_capture`` read).
 
     Returns:
         ``{"frames", "psnr_db", "relative_rms", "per_frame_psnr_db", "predicted"}``; the
         predicted frames are ``(K, C, H, W)``.
     """
     if output_dir is not None:
+        check_apart(output_dir, capture_dir, "the capture")  # its frames would be replaced by the predicted ones
+        check_apart(output_dir, svbrdf_dir, "the maps' folder")
         check_output(output_dir, overwrite=overwrite)
     maps = read_svbrdf(svbrdf_dir)
     capture = read_capture(capture_dir)
@@ -170,6 +175,8 @@ def render_capture(
         values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
         if found is not None:
             values = found.apply(values, lights)
+    if found is not None:  # a smooth term can dip below black (a cast shadow); a frame holds no negative light
+        values = values.clamp(min=0)
     predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored
     if output_dir is not None:
         write_capture(Path(output_dir), capture, predicted.float(), overwrite=overwrite)

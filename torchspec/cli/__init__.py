@@ -13,10 +13,10 @@ import warnings
 from .._version import __version__
 from ..errors import TorchspecError
 from ..pipeline.checkpoint import CHECKPOINT
-from .commands import COMMANDS
+from .commands import COMMANDS, INTERRUPTED
 from .parser import OVERWRITE, build_parser
 
-__all__ = ["BUG", "CHECKPOINT", "COMMANDS", "OVERWRITE", "PIPE_CLOSED", "build_parser", "main"]
+__all__ = ["BUG", "CHECKPOINT", "COMMANDS", "INTERRUPTED", "OVERWRITE", "PIPE_CLOSED", "build_parser", "main"]
 
 BUG = 70
 """The exit status of an internal error (a bug in torchspec): ``EX_SOFTWARE`` of ``sysexits.h``."""
@@ -31,8 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     Returns:
         The exit status: 0 on success; 2 for a usage error or input torchspec refuses (a
         :class:`~torchspec.errors.TorchspecError`, or an ``OSError`` of a path), printed in one line
-        without a traceback; 130 for an interrupted fit or acquisition; 70 (``EX_SOFTWARE``) for a bug,
-        printed with its traceback and a request to report it.
+        without a traceback; 130 (:data:`INTERRUPTED`) for a command stopped by Ctrl-C at any point, said
+        in one line (a fit's and an acquisition's say what is saved and the command that continues it);
+        70 (``EX_SOFTWARE``) for a bug, printed with its traceback and a request to report it.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -45,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
             status = COMMANDS[args.command](parser, args)
         sys.stdout.flush()  # a reader that stopped (torchspec info | head -2) shows here, not at exit
         return status
+    except KeyboardInterrupt:  # Ctrl-C where the command does not say more itself: one line, no traceback
+        print(f"torchspec {args.command}: interrupted (Ctrl-C).", file=sys.stderr)
+        return INTERRUPTED
     except BrokenPipeError:  # the reader of stdout stopped reading: nothing to say, and no one to say it to
         _silence_stdout()
         return PIPE_CLOSED

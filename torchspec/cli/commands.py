@@ -10,11 +10,14 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..errors import TorchspecError
-from ..outputs import check_output
-from ..pipeline.checkpoint import CHECKPOINT
+from ..outputs import check_apart, check_output
+from ..pipeline.checkpoint import CHECKPOINT, refuse_unfinished
 from .parser import OVERWRITE
 
-__all__ = ["COMMANDS", "device_option"]
+__all__ = ["COMMANDS", "INTERRUPTED", "device_option"]
+
+INTERRUPTED = 130
+"""The exit status of a command stopped by Ctrl-C: 128 + SIGINT, what a shell reports for it."""
 
 
 def device_option(parser: argparse.ArgumentParser, args: argparse.Namespace):
@@ -30,10 +33,14 @@ def device_option(parser: argparse.ArgumentParser, args: argparse.Namespace):
 
 
 
+def _again(*extra: str) -> str:
+    """The command line of ``sys.argv`` without ``--resume``, ``extra`` added: what runs it again."""
+    return " ".join(["torchspec", *(shlex.quote(a) for a in sys.argv[1:] if a != "--resume"), *extra])
+
+
 def _rerun() -> str:
     """The command line that continues the interrupted command of ``sys.argv``: the same, with ``--resume``."""
-    again = " ".join(shlex.quote(a) for a in sys.argv[1:] if a != "--resume")
-    return f"torchspec {again} --resume"
+    return _again("--resume")
 
 
 def _check_output(args: argparse.Namespace, path: Path | None = None, **rule) -> Path:
@@ -127,7 +134,7 @@ def _fit_on_cluster(args: argparse.Namespace, config, checkpoint: Path):
 
 def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from ..config import load_config
-    from ..pipeline import FitConfig, FitInterrupted, fit, write_fit
+    from ..pipeline import FitConfig, fit, write_fit
     from ..pipeline.verdict import summary_lines
 
     config = load_config(args.config, FitConfig) if args.config is not None else FitConfig()
@@ -147,9 +154,11 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")
+    check_apart(args.output, args.capture, "the capture")
     _check_output(args, job=CHECKPOINT)  # its own checkpoint: --resume decides
     if args.overwrite and not args.resume:
         shutil.rmtree(checkpoint, ignore_errors=True)  # an unfinished fit there: dropped, as asked
+    refuse_unfinished(checkpoint, args.resume)  # before any work (reading, calibrating, a cluster's start)
     try:
         if args.scheduler is None and args.workers is None:
             result = fit(
@@ -162,11 +171,9 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             )
         else:
             result = _fit_on_cluster(args, config, checkpoint)
-    except FitInterrupted as stop:
-        print(f"torchspec fit: interrupted: {stop.done} of {stop.total} tiles are saved in {stop.checkpoint}; "
-              f"continue with: {_rerun()}", file=sys.stderr)
-        return 130
-    write_fit(args.output, result, overwrite=True)  # checked above, before the fit
+        write_fit(args.output, result, overwrite=True)  # checked above, before the fit
+    except KeyboardInterrupt as stop:  # Ctrl-C at any point: reading, calibrating, a tile, writing
+        return _fit_interrupted(stop, checkpoint)
     shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
     previews = None
     if not args.no_previews:
@@ -177,6 +184,23 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     for line in summary_lines(result.stats, str(args.output), capture=str(args.capture), previews=previews):
         print(line)
     return 0
+
+
+def _fit_interrupted(stop: KeyboardInterrupt, checkpoint: Path) -> int:
+    """Say, in one line, what an interrupted fit saved and the command that continues it (or runs it
+    again, when no tile was saved: the checkpoint, which holds no work, is removed); exit 130."""
+    from ..pipeline import FitInterrupted
+
+    saved = len(list(checkpoint.glob("tile-*.pt"))) if checkpoint.is_dir() else 0
+    if saved:
+        total = f" of {stop.total}" if isinstance(stop, FitInterrupted) else ""
+        print(f"torchspec fit: interrupted: {saved}{total} tiles are saved in {checkpoint}; continue with: {_rerun()}",
+              file=sys.stderr)
+    else:
+        shutil.rmtree(checkpoint, ignore_errors=True)  # no tile: nothing to continue, the same command starts over
+        print(f"torchspec fit: interrupted before any tile was saved: nothing is written. Run it again with: "
+              f"{_again()}", file=sys.stderr)
+    return INTERRUPTED
 
 
 def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -273,7 +297,7 @@ def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                               resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     except (AcquisitionStopped, AcquisitionInterrupted) as stop:
         print(f"torchspec acquire: {stop} Continue with: {_rerun()}", file=sys.stderr)
-        return 130 if isinstance(stop, AcquisitionInterrupted) else 1
+        return INTERRUPTED if isinstance(stop, AcquisitionInterrupted) else 1
     print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
           f"{''.join(capture.channels)}")
     return 0

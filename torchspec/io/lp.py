@@ -5,7 +5,9 @@ An ``.lp`` file is a count on its first line, then one line per light: ``image-n
 direction towards the light in the image frame (x right, y up, z towards the camera). Real files
 break this in every way, and :func:`read_light_file` takes them as they are:
 
-- a count that disagrees with the lines: the lines are used, with a note saying so;
+- a count that disagrees with the lines: the lines are used, with a note saying so (an importer
+  that finds the counted lines' images, and none of the lines' beyond the count, keeps only the
+  counted ones: :func:`keep_counted`);
 - trailing spaces, tabs, blank lines, CRLF or CR line ends, a UTF-8 byte-order mark;
 - vectors that are not unit length: normalised, with a note when the norm is off by more than
   :data:`NORM_NOTE` (5 %);
@@ -20,7 +22,7 @@ below the horizon, the same image twice) is a :class:`LightFileError` naming the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path, PureWindowsPath
 
 from ..errors import TorchspecError
@@ -33,6 +35,7 @@ __all__ = [
     "LightFile",
     "LightFileError",
     "direction_notes",
+    "keep_counted",
     "light_entry",
     "read_light_file",
 ]
@@ -264,3 +267,20 @@ def read_light_file(path: str | Path) -> LightFile:
             )
         seen[key] = entry.line
     return LightFile(path=path, entries=tuple(entries), declared=declared, notes=tuple(notes))
+
+
+def keep_counted(lights: LightFile, why: str) -> LightFile:
+    """``lights`` (an ``.lp`` whose count, ``declared``, is below its lines) cut to its first
+    ``declared`` lights: the lines beyond the count are dropped, and so are their notes and the note
+    that the count disagrees, in place of which one note names the lines ignored and ``why``."""
+    if lights.declared is None or not 0 < lights.declared < len(lights.entries):
+        raise ValueError(f"{lights.path}: keep_counted needs a count below the lines; got {lights.declared}.")
+    kept, dropped = lights.entries[: lights.declared], lights.entries[lights.declared :]
+    places = ", ".join(entry.place for entry in dropped[:5]) + (" ..." if len(dropped) > 5 else "")
+    note = (
+        f"{lights.path}: its count says {lights.declared} lights but {len(lights.entries)} lines follow; the "
+        f"{lights.declared} counted lines are used and "
+        + ("the line" if len(dropped) == 1 else f"the {len(dropped)} lines")
+        + f" beyond the count ({places}) {'is' if len(dropped) == 1 else 'are'} ignored: {why}."
+    )
+    return replace(lights, entries=kept, notes=(note, *direction_notes(lights.path, kept)))

@@ -6,7 +6,9 @@ SOURCE), or a ``lights.txt`` of directions only. Each light's image is found by 
 then its file name in the light file's folder, in any case, then the same name with another image
 suffix); when no name matches and the folder holds as many photographs as lights, by order; a
 file of directions only is matched by order (names in natural order: ``2`` before ``10``; files
-whose name holds ``mask`` or ``normal`` are not photographs). Otherwise each missing image is named.
+whose name holds ``mask`` or ``normal`` are not photographs). Otherwise each missing image is named;
+but an ``.lp``'s lines beyond its count that name missing images, where the counted lines' images
+are all found, are ignored with a note (:func:`read_lights`).
 
 Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with one recorded transfer
 (or, without ``--transfer``, with its embedded ICC profile when that is not sRGB: to linear sRGB
@@ -42,10 +44,11 @@ from tqdm.auto import tqdm
 
 from .._version import __version__
 from ..errors import TorchspecError
+from ..outputs import check_output
 from ..response import ResponseError, ResponseEstimate, estimate_response, response_samples
 from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
-from .lp import LightFile, read_light_file
+from .lp import LightFile, keep_counted, read_light_file
 from .relight import RELIGHT_SUFFIXES, read_relight
 
 __all__ = ["RTIImportError", "Imported", "find_light_file", "import_rti", "match_images", "photographs", "read_lights"]
@@ -128,8 +131,26 @@ def find_light_file(source: str | Path) -> Path:
 
 def read_lights(path: Path) -> LightFile:
     """The light file ``path``: a Relight ``.relight`` or ``.dome`` (:mod:`torchspec.io.relight`),
-    else an ``.lp`` or a file of directions (:mod:`torchspec.io.lp`)."""
-    return read_relight(path) if path.suffix.lower() in RELIGHT_SUFFIXES else read_light_file(path)
+    else an ``.lp`` or a file of directions (:mod:`torchspec.io.lp`).
+
+    An ``.lp`` whose count (its first line) is below its lines is cut to the counted lights
+    (:func:`~torchspec.io.lp.keep_counted`, with a note naming the lines ignored) where the count and
+    the folder agree: every counted line's image is found and no image of a line beyond the count is
+    (RTI tools read only the counted lines). Otherwise every line is kept, and an image missing among
+    them is an error of :func:`match_images`."""
+    if path.suffix.lower() in RELIGHT_SUFFIXES:
+        return read_relight(path)
+    lights = read_light_file(path)
+    declared, folder = lights.declared, lights.image_folder
+    if not (lights.named and declared is not None and 0 < declared < len(lights.entries)):
+        return lights
+    find = _finder(folder)
+    found = [find(entry.name) is not None for entry in lights.entries]
+    if not all(found[:declared]) or any(found[declared:]):
+        return lights
+    extra = lights.entries[declared:]
+    names = ", ".join(repr(entry.name) for entry in extra[:5]) + (" ..." if len(extra) > 5 else "")
+    return keep_counted(lights, f"they name images that {folder} does not hold ({names})")
 
 
 def _natural(name: str) -> list:
@@ -149,6 +170,16 @@ def photographs(folder: Path) -> list[Path]:
         and not any(word in path.stem.lower() for word in _NOT_FRAMES)
     ]
     return sorted(files, key=lambda path: _natural(path.name))
+
+
+def _finder(folder: Path):
+    """A function ``name -> Path | None``: the image a light file's ``name`` names in ``folder``
+    (as written, then its file name in any case, then the same stem with another image suffix)."""
+    listing = {path.name.lower(): path for path in folder.iterdir() if path.is_file()}
+    stems: dict[str, list[Path]] = {}
+    for path in photographs(folder):
+        stems.setdefault(path.stem.lower(), []).append(path)
+    return lambda name: _by_name(folder, name, listing, stems)
 
 
 def _by_name(folder: Path, name: str, listing: dict[str, Path], stems: dict[str, list[Path]]) -> Path | None:
@@ -171,11 +202,8 @@ def match_images(lights: LightFile) -> tuple[list[Path], str, list[str]]:
     folder = lights.image_folder
     found_photos = photographs(folder)
     if lights.named:
-        listing = {path.name.lower(): path for path in folder.iterdir() if path.is_file()}
-        stems: dict[str, list[Path]] = {}
-        for path in found_photos:
-            stems.setdefault(path.stem.lower(), []).append(path)
-        found = [_by_name(folder, entry.name, listing, stems) for entry in lights.entries]
+        find = _finder(folder)
+        found = [find(entry.name) for entry in lights.entries]
         if all(path is not None for path in found):
             return found, "name", []
         if not any(found) and len(found_photos) == len(lights.entries):
@@ -226,6 +254,9 @@ def _exposures(exifs: list[dict[str, float]], images: list[Path], notes: list[st
 def _check_output(output: Path, overwrite: bool) -> None:
     if output.exists() and not output.is_dir():
         raise RTIImportError(f"{output} must be a folder to write the capture in; got a file.")
+    # A file where a parent folder must be, or a folder that takes no new file: named (the content
+    # rule is import's own: an output that holds files is replaced whole, only with overwrite).
+    check_output(output, overwrite=True)
     if output.is_dir() and any(output.iterdir()) and not overwrite:
         raise RTIImportError(
             f"{output} already holds files; refusing to replace them. Choose an empty or new folder, or pass "

@@ -39,11 +39,15 @@ def run_stats(
     resumed: int,
     seconds: dict[str, float],
     masked: dict[str, int] | None,
+    lights: dict | None,
     cluster: dict | None = None,
 ) -> dict:
     """The statistics a driver knows of its fit before the tiles' (JSON-ready): the capture, the
     frames, the settings, the device, the pixels and tiling, the tiles resumed, ``seconds`` per
-    stage so far, the masked samples per kind and, on a cluster, ``cluster`` (``stats["distributed"]``)."""
+    stage so far, the masked samples per kind, ``lights`` (the record of
+    :func:`torchspec.pipeline.plan.calibrated`; ``None``: the lights as written) and, on a cluster,
+    ``cluster`` (``stats["distributed"]``). Every driver builds the ``fit`` block of ``svbrdf.json``
+    here (then :func:`assemble`): the same keys, in the same order, from either."""
     stats = {
         "capture": str(capture.root),
         "frames": picked,
@@ -55,6 +59,7 @@ def run_stats(
         "resumed_tiles": resumed,
         "seconds": seconds,
         "masked_samples": masked,
+        "lights": lights,
     }
     if cluster is not None:
         stats["distributed"] = cluster

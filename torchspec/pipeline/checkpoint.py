@@ -30,6 +30,7 @@ __all__ = [
     "job_record",
     "open_checkpoint",
     "read_tile",
+    "refuse_unfinished",
     "save_tile",
     "tile_name",
 ]
@@ -100,6 +101,23 @@ def read_tile(path: Path) -> tuple[int, TileResult]:
         raise TorchspecError(f"{path} is not a readable tile ({type(error).__name__}: {error}); remove it.") from error
 
 
+def refuse_unfinished(folder: Path | None, resume: bool) -> None:
+    """Refuse a checkpoint folder that holds an unfinished fit (its :data:`STATE`) unless ``resume``:
+    its work is never silently dropped (``None``: no checkpoint, nothing to refuse). Cheap (no pixel,
+    no tile read): a driver calls it before any work.
+
+    Raises:
+        TorchspecError: naming the folder, the tiles done, and how to continue or start over.
+    """
+    if resume or folder is None or not (folder / STATE).is_file():
+        return
+    finished = len(list(folder.glob("tile-*.pt")))
+    raise TorchspecError(
+        f"{folder} holds an unfinished fit ({finished} tile(s) done): continue it with --resume, "
+        f"or remove {folder} to start over."
+    )
+
+
 def open_checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, TileResult]:
     """Open the checkpoint folder: its finished tiles ``{first pixel: tile}`` when resuming the
     same job, none for a new one.
@@ -115,13 +133,9 @@ def open_checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, TileResu
         folder.mkdir(parents=True, exist_ok=True)
         write_json(state, job)
         return {}
+    refuse_unfinished(folder, resume)
     saved = read_json(state, TorchspecError, "")
     finished = sorted(folder.glob("tile-*.pt"))
-    if not resume:
-        raise TorchspecError(
-            f"{folder} holds an unfinished fit ({len(finished)} tile(s) done): continue it with --resume, "
-            f"or remove {folder} to start over."
-        )
     differ = [key for key in job if saved.get(key) != job[key]]
     if differ:
         raise TorchspecError(

@@ -47,7 +47,7 @@ from ..photometric import peak_of, sample_masks, saturation_level
 from ..progress import bar as progress_bar
 from ..residual_term import TermDomain
 from .assembly import assemble, run_stats
-from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, tile_name
+from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, refuse_unfinished, tile_name
 from .plan import RUNTIME_BYTES, plan, setup
 from .result import Fit
 from .settings import FitConfig
@@ -250,6 +250,7 @@ def fit_on_cluster(
         >>> write_fit("maps", result)  # doctest: +SKIP
     """
     started = time.perf_counter()
+    refuse_unfinished(Path(checkpoint), resume)  # before any work
     begun = _distant(setup(capture, config, frames))
     config, picked, lights, view = begun.config, begun.picked, begun.lights, begun.view
     capture = replace(begun.capture, root=begun.capture.root.resolve())  # the workers' working folders differ
@@ -284,7 +285,6 @@ def fit_on_cluster(
     except KeyboardInterrupt as interrupt:
         raise FitInterrupted(len(parts), len(firsts), folder) from interrupt
     ordered = [parts[first] for first in firsts]
-    threads = client.nthreads()
     stats = run_stats(
         capture=capture,
         picked=picked,
@@ -295,14 +295,16 @@ def fit_on_cluster(
         resumed=len(done),
         seconds={**seconds, "read": report.pop("read"), "masks": report.pop("masks")},  # worker-seconds; total: wall
         masked=_masked(ordered, capture),
-        cluster={
-            "scheduler": client.scheduler.address,
-            "workers": len(threads),
-            "threads": sum(threads.values()),
-            **report,
-        },
+        lights=None,  # as written: lights to calibrate are refused above (_distant)
+        cluster=_cluster_record(client, report),
     )
     return assemble(ordered, height=h, width=w, channels=capture.channels, stats=stats, started=started)
+
+
+def _cluster_record(client, report: dict) -> dict:
+    """``stats["distributed"]``: the scheduler, the workers and their threads, and ``report``."""
+    threads = client.nthreads()
+    return {"scheduler": client.scheduler.address, "workers": len(threads), "threads": sum(threads.values()), **report}
 
 
 def _refuse_stale_tiles(folder: Path, done: dict) -> None:

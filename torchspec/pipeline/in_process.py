@@ -11,7 +11,7 @@ from ..io import Capture
 from ..photometric import sample_masks
 from ..progress import bar as progress_bar
 from .assembly import assemble, run_stats
-from .checkpoint import FitInterrupted, job_record, open_checkpoint
+from .checkpoint import FitInterrupted, job_record, open_checkpoint, refuse_unfinished
 from .plan import calibrated, plan, setup
 from .result import Fit
 from .settings import FitConfig
@@ -45,8 +45,8 @@ def fit(
             once the maps are written.
         resume: continue the fit whose tiles ``checkpoint`` holds (the same capture, frames,
             settings and tiling, else ``TorchspecError``): the maps are identical to an
-            uninterrupted fit's. Without it, a checkpoint holding tiles is an error (never
-            silently dropped).
+            uninterrupted fit's. Without it, a checkpoint of an unfinished fit is an error (never
+            silently dropped), raised before any work.
 
     Returns:
         :class:`~torchspec.pipeline.result.Fit`.
@@ -62,6 +62,8 @@ def fit(
         >>> result = fit("painting-dev", frames="::2")  # doctest: +SKIP
         >>> write_fit("maps", result)  # doctest: +SKIP
     """
+    folder = Path(checkpoint) if checkpoint is not None else None
+    refuse_unfinished(folder, resume)  # before any work: reading and calibrating take seconds
     clock = time.perf_counter()
     job = setup(capture, config, frames)
     capture, view = job.capture, job.view
@@ -83,7 +85,6 @@ def fit(
     tiling = tiling_of(h, w, tile, job.positions)
     flat = tiling.pixels(stack.flatten(2))  # (K, C, H W) in the fit's order (a view for row-major tiles)
     kinds = [tiling.pixels(m) for m in kinds]
-    folder = Path(checkpoint) if checkpoint is not None else None
     done = {}
     if folder is not None:
         done = open_checkpoint(folder, job_record(capture, job.picked, config, tile, pixels), resume)
@@ -115,8 +116,8 @@ def fit(
         resumed=len(done),
         seconds={"read": read_seconds, "masks": mask_seconds},
         masked=masks.counts(),
+        lights=calibration,
     )
-    stats["lights"] = calibration
     # clock: when the masks began
     return assemble(
         tiling.restore(parts), height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds

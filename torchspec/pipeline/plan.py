@@ -264,38 +264,37 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     )
     explained, misfit = float(found.explained[found.judged].double().mean()), float(found.rms.double().median())
     if explained < CALIBRATION_EXPLAINED or misfit > CALIBRATION_RMS:
-        message = (
-            f"{job.capture.root}: the lights were not calibrated from the photographs: the Lambertian model they are "
-            f"estimated with explains {100 * explained:.0f} % of the pixels with a median relative misfit of "
-            f"{100 * misfit:.1f} % per frame (needed: {100 * CALIBRATION_EXPLAINED:.0f} % and "
-            f"{100 * CALIBRATION_RMS:.0f} %), so gains and positions would take up what the model lacks; "
-            "the lights are taken as written"
-        )
         if wanted == "auto":
-            judged = int(found.judged.sum())
+            radius = found.radius_as_written
+            taken = (
+                "taken as written"
+                if radius is None
+                else (
+                    f"taken at the dome radius {radius:g} (image widths) the photographs show, with the irradiance as "
+                    "written"
+                )
+            )
+            message = _poorly_determined(job.capture.root, explained, misfit, wanted, taken)
+            warnings.warn(message, FitWarning, stacklevel=3)
             refused = {
                 "refused": message,
                 "explained_share": explained,
-                "judged_pixels": judged,
+                "judged_pixels": int(found.judged.sum()),
                 "rms": found.rms.tolist(),
             }
-            if found.radius_as_written is None:
-                warnings.warn(message + ".", FitWarning, stacklevel=3)
-                return job, {"calibrated": [], **refused}
-            return _dome_only(job, found, message, refused)
-        warnings.warn(
-            message.replace("were not calibrated", "are calibrated as asked, but") + ".", FitWarning, stacklevel=3
-        )
+            return (job, {"calibrated": [], **refused}) if radius is None else _dome_only(job, found, refused)
+        warnings.warn(_poorly_determined(job.capture.root, explained, misfit, wanted), FitWarning, stacklevel=3)
     if wanted == "auto":  # kept only where it predicts frames left out of the maps better
         judged = _left_out(stack / scale[:, :, None, None], valid, directions, found, job.positions, near or dome)
         if judged["calibrated"] >= (1 - CALIBRATION_LEFT_OUT) * judged["as_written"]:
             message = (
-                f"{job.capture.root}: the lights were not calibrated from the photographs: the gains and positions "
-                f"estimated explain the frames they were fitted on, but predict frames left out of the maps no "
-                f"better (median relative misfit {100 * judged['calibrated']:.1f} % against "
-                f"{100 * judged['as_written']:.1f} % with the lights as written); the lights are taken as written"
+                f"{job.capture.root}: the lights are taken as written, not calibrated from the photographs: the gains "
+                f"and positions estimated explain the frames they were fitted on, but predict frames left out of the "
+                f"maps no better (median relative misfit {100 * judged['calibrated']:.1f} % against "
+                f"{100 * judged['as_written']:.1f} % with the lights as written). Nothing needs doing: the lights as "
+                "written serve the fit as well."
             )
-            warnings.warn(message + ".", FitWarning, stacklevel=3)
+            warnings.warn(message, FitWarning, stacklevel=3)
             return job, {"calibrated": [], "refused": message, "left_out_misfit": judged}
     irradiance = lights.irradiance.to(stack) * found.gains
     calibrated_lights = Lights(found.directions.to(stack), lights.kernel, irradiance, lights.exposure.to(stack))
@@ -331,22 +330,40 @@ def _left_out(frames: Tensor, valid: Tensor, directions: Tensor, found, position
     return {"as_written": written, "calibrated": calibrated}
 
 
-def _dome_only(job: Setup, found, message: str, refused: dict) -> tuple[Setup, dict]:
-    """``auto``'s lights where the gains are refused but one dome radius explains the photographs
-    better than distant lights with the irradiance as written (:func:`torchspec.lightcal.dome_radius`'s
-    choice under the gains given): the lights at that radius along their written directions, that
-    irradiance."""
-    warnings.warn(
-        message.replace(
-            "the lights are taken as written",
-            f"the lights are taken at the dome radius {found.radius_as_written:g} "
-            "(image widths) the photographs show, with the irradiance as written",
-        )
-        + ".",
-        FitWarning,
-        stacklevel=4,
-    )
+def _dome_only(job: Setup, found, refused: dict) -> tuple[Setup, dict]:
+    """``auto``'s lights where the gains are refused (``refused``: the warning and its figures) but one
+    dome radius explains the photographs better than distant lights with the irradiance as written
+    (:func:`torchspec.lightcal.dome_radius`'s choice under the gains given): the lights at that radius
+    along their written directions, that irradiance."""
     radius = found.radius_as_written
     positions = radius * job.lights.directions
     record = {"calibrated": ["radius"], "radius": radius, "radius_misfit": found.radius_misfit_as_written, **refused}
     return replace(job, positions=positions), record
+
+
+def _poorly_determined(
+    root: Path, explained: float, misfit: float, wanted: str, taken: str = "taken as written"
+) -> str:
+    """The warning of lights the photographs determine poorly (below :data:`CALIBRATION_EXPLAINED`
+    or above :data:`CALIBRATION_RMS`): the figures, what they mean and what the user can do.
+    ``wanted``: ``FitConfig.calibrate`` (``auto``: the lights are ``taken`` otherwise; else they are
+    calibrated as asked)."""
+    figures = (
+        f"under the lights estimated from them, a matte (Lambertian) surface explains {100 * explained:.0f} % of the "
+        f"pixels with a median relative misfit of {100 * misfit:.1f} % per frame (calibrating needs at least "
+        f"{100 * CALIBRATION_EXPLAINED:.0f} % and at most {100 * CALIBRATION_RMS:.0f} %): the object's gloss, "
+        "shadows or relief are more than a matte surface, and estimated gains would take up what it lacks instead "
+        "of the lamps' differences"
+    )
+    if wanted != "auto":
+        return (
+            f"{root}: the lights are calibrated from the photographs as asked (calibrate: {wanted}), but the "
+            f"photographs determine them poorly: {figures}. Compare with a fit with --calibrate none (the lights as "
+            "written)."
+        )
+    return (
+        f"{root}: the lights are {taken}, not calibrated from the photographs: {figures}. Nothing needs doing if "
+        "every frame was lit alike (the same lamp and setting at the same distance, as in most domes); if the "
+        "frames' brightness differs from light to light, pass --calibrate gains to estimate a gain per frame anyway, "
+        "and compare the two fits' residuals."
+    )

@@ -12,7 +12,7 @@ from ..brdf import SVBRDF
 from ..flags import FLAGS, UNTRUSTED, bit
 from ..io import write_svbrdf
 from ..lm import STATUS
-from ..outputs import check_output
+from ..outputs import check_apart, check_output
 from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 from .checkpoint import CHECKPOINT
 from .settings import MODEL_CODES
@@ -86,7 +86,10 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
 
     A folder that holds other files is refused (:class:`~torchspec.outputs.OutputError`) unless
     ``overwrite``; one that holds the fit's own checkpoint (:data:`~torchspec.pipeline.checkpoint.CHECKPOINT`)
-    is this fit's."""
+    is this fit's. The capture's folder (``stats["capture"]``), a folder inside it or one holding it is
+    refused whatever ``overwrite`` says (:func:`~torchspec.outputs.check_apart`)."""
+    if result.stats.get("capture"):
+        check_apart(path, result.stats["capture"], "the capture")
     check_output(path, overwrite=overwrite, job=CHECKPOINT)
     meta = {
         "model": "ward",
