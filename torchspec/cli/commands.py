@@ -69,22 +69,35 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import warnings
 
     from ..io.rti import import_rti
+    from ..io.scale import Scale
     from ..response import describe_response
 
+    scale = Scale.parse(args.downsample, args.crop)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the notes are printed below, once each
         result = import_rti(args.source, args.output, transfer=args.transfer, overwrite=args.overwrite,
-                            progress=not args.quiet)
+                            progress=not args.quiet, scale=scale)
     for note in result.notes:
         print(f"torchspec import: note: {note}", file=sys.stderr)
     estimated = result.transfer.name == "response"
     transfer = describe_response(result.response.to_json()) if estimated else result.transfer
     capture = result.capture
     print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
-          f"{''.join(capture.channels)} from {result.light_file.path} (images matched by {result.matched}; "
+          f"{''.join(capture.channels)}{_scaled(capture.extra['source'].get('scale'))} from "
+          f"{result.light_file.path} (images matched by {result.matched}; "
           f"transfer {transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
           f"{shlex.quote(str(args.output))}")
     return 0
+
+
+def _scaled(record: dict | None) -> str:
+    """`` (the photographs' 4000x3000 at --downsample 4, crop ...)``: a scale record in words, or nothing."""
+    if not record:
+        return ""
+    x, y, w, h = record["crop"]
+    width, height = record["full_size"]
+    crop = "" if (x, y, w, h) == (0, 0, width, height) else f", the region {x},{y},{w},{h}"
+    return f" (of {width}x{height} at --downsample {record['downsample']}{crop})"
 
 
 def _demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -139,6 +152,11 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         config = replace(config, residual_term=term if term == "auto" else int(term))
     if args.device is not None:
         config = replace(config, device=str(device_option(parser, args)))
+    if args.downsample is not None or args.crop is not None:
+        from ..io.scale import Scale
+
+        given = Scale.parse(config.downsample if args.downsample is None else args.downsample, args.crop)
+        config = replace(config, downsample=given.downsample, crop=given.crop if args.crop else config.crop)
     if args.threads is not None:
         if args.threads != "auto" and not args.threads.isdigit():
             parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
@@ -168,8 +186,8 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     write_fit(args.output, result, overwrite=True)  # checked above, before the fit
     shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
     stats = result.stats
-    print(f"wrote {args.output}: {stats['pixels']} pixels from {len(stats['frames'])} frames in "
-          f"{stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
+    print(f"wrote {args.output}: {stats['pixels']} pixels{_scaled(stats['scale'])} from {len(stats['frames'])} "
+          f"frames in {stats['seconds']['total']:.1f} s ({stats['pixels_per_second']:.0f} pixels/s); "
           f"{stats['lobe_pixels']} with a lobe; solver: {stats['status']}; "
           f"median relative residual {stats['median_residual']:.2e}")
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 from .._version import __version__
 from ..pipeline.checkpoint import CHECKPOINT
 
-__all__ = ["OVERWRITE", "add_device", "add_overwrite", "build_parser"]
+__all__ = ["OVERWRITE", "add_device", "add_overwrite", "add_scale", "build_parser"]
 
 OVERWRITE = "--overwrite"
 """The option that lets a command write into an output that holds other work."""
@@ -45,6 +45,7 @@ def _add_import_command(commands) -> None:
                               "photographs; linear for float and RAW)")
     command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_scale(command, "import", "averaged once decoded to linear values; recorded in capture.json's source.scale")
     sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
     sphere.add_argument("folder", type=Path, help="the sphere's photographs, one per light (natural order)")
     sphere.add_argument("-o", "--output", type=Path, required=True, help="the .lp to write (a .json beside)")
@@ -62,6 +63,17 @@ def add_device(command) -> None:
                               "cpu, cuda or cuda:N")
 
 
+
+
+def add_scale(command, verb: str, more: str) -> None:
+    """``--downsample N`` and ``--crop X,Y,W,H`` (:class:`torchspec.io.scale.Scale`): a quick look at a large
+    capture; ``verb`` what the command does with the pixels, ``more`` where it records the scale."""
+    command.add_argument("--downsample", type=int, default=None, metavar="N",
+                         help=f"{verb} boxes of N x N pixels, each their mean (a quick look at a large capture: "
+                              f"about 1/N^2 of the memory and time; a box holding a clipped pixel is clipped); {more}")
+    command.add_argument("--crop", default=None, metavar="X,Y,W,H",
+                         help=f"{verb} only this region: X,Y its top-left corner, W,H its size, pixels of the full "
+                              "image (before --downsample)")
 
 
 def add_overwrite(command, more: str = "") -> None:
@@ -128,6 +140,7 @@ def _add_fit_command(commands) -> None:
     cluster.add_argument("--workers", type=int, default=None, metavar="N",
                          help="fit the tiles on a local Dask cluster of N worker processes (needs the dask extra: "
                               "pip install 'torchspec[dask]')")
+    add_scale(fit, "fit", "averaged as the frames are read; recorded in svbrdf.json's fit.scale")
     add_device(fit)
 
 
