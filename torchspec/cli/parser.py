@@ -146,12 +146,32 @@ def _add_fit_command(commands) -> None:
 
 def _add_map_commands(commands) -> None:
     """``render`` and ``export``: commands on a folder of SVBRDF maps."""
-    render = commands.add_parser("render", help="predict a capture's frames from SVBRDF maps")
+    render = commands.add_parser("render", help="relight SVBRDF maps: a capture's frames (--capture), or new lights "
+                                 "(--light X,Y,Z, --lights FILE.lp)")
     render.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
-    render.add_argument("--capture", type=Path, required=True, help="the capture whose lights to render")
-    render.add_argument("-o", "--output", type=Path, required=True, help="folder for the predicted frames")
-    render.add_argument("--light", type=Path, default=None,
-                        help="a JSON light description to use instead of the capture's (needed for 'unknown' kernels)")
+    render.add_argument("--capture", type=Path, default=None,
+                        help="the capture whose frames to predict (and score); with --light or --lights, the capture "
+                             "the maps were fitted from, where their svbrdf.json does not say its view and lights")
+    render.add_argument("-o", "--output", type=Path, required=True, help="folder for the images")
+    render.add_argument("--light", action="append", default=None, metavar="X,Y,Z",
+                        help="render under a new light from this direction (x right, y up, z towards the camera; "
+                             "normalised), e.g. --light 0.5,0,0.87; repeatable")
+    render.add_argument("--lights", type=Path, default=None, metavar="FILE",
+                        help="render under each light of a light file: an .lp (image names and directions), a "
+                             "lights.txt of directions, a Relight .relight or .dome")
+    render.add_argument("--light-model", type=Path, default=None, metavar="FILE",
+                        help="a JSON light description (the light's kernel) to use instead of the capture's (needed "
+                             "for 'unknown' kernels); formerly --light FILE")
+    render.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
+                        help="new lights: their irradiance, one number or one per channel (default: the median over "
+                             "the fitted frames of exposure x irradiance x the calibrated gain: as bright as the "
+                             "typical photograph)")
+    render.add_argument("--format", default="auto", choices=["auto", "png", "exr"],
+                        help="new lights: png (8 bits, encoded as the photographs), exr (float32, linear) or auto "
+                             "(the default: png where the capture came from photographs, else exr)")
+    render.add_argument("--srgb", action="store_true",
+                        help="png: encode with the sRGB curve (default: as the photographs were recorded, e.g. with "
+                             "the camera response the import estimated, so the images look like the photographs)")
     render.add_argument("--path", default="auto", choices=["auto", "point", "fast", "reference"],
                         help="quadrature path (default: auto)")
     render.add_argument("--no-term", action="store_true",

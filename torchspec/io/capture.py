@@ -43,7 +43,17 @@ from ._manifest import (
 from .exr import ExrError, _read_rows, read_exr, write_exr
 from .svbrdf import Maps, write_svbrdf
 
-__all__ = ["Capture", "CaptureError", "Frame", "LightSpec", "FORMAT", "VERSIONS", "read_capture", "write_capture"]
+__all__ = [
+    "Capture",
+    "CaptureError",
+    "Frame",
+    "LightSpec",
+    "FORMAT",
+    "VERSIONS",
+    "light_kernel",
+    "read_capture",
+    "write_capture",
+]
 
 
 @dataclass(frozen=True)
@@ -293,7 +303,7 @@ class Capture:
             if spec.kernel == "unknown":
                 raise CaptureError(
                     f"{self.manifest}: light.kernel is 'unknown', so the frames cannot be predicted. Give the "
-                    "light's shape with --light FILE (e.g. a calibrated or known light JSON)."
+                    "light's shape with --light-model FILE (e.g. a calibrated or known light JSON)."
                 )
             table = self.read_kernel() if spec.kernel == "tabulated" else None
             kernel = Kernel.from_spec(spec, table=table)
@@ -303,29 +313,41 @@ class Capture:
 
     def _given_kernel(self, light: str | Path | Mapping) -> Kernel:
         """The kernel of a light description given instead of the manifest's (:meth:`lights`)."""
-        source = None
+        return light_kernel(light, self.root)
+
+
+def light_kernel(light: str | Path | Mapping, folder: Path, option: str = "--light-model") -> Kernel:
+    """The kernel of a light description (:meth:`Capture.lights`' ``light``): a JSON file, or a
+    mapping whose tabulated ``file`` is relative to ``folder``; ``option`` is what gave the file
+    (named when it is unreadable).
+
+    Raises:
+        CaptureError: an unreadable file, a block that breaks the format, an ``unknown`` kernel or
+            an unreadable kernel image.
+    """
+    source = None
+    if not isinstance(light, Mapping):
+        source = Path(light)
+        hint = f"The light description ({option}) is a JSON file, e.g. the .json torchspec calibrate writes."
+        light = read_json(source, CaptureError, hint)
         if not isinstance(light, Mapping):
-            source = Path(light)
-            hint = "The light description (--light) is a JSON file, e.g. the .json torchspec calibrate writes."
-            light = read_json(source, CaptureError, hint)
-            if not isinstance(light, Mapping):
-                raise CaptureError(f"the light description {source} must be a JSON object; got {_show(light)}.")
-        if isinstance(light.get("light"), Mapping):  # calibrate's kernel.json: {"light": ..., "calibration": ...}
-            light = light["light"]
-        if light.get("kind", light.get("kernel")) in ("supergaussian", "disk"):  # a simulation's truth/light.json
-            return Kernel.from_spec(light)
-        where = Where(source if source is not None else Path("the light description"))
-        notes: list[str] = []
-        spec = parse_light(where, dict(light), notes)
-        for note in notes:
-            warnings.warn(note, stacklevel=3)
-        if spec.kernel == "unknown":
-            raise where.error("light.kernel", "give the light's shape (not 'unknown') to predict frames", spec.kernel)
-        table = None
-        if spec.kernel == "tabulated":
-            folder = source.parent if source is not None else self.root
-            table = read_kernel_table(folder / spec.file, f"{where.source}: light.file")
-        return Kernel.from_spec(spec, table=table)
+            raise CaptureError(f"the light description {source} must be a JSON object; got {_show(light)}.")
+    if isinstance(light.get("light"), Mapping):  # calibrate's kernel.json: {"light": ..., "calibration": ...}
+        light = light["light"]
+    if light.get("kind", light.get("kernel")) in ("supergaussian", "disk"):  # a simulation's truth/light.json
+        return Kernel.from_spec(light)
+    where = Where(source if source is not None else Path("the light description"))
+    notes: list[str] = []
+    spec = parse_light(where, dict(light), notes)
+    for note in notes:
+        warnings.warn(note, stacklevel=3)
+    if spec.kernel == "unknown":
+        raise where.error("light.kernel", "give the light's shape (not 'unknown') to predict frames", spec.kernel)
+    table = None
+    if spec.kernel == "tabulated":
+        folder = source.parent if source is not None else folder
+        table = read_kernel_table(folder / spec.file, f"{where.source}: light.file")
+    return Kernel.from_spec(spec, table=table)
 
 
 def read_kernel_table(file: Path, key: str) -> torch.Tensor:
