@@ -242,3 +242,17 @@ def test_light_model_replaces_the_old_light_option(unknown_light_capture, tmp_pa
     assert main(["render", str(truth), "--light", "0,0,1", "-o", str(tmp_path / "b")]) == 2
     assert "'unknown'" in capsys.readouterr().err
     assert main(["render", str(truth), "--light", "0,0,1", "-o", str(tmp_path / "b"), *model]) == 0
+
+
+def test_a_tabulated_kernel_needs_its_capture(tmp_path):
+    """Maps fitted under a tabulated light whose capture cannot be found are refused, naming the
+    options that give the table; --light-model replaces the kernel."""
+    maps = _flat_maps(tmp_path / "maps", False, None)
+    read = read_svbrdf(maps)
+    read.meta["fit"]["scene"]["light"] = {"kernel": "tabulated", "file": "kernel.exr", "extent": 0.1}
+    write_svbrdf(maps, read.svbrdf, meta=read.meta, overwrite=True)
+    with pytest.raises(RenderError, match=r"tabulated light.*pass --capture CAPTURE, or --light-model FILE"):
+        render_lights(maps, tmp_path / "out", [parse_light("0,0,1")])
+    (tmp_path / "point.json").write_text('{"kernel": "point"}')
+    report = render_lights(maps, tmp_path / "out", [parse_light("0,0,1")], light_model=tmp_path / "point.json")
+    assert torch.allclose(report["images"][0], torch.full((3, 3, 4), 0.5 / np.pi))

@@ -151,7 +151,7 @@ def scene_of(maps: Maps, svbrdf_dir: Path | str, capture: Capture | None = None)
     """The :class:`Scene` of ``maps``: from ``svbrdf.json``'s ``fit.scene`` where the fit recorded
     it, else from ``capture``, else from the capture the fit names (``fit.capture``, as it was
     given to the fit or beside the maps' folder) or the folder holding ``truth/`` maps, when it is
-    there.
+    there (where a tabulated kernel's table is read too).
 
     Raises:
         RenderError: none of these says it (the message asks for ``--capture``).
@@ -159,7 +159,7 @@ def scene_of(maps: Maps, svbrdf_dir: Path | str, capture: Capture | None = None)
     svbrdf_dir = Path(svbrdf_dir)
     fit = maps.meta.get("fit") or {}
     record, root, source = fit.get("scene"), None, f"{svbrdf_dir / 'svbrdf.json'}"
-    if capture is None and record is None:
+    if capture is None and (record is None or record["light"].get("kernel") == "tabulated"):  # its table: there
         beside = svbrdf_dir.resolve().parent
         named = [Path(fit["capture"]), beside / fit["capture"]] if fit.get("capture") else []  # as given, or beside
         for folder in named + ([beside] if svbrdf_dir.name == "truth" else []):
@@ -168,9 +168,10 @@ def scene_of(maps: Maps, svbrdf_dir: Path | str, capture: Capture | None = None)
                 break
     if capture is not None:
         capture = capture_for(maps, capture)
-        root, source = capture.root, str(capture.manifest)
+        root = capture.root
         if record is None:
             record = scene_record(capture, fit.get("frames") or list(range(len(capture.frames))))
+            source = str(capture.manifest)
     if record is None:
         raise RenderError(
             f"{svbrdf_dir / 'svbrdf.json'} does not say the view and lights the maps were fitted under (no fit.scene: "
