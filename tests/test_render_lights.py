@@ -214,6 +214,7 @@ def test_the_command_line_reads_lights_from_options_and_a_light_file(painting, t
     ("extra", "message"),
     [
         (["--light", "light.json"], "--light takes a direction X,Y,Z .* now given with --light-model FILE"),
+        (["--light", "new.lp"], "--light takes a direction X,Y,Z .* read with --lights FILE"),
         (["--light", "0,0,-1"], "above the surface"),
         (["--light", "1,2"], "--light must be a direction X,Y,Z"),
         (["--light", "0,0,0"], "non-zero"),

@@ -85,9 +85,9 @@ def parse_light(text: str, option: str = "--light") -> NewLight:
     camera; any length, normalised).
 
     Raises:
-        RenderError: not three numbers; a path or a JSON file (the light description that was
-            ``--light FILE`` is now ``--light-model FILE``); a zero direction or one below the
-            horizon (:func:`torchspec.io.lp.light_entry`).
+        RenderError: not three numbers; a light file (read with ``--lights``), a path or a JSON
+            file (the light description that was ``--light FILE`` is now ``--light-model FILE``);
+            a zero direction or one below the horizon (:func:`torchspec.io.lp.light_entry`).
     """
     parts = [part.strip() for part in str(text).split(",")]
     try:
@@ -95,6 +95,11 @@ def parse_light(text: str, option: str = "--light") -> NewLight:
     except ValueError:
         vector = []
     if len(vector) != 3 or not all(math.isfinite(v) for v in vector):
+        if str(text).lower().endswith((".lp", ".txt", ".relight", ".dome")):
+            raise RenderError(
+                f"{option} takes a direction X,Y,Z (e.g. {option} 0.5,0,0.87); got the light file {text!r}: "
+                "a light file of new lights is read with --lights FILE."
+            )
         if str(text).lower().endswith((".json", ".yaml", ".yml")) or Path(text).exists():
             raise RenderError(
                 f"{option} takes a direction X,Y,Z (e.g. {option} 0.5,0,0.87); got the file {text!r}. A JSON light "
