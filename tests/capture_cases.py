@@ -93,3 +93,17 @@ def write_small_painting(path: Path) -> Path:
     """A simulated 12 x 12 painting (no gilding) under a 5 x 5 grid of a projected Gaussian light, with
     truth: 144 pixels, 25 frames; the fit, resume and Dask tests share it."""
     return write_painting(path)
+
+
+def write_relight_painting(path: Path) -> Path:
+    """A simulated 10 x 8 painting (3 strokes) under a 4 x 4 grid of lights within radius 0.6 (12
+    frames, irradiance 1), with truth: the relighting tests' capture."""
+    from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
+    from torchspec.synth import PaintingConfig
+
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=8, strokes=3)),
+        layout=LayoutConfig(kind="grid", nx=4, ny=4, extent=0.5, radius=0.6),
+    )
+    write_simulation(path, simulate(config))
+    return path

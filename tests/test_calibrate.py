@@ -369,7 +369,7 @@ def test_calibrate_then_render_with_its_json(tmp_path, capsys):
     light_only.write_text(json.dumps(json.loads(kernel.with_suffix(".json").read_text())["light"]))
     (tmp_path / "kernel.exr").write_bytes(kernel.read_bytes())  # the bare block names its file beside it
     capsys.readouterr()
-    render = ["render", str(capture / "truth"), "--capture", str(capture), "--light"]
+    render = ["render", str(capture / "truth"), "--capture", str(capture), "--light-model"]
     for light in (kernel.with_suffix(".json"), light_only):
         assert main([*render, str(light), "-o", str(tmp_path / f"relit-{light.stem}")]) == 0, capsys.readouterr().err
         printed = capsys.readouterr().out

@@ -2,6 +2,7 @@ import math
 
 import pytest
 import torch
+from capture_cases import write_relight_painting
 
 from torchspec.cli import main
 from torchspec.io import CaptureError, read_capture
@@ -12,13 +13,7 @@ from torchspec.synth import PaintingConfig
 
 @pytest.fixture(scope="module")
 def painting(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("cap") / "painting"
-    config = SimulationConfig(
-        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=8, strokes=3)),
-        layout=LayoutConfig(kind="grid", nx=4, ny=4, extent=0.5, radius=0.6),
-    )
-    write_simulation(folder, simulate(config))
-    return folder
+    return write_relight_painting(tmp_path_factory.mktemp("cap") / "painting")
 
 
 def test_render_reproduces_a_simulated_capture(painting, tmp_path):

@@ -162,7 +162,7 @@ def choose_path(lights: Lights, path: str = "auto") -> str:
     if kernel.kind == "unknown":
         raise TorchspecError(
             "the light kernel is 'unknown': rendering needs its shape. Calibrate it into a tabulated "
-            "kernel, or describe a known light (e.g. torchspec render --light FILE)."
+            "kernel, or describe a known light (e.g. torchspec render --light-model FILE)."
         )
     if kernel.kind == "point":
         if path not in ("auto", "point"):

@@ -18,7 +18,8 @@ import torch
 
 from .brdf import SVBRDF
 from .errors import TorchspecError
-from .io import Capture, CaptureError, read_capture, read_svbrdf, write_capture
+from .io import Capture, CaptureError, Maps, read_capture, read_svbrdf, write_capture
+from .io.scale import Scale, scaled
 from .lights import Lights
 from .near_lights import lights_at
 from .outputs import check_apart, check_output
@@ -28,7 +29,7 @@ from .quadrature import Quadrature
 from .rendering import TILE_PIXELS, render, render_image
 from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["render_capture", "render_near", "fit_positions", "psnr"]
+__all__ = ["capture_at", "capture_for", "fit_positions", "psnr", "render_capture", "render_near", "residual_term_of"]
 
 
 def render_near(
@@ -99,6 +100,50 @@ def fit_positions(capture: Capture, meta: dict) -> tuple[torch.Tensor | None, st
     return positions, "the capture's positions"
 
 
+def residual_term_of(maps: Maps, svbrdf_dir: Path | str, device: torch.device) -> ResidualTerm | None:
+    """The fit's residual term (``residual_term.exr``, ``FitConfig.residual_term``) of ``maps``
+    read from ``svbrdf_dir``, on ``device``; ``None`` when the maps have none."""
+    if MAP_NAME not in maps.extra:
+        return None
+    source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
+    encoding = (maps.meta.get(MAP_NAME) or {}).get("encoding")  # the photographs' encoding; absent: sRGB
+    weight = maps.extra.get(WEIGHT_MAP)
+    return ResidualTerm.from_map(
+        maps.extra[MAP_NAME].to(device), len(maps.svbrdf.channels), source,
+        None if weight is None else weight.to(device), encoding,
+    )  # fmt: skip
+
+
+def capture_for(maps: Maps, capture: Capture) -> Capture:
+    """``capture`` as the maps were fitted from it: read at the crop and downsample their
+    ``svbrdf.json`` records (``fit.scale``, :mod:`torchspec.io.scale`), clipped boxes kept at the
+    level the capture records; the capture itself when the maps record none.
+
+    Raises:
+        CaptureError: the maps were fitted from a capture of another size.
+    """
+    return capture_at(capture, (maps.meta.get("fit") or {}).get("scale"))
+
+
+def capture_at(capture: Capture, record: dict | None) -> Capture:
+    """``capture`` read at the scale ``record`` (``svbrdf.json``'s ``fit.scale``: a crop and
+    downsample, :mod:`torchspec.io.scale`), clipped boxes kept at the level the capture records; the
+    capture itself for ``None``.
+
+    Raises:
+        CaptureError: the record is of a capture of another size.
+    """
+    if not record:
+        return capture
+    if list(record["full_size"]) != [capture.width, capture.height]:
+        width, height = record["full_size"]
+        raise CaptureError(
+            f"the maps were fitted from a {width}x{height} capture at --downsample {record['downsample']}, but "
+            f"{capture.manifest} is {capture.width}x{capture.height}: give the capture they were fitted from."
+        )
+    return scaled(capture, Scale.from_record(record), capture.saturation)
+
+
 def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:
     """PSNR in dB with the observed maximum as the peak."""
     mse = (predicted.double() - observed.double()).pow(2).mean().item()
@@ -131,6 +176,8 @@ def render_capture(
     :mod:`torchspec.residual_term`) is added to the physical prediction unless ``term`` is false; the
     frames are then clamped at 0 where the term takes them below black, as a photograph holds no
     negative light (the output is a capture that ``info`` and ``read_capture`` read).
+    Maps fitted at a crop or downsample (``svbrdf.json``'s ``fit.scale``) are compared with the
+    capture read at it (:func:`capture_for`); the frames written are then that size.
 
     Returns:
         ``{"frames", "psnr_db", "relative_rms", "per_frame_psnr_db", "predicted"}``; the
@@ -141,7 +188,7 @@ def render_capture(
         check_apart(output_dir, svbrdf_dir, "the maps' folder")
         check_output(output_dir, overwrite=overwrite)
     maps = read_svbrdf(svbrdf_dir)
-    capture = read_capture(capture_dir)
+    capture = capture_for(maps, read_capture(capture_dir))
     svbrdf = maps.svbrdf
     if tuple(svbrdf.shape) != (capture.height, capture.width):
         raise CaptureError(
@@ -157,15 +204,7 @@ def render_capture(
     lights = capture.lights(light=light, dtype=dtype).to(device=where)
     view = torch.tensor(capture.view, dtype=dtype, device=where)
     quadrature = Quadrature(path=path)
-    found = None
-    if MAP_NAME in maps.extra and term:  # the fit's residual term (FitConfig.residual_term)
-        source = str(Path(svbrdf_dir) / f"{MAP_NAME}.exr")
-        encoding = (maps.meta.get(MAP_NAME) or {}).get("encoding")  # the photographs' encoding; absent: sRGB
-        weight = maps.extra.get(WEIGHT_MAP)
-        found = ResidualTerm.from_map(
-            maps.extra[MAP_NAME].to(where), len(svbrdf.channels), source, None if weight is None else weight.to(where),
-            encoding,
-        )
+    found = residual_term_of(maps, svbrdf_dir, where) if term else None
     positions = fit_positions(capture, maps.meta)[0]
     if positions is not None:  # near lights: block by block, as the fit saw them
         values = render_near(

@@ -76,19 +76,23 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import warnings
 
     from ..io.rti import import_rti
+    from ..io.scale import Scale
+    from ..pipeline.verdict import scale_words
     from ..response import describe_response
 
+    scale = Scale.parse(args.downsample, args.crop)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the notes are printed below, once each
         result = import_rti(args.source, args.output, transfer=args.transfer, overwrite=args.overwrite,
-                            progress=not args.quiet)
+                            progress=not args.quiet, scale=scale)
     for note in result.notes:
         print(f"torchspec import: note: {note}", file=sys.stderr)
     estimated = result.transfer.name == "response"
     transfer = describe_response(result.response.to_json()) if estimated else result.transfer
     capture = result.capture
     print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
-          f"{''.join(capture.channels)} from {result.light_file.path} (images matched by {result.matched}; "
+          f"{''.join(capture.channels)}{scale_words(capture.extra['source'].get('scale'))} from "
+          f"{result.light_file.path} (images matched by {result.matched}; "
           f"transfer {transfer}; {sum(result.saturated)} clipped pixels); check it with: torchspec info "
           f"{shlex.quote(str(args.output))}")
     return 0
@@ -147,6 +151,11 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         config = replace(config, residual_term=term if term == "auto" else int(term))
     if args.device is not None:
         config = replace(config, device=str(device_option(parser, args)))
+    if args.downsample is not None or args.crop is not None:
+        from ..io.scale import Scale
+
+        given = Scale.parse(config.downsample if args.downsample is None else args.downsample, args.crop)
+        config = replace(config, downsample=given.downsample, crop=given.crop if args.crop else config.crop)
     if args.threads is not None:
         if args.threads != "auto" and not args.threads.isdigit():
             parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
@@ -178,9 +187,11 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     previews = None
     if not args.no_previews:
         from ..io import read_capture
+        from ..relight import capture_at
         from ..report import write_fit_previews
 
-        previews = write_fit_previews(args.output / "previews", result, read_capture(args.capture))
+        seen = capture_at(read_capture(args.capture), result.stats.get("scale"))  # as the fit read it
+        previews = write_fit_previews(args.output / "previews", result, seen)
     for line in summary_lines(result.stats, str(args.output), capture=str(args.capture), previews=previews):
         print(line)
     return 0
@@ -208,13 +219,48 @@ def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     device = device_option(parser, args)
     _check_output(args)
-    report = render_capture(args.svbrdf, args.capture, args.output, light=args.light, path=args.path,
+    if args.light or args.lights:
+        return _render_lights(args, device)
+    if args.capture is None:
+        raise TorchspecError("render needs --capture CAPTURE (its frames predicted) or new lights: --light X,Y,Z "
+                             "(repeatable) or --lights FILE.lp")
+    if args.format != "auto" or args.irradiance is not None or args.srgb:
+        raise TorchspecError("--format, --srgb and --irradiance are for new lights (--light, --lights); a capture's "
+                             "frames are written as a capture (EXR frames and capture.json)")
+    report = render_capture(args.svbrdf, args.capture, args.output, light=args.light_model, path=args.path,
                             overwrite=args.overwrite, progress=not args.quiet, term=not args.no_term,
                             device=str(device or "auto"))
     print(f"wrote {report['frames']} frames to {args.output}")
     if report.get("psnr_db") is not None:
         print(f"  against the capture's frames: PSNR {report['psnr_db']:.2f} dB (peak = the capture's maximum), "
               f"relative RMS error {100 * report['relative_rms']:.2f} %")
+    return 0
+
+
+def _render_lights(args: argparse.Namespace, device) -> int:
+    """``torchspec render MAPS --light X,Y,Z`` / ``--lights FILE``: :func:`torchspec.relight_lights.render_lights`."""
+    from ..relight_lights import LIGHTS_JSON, LIGHTS_LP, parse_light, read_new_lights, render_lights
+
+    lights = [parse_light(text) for text in args.light or []]
+    if args.lights is not None:
+        found, notes = read_new_lights(args.lights)
+        lights += found
+        for note in notes:
+            print(f"torchspec render: note: {note}", file=sys.stderr)
+    report = render_lights(args.svbrdf, args.output, lights, capture=args.capture, light_model=args.light_model,
+                           irradiance=args.irradiance, fmt=args.format, srgb=args.srgb, term=not args.no_term,
+                           path=args.path,
+                           overwrite=args.overwrite, progress=not args.quiet, device=str(device or "auto"))
+    files = report["files"]
+    shown = ", ".join(files[:3]) + (f", ... {files[-1]}" if len(files) > 3 else "")
+    print(f"wrote {len(files)} image(s) to {args.output}: {shown}; their lights in {LIGHTS_JSON} and {LIGHTS_LP}")
+    print(f"  {report['format'].upper()}: {report['encoding']}")
+    values = ", ".join(f"{v:.4g}" for v in report["irradiance"])
+    print(f"  irradiance {values}: {report['irradiance_chosen']} (--irradiance to change)")
+    clipped = [(file, count) for file, count in zip(files, report["clipped"], strict=True) if count]
+    if clipped and report["format"] == "png":
+        print(f"  {len(clipped)} image(s) hold pixels above 1, shown as white (e.g. {clipped[0][0]}: {clipped[0][1]} "
+              "pixels); lower --irradiance to keep them, or --format exr")
     return 0
 
 

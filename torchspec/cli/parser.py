@@ -9,7 +9,7 @@ from pathlib import Path
 from .._version import __version__
 from ..pipeline.checkpoint import CHECKPOINT
 
-__all__ = ["OVERWRITE", "WORKFLOW", "add_device", "add_overwrite", "build_parser"]
+__all__ = ["OVERWRITE", "WORKFLOW", "add_device", "add_overwrite", "add_scale", "build_parser"]
 
 OVERWRITE = "--overwrite"
 """The option that lets a command write into an output that holds other work."""
@@ -60,6 +60,7 @@ def _add_import_command(commands) -> None:
                               "photographs; linear for float and RAW)")
     command.add_argument("--overwrite", action="store_true", help="replace an OUTPUT that already holds files")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_scale(command, "import", "averaged once decoded to linear values; recorded in capture.json's source.scale")
     sphere = commands.add_parser("calibrate-sphere", help="light directions (.lp) from photographs of a chrome sphere")
     sphere.add_argument("folder", type=Path, help="the sphere's photographs, one per light (natural order)")
     sphere.add_argument("-o", "--output", type=Path, required=True, help="the .lp to write (a .json beside)")
@@ -77,6 +78,17 @@ def add_device(command) -> None:
                               "cpu, cuda or cuda:N")
 
 
+
+
+def add_scale(command, verb: str, more: str) -> None:
+    """``--downsample N`` and ``--crop X,Y,W,H`` (:class:`torchspec.io.scale.Scale`): a quick look at a large
+    capture; ``verb`` what the command does with the pixels, ``more`` where it records the scale."""
+    command.add_argument("--downsample", type=int, default=None, metavar="N",
+                         help=f"{verb} boxes of N x N pixels, each their mean (a quick look at a large capture: "
+                              f"about 1/N^2 of the memory and time; a box holding a clipped pixel is clipped); {more}")
+    command.add_argument("--crop", default=None, metavar="X,Y,W,H",
+                         help=f"{verb} only this region: X,Y its top-left corner, W,H its size, pixels of the full "
+                              "image (before --downsample)")
 
 
 def add_overwrite(command, more: str = "") -> None:
@@ -145,17 +157,38 @@ def _add_fit_command(commands) -> None:
     cluster.add_argument("--workers", type=int, default=None, metavar="N",
                          help="fit the tiles on a local Dask cluster of N worker processes (needs the dask extra: "
                               "pip install 'torchspec[dask]')")
+    add_scale(fit, "fit", "averaged as the frames are read; recorded in svbrdf.json's fit.scale")
     add_device(fit)
 
 
 def _add_map_commands(commands) -> None:
     """``render`` and ``export``: commands on a folder of SVBRDF maps."""
-    render = commands.add_parser("render", help="predict a capture's frames from SVBRDF maps")
+    render = commands.add_parser("render", help="relight SVBRDF maps: a capture's frames (--capture), or new lights "
+                                 "(--light X,Y,Z, --lights FILE.lp)")
     render.add_argument("svbrdf", type=Path, help="a folder of SVBRDF maps (e.g. a fit, or a capture's truth/)")
-    render.add_argument("--capture", type=Path, required=True, help="the capture whose lights to render")
-    render.add_argument("-o", "--output", type=Path, required=True, help="folder for the predicted frames")
-    render.add_argument("--light", type=Path, default=None,
-                        help="a JSON light description to use instead of the capture's (needed for 'unknown' kernels)")
+    render.add_argument("--capture", type=Path, default=None,
+                        help="the capture whose frames to predict (and score); with --light or --lights, the capture "
+                             "the maps were fitted from, where their svbrdf.json does not say its view and lights")
+    render.add_argument("-o", "--output", type=Path, required=True, help="folder for the images")
+    render.add_argument("--light", action="append", default=None, metavar="X,Y,Z",
+                        help="render under a new light from this direction (x right, y up, z towards the camera; "
+                             "normalised), e.g. --light 0.5,0,0.87; repeatable")
+    render.add_argument("--lights", type=Path, default=None, metavar="FILE",
+                        help="render under each light of a light file: an .lp (image names and directions), a "
+                             "lights.txt of directions, a Relight .relight or .dome")
+    render.add_argument("--light-model", type=Path, default=None, metavar="FILE",
+                        help="a JSON light description (the light's kernel) to use instead of the capture's (needed "
+                             "for 'unknown' kernels); formerly --light FILE")
+    render.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
+                        help="new lights: their irradiance, one number or one per channel (default: the median over "
+                             "the fitted frames of exposure x irradiance x the calibrated gain: as bright as the "
+                             "typical photograph)")
+    render.add_argument("--format", default="auto", choices=["auto", "png", "exr"],
+                        help="new lights: png (8 bits, encoded as the photographs), exr (float32, linear) or auto "
+                             "(the default: png where the capture came from photographs, else exr)")
+    render.add_argument("--srgb", action="store_true",
+                        help="png: encode with the sRGB curve (default: as the photographs were recorded, e.g. with "
+                             "the camera response the import estimated, so the images look like the photographs)")
     render.add_argument("--path", default="auto", choices=["auto", "point", "fast", "reference"],
                         help="quadrature path (default: auto)")
     render.add_argument("--no-term", action="store_true",

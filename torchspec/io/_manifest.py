@@ -9,6 +9,7 @@ import itertools
 import json
 import math
 import os
+import shlex
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
@@ -449,3 +450,42 @@ def _show(value: Any) -> str:
     except (TypeError, ValueError):
         text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+def not_a_capture(path: Path) -> None:
+    """Refuse, in the user's terms, what is plainly not a capture: a folder that does not exist, a
+    YAML config, an image."""
+    try:
+        exists, is_file = path.exists(), path.is_file()
+    except OSError as error:
+        raise CaptureError(f"the capture {path} must be a path the system can look up; got {error}.") from error
+    if not exists:
+        where = "" if path.parent.is_dir() else f" (nor does its folder {path.parent})"
+        raise CaptureError(
+            f"the capture folder {path} does not exist{where}. Pass a folder that holds {MANIFEST} and the "
+            "frames (docs/capture-format.md); torchspec simulate or torchspec import makes one."
+        )
+    suffix = path.suffix.lower()
+    if is_file and suffix in (".yaml", ".yml"):
+        raise CaptureError(
+            f"{path} is a YAML config, not a capture: a capture is a folder with {MANIFEST} and its frames "
+            "(docs/capture-format.md). A simulation config makes one with: torchspec simulate CONFIG -o CAPTURE; "
+            "a fit config goes to torchspec fit CAPTURE --config CONFIG."
+        )
+    if is_file and suffix in (".exr", ".jpg", ".jpeg", ".png", ".tif", ".tiff"):
+        raise CaptureError(
+            f"{path} is an image, not a capture: pass the folder that holds {MANIFEST} "
+            "(photographs become a capture with: torchspec import SOURCE -o CAPTURE)."
+        )
+    rti = is_file and (suffix in RTI_LIGHT_FILES or path.name.lower() == "lights.txt")
+    if not is_file and not (path / MANIFEST).exists():  # an RTI folder: photographs and their light file
+        rti = any(p.suffix.lower() in RTI_LIGHT_FILES for p in path.iterdir() if p.is_file())
+    if rti:
+        raise CaptureError(
+            f"{path} is an RTI capture (photographs and their light file), not yet a torchspec capture: import it "
+            f"first with: torchspec import {shlex.quote(str(path))} -o CAPTURE, then: torchspec fit CAPTURE -o MAPS."
+        )
+
+
+RTI_LIGHT_FILES = (".lp", ".relight", ".dome")
+"""The light files of RTI tools (``torchspec import`` reads them; so does a ``lights.txt``)."""

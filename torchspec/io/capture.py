@@ -11,7 +11,6 @@ missing frames.
 from __future__ import annotations
 
 import operator
-import shlex
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -37,6 +36,7 @@ from ._manifest import (
     _floats,
     _numpy,
     _show,
+    not_a_capture,
     parse_light,
     parse_manifest,
     to_manifest,
@@ -44,7 +44,17 @@ from ._manifest import (
 from .exr import ExrError, _read_rows, read_exr, write_exr
 from .svbrdf import Maps, write_svbrdf
 
-__all__ = ["Capture", "CaptureError", "Frame", "LightSpec", "FORMAT", "VERSIONS", "read_capture", "write_capture"]
+__all__ = [
+    "Capture",
+    "CaptureError",
+    "Frame",
+    "LightSpec",
+    "FORMAT",
+    "VERSIONS",
+    "light_kernel",
+    "read_capture",
+    "write_capture",
+]
 
 
 @dataclass(frozen=True)
@@ -294,7 +304,7 @@ class Capture:
             if spec.kernel == "unknown":
                 raise CaptureError(
                     f"{self.manifest}: light.kernel is 'unknown', so the frames cannot be predicted. Give the "
-                    "light's shape with --light FILE (e.g. a calibrated or known light JSON)."
+                    "light's shape with --light-model FILE (e.g. a calibrated or known light JSON)."
                 )
             table = self.read_kernel() if spec.kernel == "tabulated" else None
             kernel = Kernel.from_spec(spec, table=table)
@@ -304,29 +314,41 @@ class Capture:
 
     def _given_kernel(self, light: str | Path | Mapping) -> Kernel:
         """The kernel of a light description given instead of the manifest's (:meth:`lights`)."""
-        source = None
+        return light_kernel(light, self.root)
+
+
+def light_kernel(light: str | Path | Mapping, folder: Path, option: str = "--light-model") -> Kernel:
+    """The kernel of a light description (:meth:`Capture.lights`' ``light``): a JSON file, or a
+    mapping whose tabulated ``file`` is relative to ``folder``; ``option`` is what gave the file
+    (named when it is unreadable).
+
+    Raises:
+        CaptureError: an unreadable file, a block that breaks the format, an ``unknown`` kernel or
+            an unreadable kernel image.
+    """
+    source = None
+    if not isinstance(light, Mapping):
+        source = Path(light)
+        hint = f"The light description ({option}) is a JSON file, e.g. the .json torchspec calibrate writes."
+        light = read_json(source, CaptureError, hint)
         if not isinstance(light, Mapping):
-            source = Path(light)
-            hint = "The light description (--light) is a JSON file, e.g. the .json torchspec calibrate writes."
-            light = read_json(source, CaptureError, hint)
-            if not isinstance(light, Mapping):
-                raise CaptureError(f"the light description {source} must be a JSON object; got {_show(light)}.")
-        if isinstance(light.get("light"), Mapping):  # calibrate's kernel.json: {"light": ..., "calibration": ...}
-            light = light["light"]
-        if light.get("kind", light.get("kernel")) in ("supergaussian", "disk"):  # a simulation's truth/light.json
-            return Kernel.from_spec(light)
-        where = Where(source if source is not None else Path("the light description"))
-        notes: list[str] = []
-        spec = parse_light(where, dict(light), notes)
-        for note in notes:
-            warnings.warn(note, stacklevel=3)
-        if spec.kernel == "unknown":
-            raise where.error("light.kernel", "give the light's shape (not 'unknown') to predict frames", spec.kernel)
-        table = None
-        if spec.kernel == "tabulated":
-            folder = source.parent if source is not None else self.root
-            table = read_kernel_table(folder / spec.file, f"{where.source}: light.file")
-        return Kernel.from_spec(spec, table=table)
+            raise CaptureError(f"the light description {source} must be a JSON object; got {_show(light)}.")
+    if isinstance(light.get("light"), Mapping):  # calibrate's kernel.json: {"light": ..., "calibration": ...}
+        light = light["light"]
+    if light.get("kind", light.get("kernel")) in ("supergaussian", "disk"):  # a simulation's truth/light.json
+        return Kernel.from_spec(light)
+    where = Where(source if source is not None else Path("the light description"))
+    notes: list[str] = []
+    spec = parse_light(where, dict(light), notes)
+    for note in notes:
+        warnings.warn(note, stacklevel=3)
+    if spec.kernel == "unknown":
+        raise where.error("light.kernel", "give the light's shape (not 'unknown') to predict frames", spec.kernel)
+    table = None
+    if spec.kernel == "tabulated":
+        folder = source.parent if source is not None else folder
+        table = read_kernel_table(folder / spec.file, f"{where.source}: light.file")
+    return Kernel.from_spec(spec, table=table)
 
 
 def read_kernel_table(file: Path, key: str) -> torch.Tensor:
@@ -372,7 +394,7 @@ def read_capture(path: str | Path) -> Capture:
         (88, ('R', 'G', 'B'), 'gaussian')
     """
     path = Path(path)
-    _not_a_capture(path)
+    not_a_capture(path)
     manifest = path if path.suffix.lower() == ".json" or path.is_file() else path / MANIFEST
     data = read_json(manifest, CaptureError, f"Pass a capture directory that holds {MANIFEST}.")
     notes: list[str] = []
@@ -393,45 +415,6 @@ def read_capture(path: str | Path) -> Capture:
             "is missing. Restore the kernel image."
         )
     return capture
-
-
-def _not_a_capture(path: Path) -> None:
-    """Refuse, in the user's terms, what is plainly not a capture: a folder that does not exist, a
-    YAML config, an image."""
-    try:
-        exists, is_file = path.exists(), path.is_file()
-    except OSError as error:
-        raise CaptureError(f"the capture {path} must be a path the system can look up; got {error}.") from error
-    if not exists:
-        where = "" if path.parent.is_dir() else f" (nor does its folder {path.parent})"
-        raise CaptureError(
-            f"the capture folder {path} does not exist{where}. Pass a folder that holds {MANIFEST} and the "
-            "frames (docs/capture-format.md); torchspec simulate or torchspec import makes one."
-        )
-    suffix = path.suffix.lower()
-    if is_file and suffix in (".yaml", ".yml"):
-        raise CaptureError(
-            f"{path} is a YAML config, not a capture: a capture is a folder with {MANIFEST} and its frames "
-            "(docs/capture-format.md). A simulation config makes one with: torchspec simulate CONFIG -o CAPTURE; "
-            "a fit config goes to torchspec fit CAPTURE --config CONFIG."
-        )
-    if is_file and suffix in (".exr", ".jpg", ".jpeg", ".png", ".tif", ".tiff"):
-        raise CaptureError(
-            f"{path} is an image, not a capture: pass the folder that holds {MANIFEST} "
-            "(photographs become a capture with: torchspec import SOURCE -o CAPTURE)."
-        )
-    rti = is_file and (suffix in RTI_LIGHT_FILES or path.name.lower() == "lights.txt")
-    if not is_file and not (path / MANIFEST).exists():  # an RTI folder: photographs and their light file
-        rti = any(p.suffix.lower() in RTI_LIGHT_FILES for p in path.iterdir() if p.is_file())
-    if rti:
-        raise CaptureError(
-            f"{path} is an RTI capture (photographs and their light file), not yet a torchspec capture: import it "
-            f"first with: torchspec import {shlex.quote(str(path))} -o CAPTURE, then: torchspec fit CAPTURE -o MAPS."
-        )
-
-
-RTI_LIGHT_FILES = (".lp", ".relight", ".dome")
-"""The light files of RTI tools (``torchspec import`` reads them; so does a ``lights.txt``)."""
 
 
 def _is_file(path: Path, key: str) -> bool:

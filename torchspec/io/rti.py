@@ -50,6 +50,7 @@ from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
 from .lp import LightFile, keep_counted, read_light_file
 from .relight import RELIGHT_SUFFIXES, read_relight
+from .scale import Scale, move_lights
 
 __all__ = ["RTIImportError", "Imported", "find_light_file", "import_rti", "match_images", "photographs", "read_lights"]
 
@@ -84,12 +85,14 @@ class Imported:
         matched: ``"name"`` or ``"order"``.
         transfer: the tone curve the photographs were decoded with (``response``: estimated).
         response: the estimate behind a ``response`` transfer, else ``None``.
-        saturated: clipped pixels (any channel at the clipping level), per frame.
+        saturated: clipped pixels (any channel at the clipping level; with a downsample, boxes
+            holding a clipped sample), per frame.
         notes: what was assumed (also warned about, and kept in the manifest's ``source``).
         positions: ``(K, 3)`` float64 light positions in image widths (origin at the image's
             centre, x right, y up, z towards the camera) when the light file gives them (a Relight
             spherical or lights3d dome), in frame order; ``None`` otherwise. Each frame's
-            ``position`` in the manifest (and its ``source.positions``).
+            ``position`` in the manifest (``source.positions``: as the light file gives them,
+            before a crop moves them to the cropped image's frame).
     """
 
     capture: Capture
@@ -269,13 +272,16 @@ def _frame_name(k: int, image: Path) -> str:
     return f"frames/{k:04d}_{stem}.exr"
 
 
-def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directions: torch.Tensor):
-    """Decode every photograph into a ``(K, C, H, W)`` float32 array: ``(stack, transfer,
-    encoding, exifs, notes, saturated, profiles, response)``; ``profiles[k]`` names the ICC profile
+def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directions: torch.Tensor, scale: Scale):
+    """Decode every photograph into a ``(K, C, H, W)`` float32 array, cropped and downsampled
+    (``scale``, :mod:`torchspec.io.scale`) once decoded to linear: ``(stack, transfer, encoding,
+    exifs, notes, saturated, profiles, response, size)``; ``profiles[k]`` names the ICC profile
     that decoded frame ``k`` (``transfer`` None: an embedded non-sRGB profile decodes its frame);
-    ``response`` the estimate of an ``auto`` transfer (:func:`_decode_auto`)."""
+    ``response`` the estimate of an ``auto`` transfer (:func:`_decode_auto`, on the crop's codes at
+    full size); ``saturated[k]`` counts frame ``k``'s clipped pixels (boxes holding a clipped
+    sample); ``size`` is the photographs' ``(width, height)``."""
     stack, size, first, exifs, notes, saturated = None, None, None, [], [], []
-    given, profiles = transfer, [None] * len(images)
+    given, profiles, region, n = transfer, [None] * len(images), None, scale.downsample
     for k, image in enumerate(tqdm(images, unit="image", desc="import", disable=not progress)):
         photo = read_photo(image)
         notes += photo.notes
@@ -289,19 +295,20 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directio
                     "photographs. Leave --transfer out (or pass linear)."
                 )
             size = photo.pixels.shape
-            shape = (len(images), size[2], size[0], size[1])
-            if np.prod(shape) * 4 > _MEMORY:
-                stack = np.lib.format.open_memmap(scratch / "stack.npy", mode="w+", dtype=np.float32, shape=shape)
-            else:
-                stack = np.empty(shape, dtype=np.float32)
+            region = scale.region(size[1], size[0], f"the photographs ({image.name})")
+            codes = transfer is not None and transfer.name == "auto"  # kept at full size until decoded
+            m = 1 if codes else n
+            stack = _stack(scratch, (len(images), size[2], region[3] // m, region[2] // m))
         _check_alike(image, images[0], photo, first, size)
         if photo.pixels.shape[2] != size[2]:  # grey among colour frames: the grey replicated
             notes.append(f"{image}: a greyscale photograph among colour ones; its grey is used for R, G and B.")
             pixels = pixels.expand(-1, -1, 3)
+        pixels = pixels[region[1] : region[1] + region[3], region[0] : region[0] + region[2]]
         # CPU on purpose: with the photograph's pixels, decoded from its file into a numpy stack
-        clipped = (pixels >= CLIP).any(-1, keepdim=True) if first.clipped else torch.zeros(size[:2] + (1,), dtype=bool)
-        saturated.append(int(clipped.sum()))
-        if transfer is not None and transfer.name == "auto":  # codes kept: decoded once the curve is known
+        clipped = (pixels >= CLIP).any(-1) if first.clipped else torch.zeros(pixels.shape[:2], dtype=bool)
+        saturated.append(int(clipped.reshape(region[3] // n, n, region[2] // n, n).any(3).any(1).sum()))
+        clipped = clipped[..., None]
+        if codes:  # codes kept: decoded once the curve is known
             if photo.profile is not None:
                 notes.append(f"{image}: its ICC profile is not used (--transfer auto).")
             stack[k] = pixels.permute(2, 0, 1).numpy()
@@ -320,13 +327,28 @@ def _read_stack(images, transfer, dtype, scratch: Path, progress: bool, directio
                     "components are set to 0."
                 )
                 linear = linear.clamp(min=0)
-        stack[k] = linear.permute(2, 0, 1).float().numpy()
+        level = CLIP if first.clipped else None  # a box holding a clipped sample stays clipped
+        stack[k] = scale.reduce(linear.numpy(), level).transpose(2, 0, 1)
         exifs.append(photo.exif)
     transfer = transfer or first.default_transfer
     response = None
     if transfer.name == "auto":
         transfer, response = _decode_auto(stack, directions, notes)
-    return stack, transfer, first.encoding, exifs, notes, saturated, profiles, response
+        if n > 1:  # decoded to linear: now averaged
+            count, c, h, w = stack.shape
+            reduced = _stack(scratch, (count, c, h // n, w // n), "small")
+            for frame in range(count):
+                reduced[frame] = scale.reduce(stack[frame].transpose(1, 2, 0), CLIP).transpose(2, 0, 1)
+            stack = reduced
+    return stack, transfer, first.encoding, exifs, notes, saturated, profiles, response, (size[1], size[0])
+
+
+def _stack(scratch: Path, shape: tuple[int, ...], name: str = "stack") -> np.ndarray:
+    """An empty float32 array of ``shape``: in a temporary file of ``scratch`` when it is larger
+    than :data:`_MEMORY`."""
+    if np.prod(shape) * 4 > _MEMORY:
+        return np.lib.format.open_memmap(scratch / f"{name}.npy", mode="w+", dtype=np.float32, shape=shape)
+    return np.empty(shape, dtype=np.float32)
 
 
 def _check_alike(image: Path, first_image: Path, photo, first, size) -> None:
@@ -421,6 +443,7 @@ def import_rti(
     transfer: str | Transfer | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    scale: Scale | None = None,
 ) -> Imported:
     """Import an RTI capture (see the module's docstring) into ``output``.
 
@@ -432,6 +455,10 @@ def import_rti(
             response estimated from the photographs); linear for float and RAW ones.
         overwrite: replace an ``output`` that holds files (only once the new capture is complete).
         progress: a tqdm bar over the photographs.
+        scale: a crop of the photographs and a downsample factor (:class:`~torchspec.io.scale.Scale`,
+            ``--crop``, ``--downsample``; ``None``: every pixel), applied once they are decoded to linear values (boxes
+            averaged; a box holding a clipped sample is clipped); recorded as ``source.scale``.
+            Near lights' positions are moved to the cropped image's frame.
 
     Returns:
         :class:`Imported`. Notes (what was assumed) are also warned about.
@@ -439,7 +466,8 @@ def import_rti(
     Raises:
         TorchspecError: :class:`~torchspec.io.lp.LightFileError` (the file and line),
             :class:`RTIImportError` (missing images, each named; an output that holds files),
-            :class:`~torchspec.io.images.ImageError` (an unreadable, CMYK or odd-sized photograph);
+            :class:`~torchspec.io.images.ImageError` (an unreadable, CMYK or odd-sized photograph),
+            :class:`~torchspec.io.scale.ScaleError` (a crop outside the photographs, naming their size);
             nothing is written then.
     """
     output = Path(output)
@@ -455,33 +483,23 @@ def import_rti(
         )
     if isinstance(transfer, str):
         transfer = Transfer.parse(transfer)
+    scale = scale or Scale()
     output.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{output.name}.import-", dir=output.parent))
     try:
         # CPU on purpose: parsed from the light file, written to the capture's files
         directions = torch.tensor([entry.direction for entry in lights.entries], dtype=torch.float64)
         directions = directions / directions.norm(dim=-1, keepdim=True)
-        stack, transfer, encoding, exifs, image_notes, saturated, profiles, response = _read_stack(
-            images, transfer, torch.float64, scratch, progress, directions
+        stack, transfer, encoding, exifs, image_notes, saturated, profiles, response, size = _read_stack(
+            images, transfer, torch.float64, scratch, progress, directions, scale
         )
         notes += image_notes
         exposures = _exposures(exifs, images, notes)
-        places = lights.positions if lights.positions is not None else [None] * len(images)
-        frames = tuple(
-            Frame(
-                file=_frame_name(k, image),
-                direction=entry.direction,
-                irradiance=1.0,
-                exposure=exposure,
-                position=None if place is None else tuple(float(v) for v in place),
-            )
-            for k, (image, entry, exposure, place) in enumerate(
-                zip(images, lights.entries, exposures, places, strict=True)
-            )
-        )
+        frames = _frames(images, lights, exposures, scale, size)
         record = _source_record(
             lights, matched, images, encoding, transfer, response, profiles, saturated, exifs, notes
         )
+        record["scale"] = None if scale.identity else scale.record(*size)
         channels = ("Y",) if stack.shape[1] == 1 else ("R", "G", "B")
         capture = Capture(
             root=scratch / "capture",
@@ -504,11 +522,28 @@ def import_rti(
     for note in notes:
         warnings.warn(note, stacklevel=2)
     written = read_capture(output)
-    # CPU on purpose: parsed from the light file
-    positions = None if lights.positions is None else torch.tensor(lights.positions, dtype=torch.float64)
+    positions = written.positions()  # as the capture holds them: in the cropped image's frame
     return Imported(
         written, lights, tuple(images), matched, transfer, tuple(saturated), tuple(notes), positions, response
     )
+
+
+def _frames(images: list[Path], lights: LightFile, exposures: list[float], scale: Scale, size) -> tuple[Frame, ...]:
+    """Each photograph's frame: the light file's direction (and position, moved to the frame of
+    the image ``scale`` reduces a photograph of ``size`` to: :func:`torchspec.io.scale.move_lights`),
+    irradiance 1 (unknown), its exposure."""
+    places = lights.positions if lights.positions is not None else [None] * len(images)
+    frames = tuple(
+        Frame(
+            file=_frame_name(k, image),
+            direction=entry.direction,
+            irradiance=1.0,
+            exposure=exposure,
+            position=None if place is None else tuple(float(v) for v in place),
+        )
+        for k, (image, entry, exposure, place) in enumerate(zip(images, lights.entries, exposures, places, strict=True))
+    )
+    return move_lights(frames, scale.region(*size), *size)
 
 
 def _replace(new: Path, output: Path, scratch: Path) -> None:

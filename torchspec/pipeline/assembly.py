@@ -14,6 +14,7 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..flags import describe, untrusted
 from ..io import Capture
+from ..io.scale import ScaledCapture
 from ..lm import STATUS
 from ..residual_term import ResidualTerm
 from .checks import Checks
@@ -25,7 +26,7 @@ from .tile import TileResult
 from .tiling import sum_counts
 from .verdict import LOW_QUALITY, trust_warnings
 
-__all__ = ["STALLED_SHARE", "assemble", "run_stats", "stalled_warning"]
+__all__ = ["STALLED_SHARE", "assemble", "run_stats", "scene_record", "stalled_warning"]
 
 
 def run_stats(
@@ -43,14 +44,17 @@ def run_stats(
     cluster: dict | None = None,
 ) -> dict:
     """The statistics a driver knows of its fit before the tiles' (JSON-ready): the capture, the
-    frames, the settings, the device, the pixels and tiling, the tiles resumed, ``seconds`` per
-    stage so far, the masked samples per kind, ``lights`` (the record of
-    :func:`torchspec.pipeline.plan.calibrated`; ``None``: the lights as written) and, on a cluster,
-    ``cluster`` (``stats["distributed"]``). Every driver builds the ``fit`` block of ``svbrdf.json``
-    here (then :func:`assemble`): the same keys, in the same order, from either."""
+    frames, the scale it was read at (:class:`~torchspec.io.scale.ScaledCapture`; ``None``: full
+    size), its lights and view (:func:`scene_record`), the settings, the device, the pixels and
+    tiling, the tiles resumed, ``seconds`` per stage so far, the masked samples per kind, ``lights``
+    (the record of :func:`torchspec.pipeline.plan.calibrated`; ``None``: the lights as written) and,
+    on a cluster, ``cluster`` (``stats["distributed"]``). Every driver builds the ``fit`` block of
+    ``svbrdf.json`` here (then :func:`assemble`): the same keys, in the same order, from either."""
     stats = {
         "capture": str(capture.root),
         "frames": picked,
+        "scale": capture.record() if isinstance(capture, ScaledCapture) else None,
+        "scene": scene_record(capture, picked),
         "warnings": frame_warnings(capture, picked),
         "settings": asdict(config),
         "device": str(device),
@@ -64,6 +68,28 @@ def run_stats(
     if cluster is not None:
         stats["distributed"] = cluster
     return stats
+
+
+def scene_record(capture: Capture, picked: list[int]) -> dict:
+    """What rendering the maps under new lights needs of the capture (``svbrdf.json``'s
+    ``fit.scene``; :mod:`torchspec.relight_lights`): ``view``, the ``light`` block (its kernel),
+    the fitted frames' ``irradiance`` (per channel) and ``exposure``, the near lights' median
+    ``distance`` from the image's centre (``None``: distant lights), whether the capture came
+    from ``photographs`` (its manifest's ``source``) and the ``transfer`` they were decoded with
+    (``source``'s ``transfer`` and ``response``; ``None``: not photographs)."""
+    positions = capture.positions()
+    source = capture.extra.get("source")
+    photographs = isinstance(source, dict)
+    index = torch.tensor(picked, dtype=torch.long)  # CPU on purpose: indexes the manifest's table
+    return {
+        "view": list(capture.view),
+        "light": {key: value for key, value in asdict(capture.light).items() if value is not None},
+        "irradiance": [list(capture.frames[k].irradiance) for k in picked],
+        "exposure": [capture.frames[k].exposure for k in picked],
+        "distance": None if positions is None else float(positions[index].norm(dim=-1).median()),
+        "photographs": photographs,
+        "transfer": {key: source.get(key) for key in ("transfer", "response")} if photographs else None,
+    }
 
 
 def _join(values: list[Tensor], h: int, w: int) -> Tensor:

@@ -6,6 +6,7 @@ other's checkpoint).
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -15,9 +16,11 @@ from torch import Tensor
 
 from ..errors import TorchspecError
 from ..io import Capture, read_capture
+from ..io.scale import Scale, scaled
 from ..layout import coverage_warning, fit_problem
 from ..lights import Lights
 from ..models import get_model
+from ..photometric import peak_of, saturation_level
 from ..residual_term import TermDomain
 from .settings import AUTO, COMPILE_PIXELS, FitConfig, select_frames
 
@@ -174,6 +177,7 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     if config.residual_term == AUTO:  # photographs: the term carries what the physics misses, where it predicts
         config = replace(config, residual_term=TERM_FOR_PHOTOGRAPHS if capture.extra.get("source") else 0)
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
+    config, capture = _reduced(config, capture, picked)
     l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]  # on the CPU: the manifest, checked once
     problem = fit_problem(l, lobe=config.model != "diffuse")
     if problem is not None:
@@ -195,6 +199,25 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     return Setup(
         config=config, capture=capture, picked=picked, lights=lights, view=view, positions=positions, domain=domain
     )
+
+
+def _reduced(config: FitConfig, capture: Capture, picked: list[int]) -> tuple[FitConfig, Capture]:
+    """``capture`` read at ``config``'s ``downsample`` and ``crop`` (:func:`torchspec.io.scale.scaled`),
+    clipped boxes kept clipped at the settings' level: where neither the settings nor the capture
+    give one, the level is found on the picked frames at full size first
+    (:func:`torchspec.photometric.saturation_level`, as :func:`~torchspec.photometric.sample_masks`
+    finds it; the frames are read twice) and becomes the settings' ``saturation``."""
+    scale = Scale(config.downsample, config.crop)
+    if scale.identity:
+        return config, capture
+    scale.region(capture.width, capture.height, f"the frames of {capture.manifest}")  # checked before any reading
+    level = config.saturation
+    if level is None:
+        peaks = [peak_of(capture.read_frames([k], nonfinite="ignore")) for k in picked]
+        found = float(saturation_level(peaks))
+        level = found if math.isfinite(found) else None
+        config = replace(config, saturation=level)
+    return config, scaled(capture, scale, level)
 
 
 CALIBRATION_EXPLAINED = 0.8

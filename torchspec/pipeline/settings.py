@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 from ..config import ConfigError
+from ..io.scale import Scale
 from ..layout import resolvable_roughness
 from ..lights import Lights
 from ..lm import LMConfig
@@ -154,7 +155,8 @@ class FitConfig:
         naive_alpha: the roughness of the naive start.
         saturation: the sensor's clipping level; ``None``: the level the capture records
             (:attr:`torchspec.io.Capture.saturation`, an imported capture's), else a clipped plateau detected.
-        grow: saturated regions are grown by this many pixels.
+        grow: saturated regions are grown by this many pixels (of the image fitted: of the
+            reduced one with ``downsample``).
         shadow: samples below this fraction of the pixel's median are shadows.
         trim, cut: of the robust photometric stereo.
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
@@ -171,6 +173,12 @@ class FitConfig:
         compile: fuse the model's integrations with ``torch.compile`` (faster solver steps after
             a one-off compilation). A failed compilation warns and fits without. ``None``: when
             the fit has at least ``COMPILE_PIXELS`` pixels.
+        downsample: fit boxes of ``N x N`` pixels, averaged as the frames are read
+            (:class:`torchspec.io.scale.Scale`): a quick look at a large capture, in about ``1 / N^2``
+            of the memory and time. A box holding a clipped sample is clipped; the maps record the
+            scale (``svbrdf.json``'s ``fit.scale``).
+        crop: ``(X, Y, W, H)``: fit only these pixels of the capture's frames (``X, Y`` the
+            top-left corner), before ``downsample``; ``None``: all of them.
         tile: pixels per tile; 0 sizes tiles to ``memory_gib``, and cuts an image into at least 16 tiles
             of at least 1024 pixels (:func:`torchspec.pipeline.plan.plan`).
         memory_gib: the memory budget of the whole fit: the frame stack, its masks, the torch
@@ -213,6 +221,8 @@ class FitConfig:
     noise_floor: float = 0.002
     naive_alpha: float = 0.1
     saturation: float | None = None
+    downsample: int = 1
+    crop: tuple[int, int, int, int] | None = None
     grow: int = 1
     shadow: float = 0.02
     trim: float = 0.25
@@ -303,6 +313,7 @@ class FitConfig:
             isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
         ):
             raise ConfigError(f"FitConfig.threads must be 'auto' or a number >= 1; got {self.threads!r}.")
+        Scale(self.downsample, self.crop)  # ScaleError (a TorchspecError) naming --downsample or --crop
         if self.tile < 0:
             raise ConfigError(f"FitConfig.tile must be >= 0 (0: from memory_gib); got {self.tile}.")
 

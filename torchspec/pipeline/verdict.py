@@ -11,7 +11,15 @@ from pathlib import Path
 
 from ..flags import UNTRUSTED
 
-__all__ = ["UNTRUSTED_SHARE", "LOW_QUALITY", "LOW_QUALITY_SHARE", "REASONS", "trust_warnings", "summary_lines"]
+__all__ = [
+    "UNTRUSTED_SHARE",
+    "LOW_QUALITY",
+    "LOW_QUALITY_SHARE",
+    "REASONS",
+    "scale_words",
+    "trust_warnings",
+    "summary_lines",
+]
 
 UNTRUSTED_SHARE = 0.05
 """The share of a fit's pixels untrusted (quality 0) above which the fit warns, per flag."""
@@ -86,6 +94,17 @@ def trust_warnings(stats: dict) -> list[str]:
     return found
 
 
+def scale_words(record: dict | None) -> str:
+    """`` (of 4000x3000 at --downsample 4, the region X,Y,W,H)``: a scale record
+    (:meth:`torchspec.io.scale.Scale.record`) in words, or nothing for none."""
+    if not record:
+        return ""
+    x, y, w, h = record["crop"]
+    width, height = record["full_size"]
+    crop = "" if (x, y, w, h) == (0, 0, width, height) else f", the region {x},{y},{w},{h}"
+    return f" (of {width}x{height} at --downsample {record['downsample']}{crop})"
+
+
 def _count(name: str, count: int, pixels: int) -> str:
     """``name`` and its share of ``pixels`` (its count at 0.1 % and below)."""
     if count > 0.001 * pixels:
@@ -99,9 +118,10 @@ def summary_lines(stats: dict, output: str, *, capture: str | None = None, previ
     ``stats["warnings"]``, the ``previews`` written (paths) and what to run next (``capture``: the
     capture's folder as typed)."""
     pixels = stats["pixels"]
+    seconds, rate = stats["seconds"]["total"], stats["pixels_per_second"]
     lines = [
-        f"wrote {output}: {pixels} pixels from {len(stats['frames'])} frames in {stats['seconds']['total']:.1f} s "
-        f"({stats['pixels_per_second']:.0f} pixels/s)",
+        f"wrote {output}: {pixels} pixels{scale_words(stats.get('scale'))} from {len(stats['frames'])} frames in "
+        f"{seconds:.1f} s ({rate:.0f} pixels/s)",
     ]
     models = ", ".join(_count(name, count, pixels) for name, count in stats["models"].items() if count)
     lines.append(f"  models: {models}")
