@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import http.server
+import io
 import json
 import math
 import subprocess
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchspec.cli import main
 from torchspec.errors import TorchspecError
 from torchspec.export import ExportError, export
 from torchspec.io import Capture, Frame, LightSpec, Maps, read_svbrdf, write_capture, write_svbrdf
@@ -104,6 +106,25 @@ def test_export_web_writes_a_static_site(tmp_path):
         export(maps.svbrdf, tmp_path / "gltf", to="gltf", capture=tmp_path)
 
 
+class _Terminal(io.StringIO):
+    """A stderr that says it is a terminal (progress bars show there only)."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def test_the_web_export_command_shows_a_bar_unless_quiet(tmp_path, monkeypatch, capsys):
+    write_svbrdf(tmp_path / "maps", model_maps("diffuse", 40, 300))
+    for quiet, folder in ((False, "loud"), (True, "quiet")):
+        terminal = _Terminal()
+        monkeypatch.setattr(sys, "stderr", terminal)
+        argv = ["export", str(tmp_path / "maps"), "--to", "web", "-o", str(tmp_path / folder)]
+        assert main(argv + ["--quiet"] * quiet) == 0
+        assert f"wrote {tmp_path / folder / 'index.html'}" in capsys.readouterr().out
+        assert ("export web" in terminal.getvalue()) is not quiet, terminal.getvalue()  # 3 tiles: 3/3
+        assert ("3/3" in terminal.getvalue()) is not quiet
+
+
 def _capture(folder, maps, exposure=2.0, irradiance=0.5, sigma=None):
     """A capture of ``maps`` rendered under 12 point lights (its photographs are the model's); with
     ``sigma``, its manifest's light is a Gaussian of that std in the l-plane (the photographs stay
@@ -141,9 +162,10 @@ def test_a_capture_of_another_size_is_refused(tmp_path):
         open_site(model_maps("diffuse", 8, 13), capture)
 
 
-def test_the_view_command_serves_on_localhost(tmp_path):
+@pytest.mark.parametrize("quiet", [[], ["--quiet"]], ids=["", "quiet"])
+def test_the_view_command_serves_on_localhost(tmp_path, quiet):
     write_svbrdf(tmp_path / "maps", model_maps("ward-iso", 16, 16))
-    command = [sys.executable, "-m", "torchspec", "view", str(tmp_path / "maps"), "--port", "0"]
+    command = [sys.executable, "-m", "torchspec", "view", str(tmp_path / "maps"), "--port", "0", *quiet]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
     try:
         line = process.stdout.readline()

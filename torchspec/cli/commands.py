@@ -195,7 +195,7 @@ def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     _check_output(args)
     written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance,
-                     overwrite=args.overwrite, capture=args.capture, progress=args.to == "web")
+                     overwrite=args.overwrite, capture=args.capture, progress=args.to == "web" and not args.quiet)
     print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
     if args.to == "mitsuba" and args.light is None:
         print("  lit by a directional light at 45 deg elevation from the upper left (the default); "

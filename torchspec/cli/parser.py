@@ -162,6 +162,7 @@ def _add_map_commands(commands) -> None:
                              "surface facing the light shows 1)")
     export.add_argument("--capture", type=Path, default=None,
                         help="web: the capture the maps were fitted from (its photographs beside the relit fit)")
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(export)
 
     view = commands.add_parser("view", help="relight SVBRDF maps in the browser: a page served on 127.0.0.1")
@@ -172,6 +173,8 @@ def _add_map_commands(commands) -> None:
     view.add_argument("--no-cache", action="store_true",
                       help="neither read nor write the coarse levels' cache (MAPS/.torchspec-view/, or the user's "
                            "cache folder when MAPS is read-only): the pass over every row at each view")
+    view.add_argument("--quiet", action="store_true",
+                      help="no progress bar (the page's address is printed all the same)")
 
 
 def _add_capture_commands(commands) -> None:
