@@ -37,6 +37,12 @@ UNUSABLE = "unusable"
 
 _LISTED = 10
 """Frames at fault that :func:`format_report` lists one by one."""
+PIXEL_COUNTS = ("clipped", "saturated", "nonfinite", "negative")
+"""What the report counts, per frame and summed over the frames (a pixel counts once per frame):
+``clipped``, pixels with a channel at or above the clipping level (what ``torchspec import``
+reports as clipped pixels, :attr:`torchspec.io.rti.Imported.saturated`); ``saturated``, the clipped
+pixels grown by a pixel, which the fit masks (:func:`torchspec.photometric.sample_masks`);
+``nonfinite``, pixels with NaN or Inf in a channel; ``negative``, pixels with a negative channel."""
 
 
 def inspect_capture(path: str | Path, *, saturation: float | None = None, progress: bool = False) -> dict[str, Any]:
@@ -59,8 +65,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         (the largest ``|l|``) and the grid's ``rows`` and ``columns``; ``None`` for fewer than 3
         frames), ``exposure`` and ``irradiance`` (``[min, max]``), ``values`` (``[min, max]`` of
         the finite pixel values), ``saturation`` (the clipping level, ``None`` when nothing
-        clips), ``counts`` (total ``saturated``, ``nonfinite`` and ``negative`` pixels),
-        ``per_frame`` (one dict per frame: ``index``, ``file``, those three counts, ``min``,
+        clips), ``counts`` (the pixels of :data:`PIXEL_COUNTS` summed over the frames),
+        ``per_frame`` (one dict per frame: ``index``, ``file``, those four counts, ``min``,
         ``max`` and ``error``, the message of an unreadable frame), ``frames_at_fault``, ``kept``
         (what masking saturated samples leaves each pixel: ``fewest`` frames, ``need`` and
         ``short`` pixels, see :func:`_kept`; ``None`` when nothing clips) and ``notes`` (facts
@@ -118,7 +124,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     rows, level, saturated_frames = _scan(capture, saturation, progress)
     report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
     report["saturation"] = level if math.isfinite(level) else None
-    report["counts"] = {name: sum(row[name] for row in rows) for name in ("saturated", "nonfinite", "negative")}
+    report["counts"] = {name: sum(row[name] for row in rows) for name in PIXEL_COUNTS}
     report["per_frame"] = rows
     report["frames_at_fault"] = [
         row["index"] for row in rows if row["error"] or row["saturated"] or row["nonfinite"] or row["negative"]
@@ -180,7 +186,7 @@ def _scan(
     counts: dict[float, Tensor] = {}
     with progress_bar(len(capture.frames), unit="frame", desc="info", enabled=progress) as bar:
         for k, frame in enumerate(capture.frames):
-            row = {"index": k, "file": frame.file, "saturated": 0, "nonfinite": 0, "negative": 0}
+            row = {"index": k, "file": frame.file, "clipped": 0, "saturated": 0, "nonfinite": 0, "negative": 0}
             row.update(min=None, max=None, error=None)
             try:
                 with warnings.catch_warnings():
@@ -204,6 +210,7 @@ def _scan(
             clip = top if saturation is None else saturation
             mask = sample_masks(image, saturation=clip, shadow=0.0).saturated[0]
             row["saturated"] = int(mask.sum())
+            row["clipped"] = int(sample_masks(image, saturation=clip, shadow=0.0, grow=0).saturated[0].sum())
             if row["saturated"]:
                 key = float(clip)
                 # on the CPU: per-pixel counts for the report, kept off the accelerator (mask.cpu())
@@ -215,7 +222,7 @@ def _scan(
     level = float(saturation_level(peaks)) if peaks else math.inf
     for row, top in tops:
         if top != level:
-            row["saturated"] = 0
+            row["saturated"] = row["clipped"] = 0
     return rows, level, counts.get(level)
 
 
@@ -247,9 +254,11 @@ def _pixel_warnings(
     saturated = [row for row in rows if row["saturated"]]
     if saturated and kept is not None:
         total = sum(row["saturated"] for row in saturated)
+        clipped = sum(row["clipped"] for row in saturated)
         message = (
-            f"{total} saturated pixel(s) (clipped at {level:.6g}, grown by a pixel) in {len(saturated)} frame(s) "
-            f"(frames {_indices(saturated)}, of {pixels} pixels each): the fit masks them"
+            f"{total} saturated pixel(s) (clipped at {level:.6g}, grown by a pixel: the {clipped} clipped pixels and "
+            f"their neighbours) in {len(saturated)} frame(s) (frames {_indices(saturated)}, of {pixels} pixels each): "
+            "the fit masks them"
         )
         if kept["short"]:
             warned.append(
@@ -399,8 +408,15 @@ def format_report(report: dict[str, Any]) -> str:
             f"exposure  {_span(report['exposure'])}; irradiance {_span(report['irradiance'])}",
             f"values    {_span(values) if values else 'none finite'}"
             + (f"; clipped at {report['saturation']:.6g}" if report["saturation"] is not None else "; none clipped"),
-            f"pixels    {counts['saturated']} saturated, {counts['nonfinite']} NaN or Inf, {counts['negative']} "
-            f"negative (of {report['width'] * report['height']} per frame)",
+            *_block(
+                "pixels",
+                [
+                    f"{counts['clipped']} clipped pixels (a channel at the clipping level: torchspec import's count), "
+                    f"{counts['saturated']} saturated (the clipped grown by a pixel: what the fit masks),",
+                    f"{counts['nonfinite']} NaN or Inf, {counts['negative']} negative; counted in each frame "
+                    f"({report['width'] * report['height']} pixels) and summed over the {report['frames']} frames",
+                ],
+            ),
         ]
         faults = [row for row in report["per_frame"] if row["index"] in set(report["frames_at_fault"])]
         if faults:
@@ -420,7 +436,12 @@ def _fault(row: dict[str, Any]) -> str:
         return f"frames[{row['index']}] {row['file']}: {row['error']}"
     found = [
         f"{row[name]} {label}"
-        for name, label in (("saturated", "saturated"), ("nonfinite", "NaN or Inf"), ("negative", "negative"))
+        for name, label in (
+            ("clipped", "clipped"),
+            ("saturated", "saturated (grown by a pixel)"),
+            ("nonfinite", "NaN or Inf"),
+            ("negative", "negative"),
+        )
         if row[name]
     ]
     return f"frames[{row['index']}] {row['file']}: {', '.join(found)}"
