@@ -367,7 +367,7 @@ def test_import_and_info_count_clipped_pixels_alike(tmp_path, capsys):
 _SLOW = pytest.mark.slow
 SHARED_RTI = [  # (folder, frames, info's verdict)
     pytest.param("realrti-item3", 72, OK, marks=_SLOW),
-    pytest.param("realrti-item7", 48, OK, marks=_SLOW),
+    pytest.param("realrti-item7", 48, WARNINGS, marks=_SLOW),  # frame 31: half as bright as its ring
     pytest.param("synthrti-object1-m1/Dome", 49, OK, marks=_SLOW),
     ("synthrti-object1-m1/Test", 20, OK),
     pytest.param("synthrti-object1-m4/Dome", 49, OK, marks=_SLOW),
@@ -390,6 +390,10 @@ def test_shared_rti_folders_import_and_pass_info(tmp_path, shared, folder, frame
     report = inspect_capture(tmp_path / "capture")
     assert report["verdict"] == verdict, report["warnings"]
     assert all("saturated pixel(s) (clipped at 1," in note for note in report["notes"])
+    assert report["brightness"]["flagged"] == ([31] if folder == "realrti-item7" else [])  # visibly dark
+    if folder == "realrti-item7":
+        assert report["per_frame"][31]["brightness"]["ratio"] == pytest.approx(0.50, abs=0.01)
+        assert report["warnings"][0].startswith("frames[31] frames/0031_image31.exr is 50 % darker than its")
     if folder == "chrome-sphere":
         assert imported.matched == "order" and "chrome.mask.png" not in [p.name for p in imported.images]
 

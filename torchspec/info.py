@@ -19,6 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .brightness import DARKER, MIN_ELEVATION_DEG, MIN_SHARE, NEIGHBOURS, brightness_ratios, departures, sample_grid
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
 from .layout import MIN_FRAMES, MIN_PEAK_SAMPLES, coverage_warning, fit_problem, layout_of
@@ -121,7 +122,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
 
     if saturation is None:  # the level an imported capture records, as the fit uses it
         saturation = capture.saturation
-    rows, level, saturated_frames = _scan(capture, saturation, progress)
+    samples: list[Tensor] = []
+    rows, level, saturated_frames = _scan(capture, saturation, progress, samples)
     report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
     report["saturation"] = level if math.isfinite(level) else None
     report["counts"] = {name: sum(row[name] for row in rows) for name in PIXEL_COUNTS}
@@ -131,6 +133,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
     ]
     report["kept"] = _kept(saturated_frames, count)
     report["warnings"] += _pixel_warnings(rows, level, capture, report["kept"], report["notes"])
+    report["brightness"], found = _brightness(rows, torch.stack(samples) if samples else None, capture)
+    report["warnings"] += found
     unreadable = [row for row in rows if row["error"]]
     if unreadable:
         reasons.append(
@@ -176,11 +180,17 @@ def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
 
 
 def _scan(
-    capture: Capture, saturation: float | None, progress: bool
+    capture: Capture, saturation: float | None, progress: bool, samples: list[Tensor]
 ) -> tuple[list[dict[str, Any]], float, Tensor | None]:
     """Read the frames one by one: a row of counts per frame, the clipping level (``inf`` when
-    nothing clips) and, per pixel, how many frames are saturated there (``None`` when none is)."""
-    rows, peaks, tops = [], [], []
+    nothing clips) and, per pixel, how many frames are saturated there (``None`` when none is).
+    Each frame's pixels on :func:`torchspec.brightness.sample_grid` go to ``samples``: over its
+    exposure times irradiance, the channels' mean, NaN where saturated, NaN or Inf (or unread)."""
+    rows, peaks, tops, masks = [], [], [], []
+    grid = sample_grid(capture.height, capture.width)
+    scale = capture.exposure()[:, None] * capture.irradiance()  # (K, C)
+    size = len(range(capture.height)[grid[0]]) * len(range(capture.width)[grid[1]])
+    unread = torch.full((size,), math.nan, dtype=torch.float64)  # CPU on purpose: with the samples, moved there
     # Per-pixel counts of saturated frames, one map per candidate level (a frame's own top) until
     # the stack's level is known; a sensor has one or two distinct tops, so few maps are kept.
     counts: dict[float, Tensor] = {}
@@ -195,6 +205,7 @@ def _scan(
             except TorchspecError as error:
                 row["error"] = str(error)
                 rows.append(row)
+                samples.append(unread)
                 bar.update()
                 continue
             finite = torch.isfinite(image)
@@ -211,19 +222,68 @@ def _scan(
             mask = sample_masks(image, saturation=clip, shadow=0.0).saturated[0]
             row["saturated"] = int(mask.sum())
             row["clipped"] = int(sample_masks(image, saturation=clip, shadow=0.0, grow=0).saturated[0].sum())
+            value = image[0][:, grid[0], grid[1]].double() / scale[k].to(image.device)[:, None, None]
+            samples.append(value.mean(0).reshape(-1).cpu())
+            masks.append((k, float(clip), mask[grid].reshape(-1).cpu()))
             if row["saturated"]:
                 key = float(clip)
                 # on the CPU: per-pixel counts for the report, kept off the accelerator (mask.cpu())
                 counts[key] = counts.get(key, torch.zeros(mask.shape, dtype=torch.int32)) + mask.cpu()
             rows.append(row)
             bar.update()
+    level = float(saturation) if saturation is not None else float(saturation_level(peaks)) if peaks else math.inf
+    for k, clip, mask in masks:  # the samples at the stack's level (a frame's own top is not one)
+        samples[k] = samples[k].masked_fill(mask, math.nan) if clip == level else samples[k]
     if saturation is not None:
-        return rows, float(saturation), counts.get(float(saturation))
-    level = float(saturation_level(peaks)) if peaks else math.inf
+        return rows, level, counts.get(level)
     for row, top in tops:
         if top != level:
             row["saturated"] = row["clipped"] = 0
     return rows, level, counts.get(level)
+
+
+def _brightness(
+    rows: list[dict[str, Any]], samples: Tensor | None, capture: Capture
+) -> tuple[dict[str, Any] | None, list[str]]:
+    """Each frame's brightness against its neighbours in light direction
+    (:func:`torchspec.brightness.brightness_ratios`) into its row (``brightness``: ``ratio``,
+    ``quartiles`` of its pixels' ratios, ``neighbours`` and their ``spread``; ``None`` when not
+    judged), the summary
+    (``judged`` frames, ``range`` of their ratios, ``flagged`` frames; ``None`` without frames) and
+    one warning per frame that departs (:func:`torchspec.brightness.departures`)."""
+    if samples is None:
+        return None, []
+    ratios = brightness_ratios(samples, capture.directions())
+    for k, row in enumerate(rows):
+        ratio, low, high, spread = (float(ratios[name][k]) for name in ("ratio", "low", "high", "spread"))
+        row["brightness"] = None
+        if math.isfinite(ratio):
+            neighbours = ratios["neighbours"][k].tolist()
+            row["brightness"] = {"ratio": ratio, "quartiles": [low, high], "neighbours": neighbours, "spread": spread}
+    judged = [row["brightness"]["ratio"] for row in rows if row["brightness"]]
+    flagged = departures(ratios)
+    summary = {"judged": len(judged), "range": [min(judged), max(judged)] if judged else None, "flagged": flagged}
+    if not judged:
+        summary["reason"] = (
+            f"no frame has {MIN_SHARE:.0%} of its pixels to compare (lit under its neighbours' lights, not saturated)"
+            if bool(ratios["judged"].any())
+            else f"fewer than {NEIGHBOURS + 1} frames {MIN_ELEVATION_DEG:g} deg or more above the horizon"
+        )
+    warned = []
+    for k in flagged:
+        row, found = rows[k], rows[k]["brightness"]
+        ratio, (low, high) = found["ratio"], found["quartiles"]
+        dark = ratio < DARKER
+        how = f"{100 * (1 - ratio):.0f} % darker than" if dark else f"{ratio:.2f} times as bright as"
+        warned.append(
+            f"frames[{k}] {row['file']} is {how} its neighbours in light direction (frames "
+            f"{', '.join(map(str, found['neighbours']))}): {ratio:.2f} times their brightness, the median over "
+            f"its pixels with the cosine falloff taken out (half of its pixels within {low:.2f} .. {high:.2f}); "
+            f"a flash or lamp that fired {'weakly' if dark else 'strongly'}, or an exposure other than the one "
+            "recorded? The fit takes the frame as lit as written: check its photograph, or leave it out "
+            "(torchspec fit --frames)."
+        )
+    return summary, warned
 
 
 def _kept(saturated: Tensor | None, frames: int) -> dict[str, int] | None:
@@ -418,6 +478,7 @@ def format_report(report: dict[str, Any]) -> str:
                 ],
             ),
         ]
+        lines += _brightness_line(report.get("brightness"), report["frames"])
         faults = [row for row in report["per_frame"] if row["index"] in set(report["frames_at_fault"])]
         if faults:
             described = [_fault(row) for row in faults[:_LISTED]]
@@ -429,6 +490,21 @@ def format_report(report: dict[str, Any]) -> str:
     if report.get("notes"):
         lines += _block("notes", report["notes"], header=True)
     return "\n".join(lines)
+
+
+def _brightness_line(summary: dict[str, Any] | None, frames: int) -> list[str]:
+    """The ``brightness`` line of :func:`format_report`: how many frames were judged against their
+    neighbours in light direction, the range of their ratios and the frames flagged."""
+    if summary is None:
+        return []
+    if not summary["judged"]:
+        return [f"bright    frames not compared with their neighbours in light direction: {summary['reason']}"]
+    low, high = summary["range"]
+    flagged = f"; departing: frames {', '.join(map(str, summary['flagged']))}" if summary["flagged"] else ""
+    return [
+        f"bright    {summary['judged']} of {frames} frames against their neighbours in light direction: "
+        f"{low:.2f} .. {high:.2f} times as bright{flagged}"
+    ]
 
 
 def _fault(row: dict[str, Any]) -> str:
