@@ -429,6 +429,8 @@ class Pyramid:
 
 
 PHOTO_TEXTURES = (("photo", "float16", ("r", "g", "b", "a")),)
+"""The planes of a photograph's pyramid (float32 in memory); its tiles are served as JPEGs
+(:func:`photo_tile`), :meth:`Pyramid.tile`'s float16 bytes only compare two pyramids."""
 PHOTO_BYTES = CACHE_BYTES // 4
 """The bands of level-0 rows a lazily read photograph's pyramid keeps, in bytes of planes (the
 server keeps a few photographs: ``torchspec.view.site.PHOTO_CACHE``)."""
