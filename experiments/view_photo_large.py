@@ -106,7 +106,7 @@ def session(settings: Settings, mode: str) -> dict:
     site = Site(stand_in, {}, capture, keep_texels=keep)
     x, y = settings.place[0] * width, settings.place[1] * height
     row, column = int(y) // TILE, int(x) // TILE
-    first = served(site, f"/photo/0/0/{row}_{column}.bin")
+    first = served(site, f"/photo/0/0/{row}_{column}.jpg")
     first_s = time.perf_counter() - start
     after_first = memory(os.getpid())
     (w, h), digest = settings.viewport, hashlib.sha256()
@@ -114,10 +114,10 @@ def session(settings: Settings, mode: str) -> dict:
     columns = range(max(0, int(x - w / 2) // TILE), min(-(-width // TILE), -(-int(x + w / 2) // TILE)))
     for r in rows:
         for c in columns:
-            digest.update(served(site, f"/photo/0/0/{r}_{c}.bin"))
+            digest.update(served(site, f"/photo/0/0/{r}_{c}.jpg"))
     view_s = time.perf_counter() - start
     top = len(site.photo(0).levels) - 1
-    overview = served(site, f"/photo/0/{top}/0_0.bin")
+    overview = served(site, f"/photo/0/{top}/0_0.jpg")
     overview_s = time.perf_counter() - start
     site.close()
     return {

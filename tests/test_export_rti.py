@@ -16,13 +16,13 @@ from test_export import _maps, _png
 
 from torchspec.brdf import SVBRDF
 from torchspec.cli import main
-from torchspec.export import ExportWarning, export, export_gltf, export_openlime, export_png16, export_rti
+from torchspec.export import ExportError, ExportWarning, export, export_gltf, export_openlime, export_png16, export_rti
 from torchspec.export.openlime import alpha_from_gloss, gloss_from_alpha
 from torchspec.export.rti import fit_hsh, fit_rti, hemisphere_directions, render_display
 from torchspec.export.rti import read_rti as read_rti_file
-from torchspec.io import write_svbrdf
+from torchspec.io import Capture, Frame, LightSpec, write_capture, write_svbrdf
 from torchspec.lights import Kernel, Lights
-from torchspec.rendering import render
+from torchspec.rendering import render, render_image
 from torchspec.residual_term import hsh_basis
 
 F64 = torch.float64
@@ -163,6 +163,83 @@ def test_rti_refuses_bad_options(tmp_path):
         export(_maps(), tmp_path / "b", to="rti", irradiance=[1.0, 2.0])
     with pytest.raises(ExportError, match="unit vectors above the horizon"):
         export_rti(_maps(), tmp_path / "c", directions=torch.tensor([[0.0, 0.0, -1.0]] * 9))
+
+
+# The .rti as bright as the photographs ------------------------------------------------------------
+
+EXPOSURE = [1.0, 2.0, 0.5, 1.0, 4.0, 100.0]  # frame 5 is not fitted (fit.frames): its 100 is left out
+IRRADIANCE = [1.28, 0.8, 1.6, 2.4, 0.8, 1.0]
+GAINS = [[1.25] * 3, [0.9, 1.0, 1.1], [2.0] * 3, [0.5] * 3, [1.0] * 3]  # the fit's, frames 0 .. 4
+RESPONSE = {"gamma": [1.3], "offset": [0.0], "contrast": [0.0]}  # linear = code^1.3
+
+
+def _fitted(tmp_path, calibrated=True):
+    """Matte maps (``_maps``' row 0 repeated: tilted normals, no lobe) fitted from an imported
+    capture ``cap`` beside them: 6 frames at the exposures and irradiances above, frames 0 .. 4
+    fitted with the gains above (frame 0, at the zenith, lit as the median: 1.6), photographs
+    encoded by a camera response of gamma 1.3 and rendered from the maps as the fit models them."""
+    base = _maps(height=6, width=9)
+    matte = SVBRDF(base.normal, base.diffuse, base.specular * 0, base.roughness * 0)
+    directions = torch.tensor(
+        [[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8], [-0.6, 0, 0.8], [0, -0.6, 0.8], [0.3, 0.3, 0.9055385]], dtype=F64
+    )
+    gains = torch.tensor(GAINS + [[1.0] * 3], dtype=F64) if calibrated else torch.ones(6, 3, dtype=F64)
+    scale = torch.tensor(EXPOSURE, dtype=F64)[:, None] * torch.tensor(IRRADIANCE, dtype=F64)[:, None] * gains
+    lights = Lights(directions, Kernel("point"), scale, torch.ones(6, dtype=F64))
+    frames = render_image(matte, lights, torch.tensor([0.0, 0.0, 1.0], dtype=F64)).permute(2, 3, 0, 1)
+    entries = [Frame(f"f{k}.exr", tuple(directions[k].tolist()), IRRADIANCE[k], EXPOSURE[k]) for k in range(6)]
+    source = {"transfer": "response", "response": RESPONSE}
+    capture = Capture(tmp_path / "cap", 9, 6, ("R", "G", "B"), (0.0, 0.0, 1.0), LightSpec("point"), entries,
+                      extra={"source": source})  # fmt: skip
+    write_capture(capture.root, capture, frames.float())
+    lights = {"calibrated": ["irradiance"], "gains": GAINS} if calibrated else {"calibrated": []}
+    fit = {"capture": "cap", "frames": [0, 1, 2, 3, 4], "lights": lights}
+    write_svbrdf(tmp_path / "maps", matte, meta={"fit": fit})
+    return tmp_path / "maps", frames
+
+
+def test_rti_of_a_fitted_capture_is_as_bright_as_its_photographs(tmp_path, monkeypatch):
+    """Issue 37: the .rti of an imported capture showed it 3 times too bright (lit at pi, sRGB).
+    By default it is lit as the photographs were: the median exposure times irradiance times the
+    fit's gains of the frames fitted, encoded by the photographs' camera response."""
+    maps, frames = _fitted(tmp_path)
+    products = np.array(EXPOSURE[:5])[:, None] * np.array(IRRADIANCE[:5])[:, None] * np.array(GAINS)
+    assert np.median(products) == pytest.approx(1.6)  # frame 0's: 1.0 * 1.28 * 1.25
+    monkeypatch.chdir(tmp_path / "cap")  # fit.capture, "cap", is found beside the maps
+    record = json.loads(export_rti(maps, tmp_path / "rti").read_text())
+    assert record["irradiance"] == pytest.approx(1.6, rel=1e-12)
+    assert "5 frames of" in record["irradiance_from"] and "gains the fit calibrated" in record["irradiance_from"]
+    assert record["encoding"] == {"transfer": "response", "response": RESPONSE}
+    coefficients, _, _ = read_rti_file(tmp_path / "rti" / "image.rti")
+    shown = np.clip(coefficients @ rtiviewer_hsh(np.array([0.0, 0.0, 1.0])), 0, 1)  # RTIViewer at the zenith / 255
+    photograph = frames[0].permute(1, 2, 0).clamp(0, 1).numpy() ** (1 / 1.3)  # frame 0 as its camera encoded it
+    print(f"zenith: .rti mean {shown.mean():.4f}, photograph {photograph.mean():.4f}")
+    assert np.abs(shown - photograph).max() < 1.5 / 255  # the HSH fit of a matte surface, quantised
+
+    before = json.loads(export_rti(maps, tmp_path / "pi", irradiance=math.pi).read_text())  # the old default
+    assert before["irradiance"] == math.pi and before["irradiance_from"] == "given (--irradiance)"
+    coefficients, _, _ = read_rti_file(tmp_path / "pi" / "image.rti")
+    too_bright = np.clip(coefficients @ rtiviewer_hsh(np.array([0.0, 0.0, 1.0])), 0, 1)
+    assert too_bright.mean() > 1.35 * photograph.mean()  # (pi / 1.6)^(1 / 1.3) = 1.68, less what clips
+
+
+def test_rti_irradiance_without_gains_and_without_the_capture(tmp_path, capsys):
+    maps, _ = _fitted(tmp_path, calibrated=False)
+    products = np.array(EXPOSURE[:5]) * np.array(IRRADIANCE[:5])  # 1.28, 1.6, 0.8, 2.4, 3.2
+    argv = ["export", str(maps), "--to", "rti", "-o", str(tmp_path / "a")]
+    assert main(argv) == 0
+    assert json.loads((tmp_path / "a" / "rti.json").read_text())["irradiance"] == pytest.approx(np.median(products))
+    out = capsys.readouterr().out
+    assert "lit by irradiance 1.6 (the median exposure times irradiance of the 5 frames of" in out
+    assert "encoded as the photographs' camera response" in out
+    (tmp_path / "cap").rename(tmp_path / "moved")  # svbrdf.json's capture is gone: pi, with a warning
+    with pytest.warns(ExportWarning, match=r"fit.capture: cap\) cannot be read .* irradiance pi"):
+        record = json.loads(export_rti(maps, tmp_path / "b").read_text())
+    assert record["irradiance"] == math.pi and record["encoding"] == {"transfer": "srgb"}
+    assert main(argv[:-1] + [str(tmp_path / "c"), "--capture", str(tmp_path / "moved")]) == 0  # given: found
+    assert json.loads((tmp_path / "c" / "rti.json").read_text())["irradiance"] == pytest.approx(1.6)
+    with pytest.raises(ExportError, match="is 9x6 but the maps are 7x5"):
+        export_rti(_maps(), tmp_path / "d", capture=tmp_path / "moved")
 
 
 # OpenLIME's BRDF layer ----------------------------------------------------------------------------

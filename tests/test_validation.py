@@ -248,7 +248,8 @@ def test_info_of_a_good_capture(written):
     assert report["layout"]["kind"] == "line" and report["layout"]["radius"] == pytest.approx(math.hypot(0.4, 0.2))
     assert report["exposure"] == [0.5, 2.5] and report["irradiance"] == [1.0, 5.0]
     assert report["values"] == [float(frames.min()), float(frames.max())]
-    assert report["saturation"] is None and report["counts"] == {"saturated": 0, "nonfinite": 0, "negative": 0}
+    assert report["saturation"] is None
+    assert report["counts"] == {"clipped": 0, "saturated": 0, "nonfinite": 0, "negative": 0}
     assert [row["index"] for row in report["per_frame"]] == list(range(5)) and report["frames_at_fault"] == []
     assert json.loads(json.dumps(report, allow_nan=False)) == report
     text = format_report(report)
@@ -306,7 +307,7 @@ def test_info_of_painting_dev():
     assert (report["width"], report["height"], report["frames"]) == (48, 48, 88)
     assert report["layout"]["kind"] == "grid" and report["layout"]["radius"] < 0.8
     assert report["kernel"] == "gaussian, projected domain, sigma 0.08 l units"
-    assert report["counts"] == {"saturated": 0, "nonfinite": 0, "negative": 0}
+    assert report["counts"] == {"clipped": 0, "saturated": 0, "nonfinite": 0, "negative": 0}
 
 
 def test_info_of_a_saturated_capture_agrees_with_the_fit_masks(tmp_path):
@@ -322,10 +323,11 @@ def test_info_of_a_saturated_capture_agrees_with_the_fit_masks(tmp_path):
     expected = sample_masks(frames).saturated.sum((1, 2)).tolist()  # as the fit masks them
     # row 0 and pixel (1, 0) clip; grown by a pixel: rows 0 and 1, and pixels (2, 0), (2, 1)
     assert [row["saturated"] for row in report["per_frame"]] == expected == [0, 12, 0, 0, 0]
+    assert [row["clipped"] for row in report["per_frame"]] == [0, 6, 0, 0, 0]  # pixels: row 0 (5) and (1, 0)
     assert report["frames_at_fault"] == [1]
     assert report["kept"] == {"fewest": 4, "need": 4, "short": 0}
     assert any("saturated pixel(s)" in note and "frames 1," in note for note in report["notes"])
-    assert "frames[1] frames/0001.exr: 12 saturated" in format_report(report)
+    assert "frames[1] frames/0001.exr: 6 clipped, 12 saturated (grown by a pixel)" in format_report(report)
     assert "every pixel keeps at least 4 of the 5 frames" in format_report(report)
     # a known clipping level instead of the detection
     given_level = inspect_capture(tmp_path, saturation=3.0)
@@ -360,7 +362,7 @@ def test_info_counts_nan_and_negative_pixels(written):
     _write_frame(capture, 2, image)
     report = inspect_capture(capture.root)
     assert report["verdict"] == WARNINGS
-    assert report["counts"] == {"saturated": 0, "nonfinite": 1, "negative": 1}
+    assert report["counts"] == {"clipped": 0, "saturated": 0, "nonfinite": 1, "negative": 1}
     assert report["frames_at_fault"] == [2] and report["per_frame"][2]["min"] == -0.25
     notes = " | ".join(report["warnings"])
     assert "1 pixel(s) with NaN or Inf in 1 frame(s) (frames 2)" in notes

@@ -14,13 +14,15 @@ import numpy as np
 import pytest
 import torch
 
+from torchspec.errors import TorchspecError
 from torchspec.io import Capture, Frame, LightSpec, read_capture, write_capture
 from torchspec.io import capture as capture_io
 from torchspec.io.exr import write_exr
+from torchspec.residual_term import encode
 from torchspec.view import open_site, site
 from torchspec.view.check import model_maps
 from torchspec.view.site import NotMade
-from torchspec.view.tiles import Pyramid, frame_pyramid, photo_pyramid
+from torchspec.view.tiles import Pyramid, frame_pyramid, photo_jpeg, photo_pyramid, photo_tile, read_photo_jpeg
 
 HEIGHT, WIDTH, TILE = 600, 520, 64  # levels (600, 520) .. (38, 33): 5, odd sizes at the coarse ones
 KEEP = 150 * 130  # levels 2 and coarser held (level 2 made by the pass); 0 and 1 read on demand
@@ -141,6 +143,40 @@ def test_non_finite_pixels_of_a_lazily_read_frame_are_0_in_every_level(capture):
     assert all(torch.isfinite(pyramid.block(*t)).all() for t in _every_tile(pyramid))
 
 
+def test_a_photographs_tile_is_a_jpeg_of_its_own_size_with_its_scale(capture):
+    """Issue 37: float16 tiles padded to 256 x 256 made a web export's photographs 280 times their
+    JPEGs. A tile is now a JPEG of the tile's own size: the sRGB codes of the value over the
+    tile's largest, that scale in its comment."""
+    pyramid = frame_pyramid(capture, 0, tile=TILE, keep_texels=KEEP)
+    for level, row, column in ((0, 0, 0), (0, 9, 8), (4, 0, 0)):
+        block = pyramid.block(level, row, column)  # (4, h, w)
+        data = photo_tile(pyramid, level, row, column)
+        assert data[:2] == b"\xff\xd8" and data == photo_jpeg(block)
+        values, scale = read_photo_jpeg(data)
+        assert values.shape == (*block.shape[1:], 3)  # (24, 8) at the corner tile, not (64, 64)
+        assert scale == float(block[:3].max())  # exactly: the float's repr in the comment
+    assert pyramid.block(0, 9, 8).shape[1:] == (24, 8)
+    zero = photo_jpeg(torch.zeros(4, 3, 5))  # a black tile: scale 1
+    assert read_photo_jpeg(zero)[1] == 1.0 and not read_photo_jpeg(zero)[0].any()
+    with pytest.raises(TorchspecError, match="torchspec scale="):
+        read_photo_jpeg(b"\xff\xd8\xff\xda")
+    pyramid.close()
+
+
+def test_a_photographs_jpeg_holds_its_srgb_codes_within_a_code():
+    """A smooth photograph (a lit gradient with some texture): the JPEG's codes within a code of the
+    exact 8-bit sRGB codes of value / scale on average, at most 6 off."""
+    y, x = torch.meshgrid(torch.linspace(0, 1, 40), torch.linspace(0, 1, 56), indexing="ij")
+    value = torch.stack([0.05 + 0.9 * x * y, 0.3 + 0.2 * torch.sin(9 * x), 0.4 * (1 - y) + 0.1 * torch.cos(7 * y)])
+    value = value * 2.5  # a photograph over its exposure times irradiance: any scale
+    values, scale = read_photo_jpeg(photo_jpeg(torch.cat([value, torch.ones(1, 40, 56)])))
+    assert scale == pytest.approx(2.5 * 0.95)
+    exact = np.round(encode((value / scale).clamp(0, 1)).permute(1, 2, 0).double().numpy() * 255)
+    error = np.abs(encode(torch.from_numpy(values / scale)).numpy() * 255 - exact)
+    print(f"smooth tile: codes off by {error.mean():.2f} on average, {error.max():.0f} at most")
+    assert error.mean() < 1 and error.max() <= 6
+
+
 @pytest.fixture
 def gate(monkeypatch):
     """An event that the pyramids' background passes wait for before each band (not holding the
@@ -161,14 +197,15 @@ def test_the_site_serves_a_large_photograph_lazily_and_503_until_its_level_is_ma
     view = open_site(model_maps("diffuse", HEIGHT, WIDTH), capture, tile=TILE)
     view.keep_texels = KEEP
     whole = _whole(capture, 1)
-    assert view.file("/photo/1/0/4_3.bin", wait=False) == whole.tile(0, 4, 3)  # read on demand
-    assert view.file("/photo/1/1/2_1.bin", wait=False) == whole.tile(1, 2, 1)
+    assert view.file("/photo/1/0/4_3.jpg", wait=False) == photo_tile(whole, 0, 4, 3)  # read on demand
+    assert view.file("/photo/1/1/2_1.jpg", wait=False) == photo_tile(whole, 1, 2, 1)
     with pytest.raises(NotMade):  # the pass waits at the gate
-        view.file("/photo/1/4/0_0.bin", wait=False)
+        view.file("/photo/1/4/0_0.jpg", wait=False)
     gate.set()
     view.photo(1).worker.join(60)
-    assert all(view.file(f"/photo/1/{level}/{r}_{c}.bin", wait=False) == whole.tile(level, r, c)
+    assert all(view.file(f"/photo/1/{level}/{r}_{c}.jpg", wait=False) == photo_tile(whole, level, r, c)
                for level, r, c in _every_tile(whole))  # fmt: skip
+    assert view.file("/photo/1/0/4_3.bin") is None  # a photograph's tile is a JPEG
     view.close()
 
 
@@ -185,7 +222,7 @@ def test_a_photograph_dropped_from_the_kept_ones_stops_its_pass_and_is_made_agai
         return given[-1]
 
     view.photo = photo_of
-    waiting = threading.Thread(target=lambda: answer.update(tile=view.file("/photo/0/4/0_0.bin")))
+    waiting = threading.Thread(target=lambda: answer.update(tile=view.file("/photo/0/4/0_0.jpg")))
     waiting.start()  # waits for the coarsest level of frame 0, whose pass waits at the gate
     assert asked.wait(60) and given == [first]
     photo(1)  # frame 0 dropped: its pass is asked to stop
@@ -194,7 +231,7 @@ def test_a_photograph_dropped_from_the_kept_ones_stops_its_pass_and_is_made_agai
     waiting.join(60)
     first.worker.join(60)
     assert not first.worker.is_alive() and isinstance(first.error, site.Stopped)
-    assert answer["tile"] == _whole(capture, 0).tile(4, 0, 0)  # from frame 0's pyramid made again
+    assert answer["tile"] == photo_tile(_whole(capture, 0), 4, 0, 0)  # from frame 0's pyramid made again
     assert len(given) == 2 and given[1] is not first
     view.close()
 

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .brightness import DARKER, MIN_ELEVATION_DEG, MIN_SHARE, NEIGHBOURS, brightness_ratios, departures, sample_grid
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
 from .layout import MIN_FRAMES, MIN_PEAK_SAMPLES, coverage_warning, fit_problem, layout_of
@@ -37,6 +38,12 @@ UNUSABLE = "unusable"
 
 _LISTED = 10
 """Frames at fault that :func:`format_report` lists one by one."""
+PIXEL_COUNTS = ("clipped", "saturated", "nonfinite", "negative")
+"""What the report counts, per frame and summed over the frames (a pixel counts once per frame):
+``clipped``, pixels with a channel at or above the clipping level (what ``torchspec import``
+reports as clipped pixels, :attr:`torchspec.io.rti.Imported.saturated`); ``saturated``, the clipped
+pixels grown by a pixel, which the fit masks (:func:`torchspec.photometric.sample_masks`);
+``nonfinite``, pixels with NaN or Inf in a channel; ``negative``, pixels with a negative channel."""
 
 
 def inspect_capture(path: str | Path, *, saturation: float | None = None, progress: bool = False) -> dict[str, Any]:
@@ -59,8 +66,8 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         (the largest ``|l|``) and the grid's ``rows`` and ``columns``; ``None`` for fewer than 3
         frames), ``exposure`` and ``irradiance`` (``[min, max]``), ``values`` (``[min, max]`` of
         the finite pixel values), ``saturation`` (the clipping level, ``None`` when nothing
-        clips), ``counts`` (total ``saturated``, ``nonfinite`` and ``negative`` pixels),
-        ``per_frame`` (one dict per frame: ``index``, ``file``, those three counts, ``min``,
+        clips), ``counts`` (the pixels of :data:`PIXEL_COUNTS` summed over the frames),
+        ``per_frame`` (one dict per frame: ``index``, ``file``, those four counts, ``min``,
         ``max`` and ``error``, the message of an unreadable frame), ``frames_at_fault``, ``kept``
         (what masking saturated samples leaves each pixel: ``fewest`` frames, ``need`` and
         ``short`` pixels, see :func:`_kept`; ``None`` when nothing clips) and ``notes`` (facts
@@ -115,16 +122,19 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
 
     if saturation is None:  # the level an imported capture records, as the fit uses it
         saturation = capture.saturation
-    rows, level, saturated_frames = _scan(capture, saturation, progress)
+    samples: list[Tensor] = []
+    rows, level, saturated_frames = _scan(capture, saturation, progress, samples)
     report["values"] = _range([row["min"] for row in rows], [row["max"] for row in rows])
     report["saturation"] = level if math.isfinite(level) else None
-    report["counts"] = {name: sum(row[name] for row in rows) for name in ("saturated", "nonfinite", "negative")}
+    report["counts"] = {name: sum(row[name] for row in rows) for name in PIXEL_COUNTS}
     report["per_frame"] = rows
     report["frames_at_fault"] = [
         row["index"] for row in rows if row["error"] or row["saturated"] or row["nonfinite"] or row["negative"]
     ]
     report["kept"] = _kept(saturated_frames, count)
     report["warnings"] += _pixel_warnings(rows, level, capture, report["kept"], report["notes"])
+    report["brightness"], found = _brightness(rows, torch.stack(samples) if samples else None, capture)
+    report["warnings"] += found
     unreadable = [row for row in rows if row["error"]]
     if unreadable:
         reasons.append(
@@ -170,17 +180,23 @@ def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
 
 
 def _scan(
-    capture: Capture, saturation: float | None, progress: bool
+    capture: Capture, saturation: float | None, progress: bool, samples: list[Tensor]
 ) -> tuple[list[dict[str, Any]], float, Tensor | None]:
     """Read the frames one by one: a row of counts per frame, the clipping level (``inf`` when
-    nothing clips) and, per pixel, how many frames are saturated there (``None`` when none is)."""
-    rows, peaks, tops = [], [], []
+    nothing clips) and, per pixel, how many frames are saturated there (``None`` when none is).
+    Each frame's pixels on :func:`torchspec.brightness.sample_grid` go to ``samples``: over its
+    exposure times irradiance, the channels' mean, NaN where saturated, NaN or Inf (or unread)."""
+    rows, peaks, tops, masks = [], [], [], []
+    grid = sample_grid(capture.height, capture.width)
+    scale = capture.exposure()[:, None] * capture.irradiance()  # (K, C)
+    size = len(range(capture.height)[grid[0]]) * len(range(capture.width)[grid[1]])
+    unread = torch.full((size,), math.nan, dtype=torch.float64)  # CPU on purpose: with the samples, moved there
     # Per-pixel counts of saturated frames, one map per candidate level (a frame's own top) until
     # the stack's level is known; a sensor has one or two distinct tops, so few maps are kept.
     counts: dict[float, Tensor] = {}
     with progress_bar(len(capture.frames), unit="frame", desc="info", enabled=progress) as bar:
         for k, frame in enumerate(capture.frames):
-            row = {"index": k, "file": frame.file, "saturated": 0, "nonfinite": 0, "negative": 0}
+            row = {"index": k, "file": frame.file, "clipped": 0, "saturated": 0, "nonfinite": 0, "negative": 0}
             row.update(min=None, max=None, error=None)
             try:
                 with warnings.catch_warnings():
@@ -189,6 +205,7 @@ def _scan(
             except TorchspecError as error:
                 row["error"] = str(error)
                 rows.append(row)
+                samples.append(unread)
                 bar.update()
                 continue
             finite = torch.isfinite(image)
@@ -204,19 +221,69 @@ def _scan(
             clip = top if saturation is None else saturation
             mask = sample_masks(image, saturation=clip, shadow=0.0).saturated[0]
             row["saturated"] = int(mask.sum())
+            row["clipped"] = int(sample_masks(image, saturation=clip, shadow=0.0, grow=0).saturated[0].sum())
+            value = image[0][:, grid[0], grid[1]].double() / scale[k].to(image.device)[:, None, None]
+            samples.append(value.mean(0).reshape(-1).cpu())
+            masks.append((k, float(clip), mask[grid].reshape(-1).cpu()))
             if row["saturated"]:
                 key = float(clip)
                 # on the CPU: per-pixel counts for the report, kept off the accelerator (mask.cpu())
                 counts[key] = counts.get(key, torch.zeros(mask.shape, dtype=torch.int32)) + mask.cpu()
             rows.append(row)
             bar.update()
+    level = float(saturation) if saturation is not None else float(saturation_level(peaks)) if peaks else math.inf
+    for k, clip, mask in masks:  # the samples at the stack's level (a frame's own top is not one)
+        samples[k] = samples[k].masked_fill(mask, math.nan) if clip == level else samples[k]
     if saturation is not None:
-        return rows, float(saturation), counts.get(float(saturation))
-    level = float(saturation_level(peaks)) if peaks else math.inf
+        return rows, level, counts.get(level)
     for row, top in tops:
         if top != level:
-            row["saturated"] = 0
+            row["saturated"] = row["clipped"] = 0
     return rows, level, counts.get(level)
+
+
+def _brightness(
+    rows: list[dict[str, Any]], samples: Tensor | None, capture: Capture
+) -> tuple[dict[str, Any] | None, list[str]]:
+    """Each frame's brightness against its neighbours in light direction
+    (:func:`torchspec.brightness.brightness_ratios`) into its row (``brightness``: ``ratio``,
+    ``quartiles`` of its pixels' ratios, ``neighbours`` and their ``spread``; ``None`` when not
+    judged), the summary
+    (``judged`` frames, ``range`` of their ratios, ``flagged`` frames; ``None`` without frames) and
+    one warning per frame that departs (:func:`torchspec.brightness.departures`)."""
+    if samples is None:
+        return None, []
+    ratios = brightness_ratios(samples, capture.directions())
+    for k, row in enumerate(rows):
+        ratio, low, high, spread = (float(ratios[name][k]) for name in ("ratio", "low", "high", "spread"))
+        row["brightness"] = None
+        if math.isfinite(ratio):
+            neighbours = ratios["neighbours"][k].tolist()
+            row["brightness"] = {"ratio": ratio, "quartiles": [low, high], "neighbours": neighbours, "spread": spread}
+    judged = [row["brightness"]["ratio"] for row in rows if row["brightness"]]
+    flagged = departures(ratios)
+    summary = {"judged": len(judged), "range": [min(judged), max(judged)] if judged else None, "flagged": flagged}
+    if not judged:
+        summary["reason"] = (
+            f"no frame has {MIN_SHARE:.0%} of its pixels to compare (lit under its neighbours' lights, not saturated)"
+            if bool(ratios["judged"].any())
+            else f"fewer than {NEIGHBOURS + 1} frames {MIN_ELEVATION_DEG:g} deg or more above the horizon"
+        )
+    warned = []
+    for k in flagged:
+        row, found = rows[k], rows[k]["brightness"]
+        ratio, (low, high) = found["ratio"], found["quartiles"]
+        dark = ratio < DARKER
+        how = f"{100 * (1 - ratio):.0f} % darker than" if dark else f"{ratio:.2f} times as bright as"
+        warned.append(
+            f"frames[{k}] {row['file']} is {how} its neighbours in light direction (frames "
+            f"{', '.join(map(str, found['neighbours']))}): {ratio:.2f} times their brightness, the median over "
+            f"its pixels with the cosine falloff taken out (half of its pixels within {low:.2f} .. {high:.2f}); "
+            f"a flash or lamp that fired {'weakly' if dark else 'strongly'}, or an exposure other than the one "
+            "recorded? The fit takes the frame as lit as written: check its photograph, or leave it out "
+            "(torchspec fit --frames)."
+        )
+    return summary, warned
 
 
 def _kept(saturated: Tensor | None, frames: int) -> dict[str, int] | None:
@@ -247,9 +314,11 @@ def _pixel_warnings(
     saturated = [row for row in rows if row["saturated"]]
     if saturated and kept is not None:
         total = sum(row["saturated"] for row in saturated)
+        clipped = sum(row["clipped"] for row in saturated)
         message = (
-            f"{total} saturated pixel(s) (clipped at {level:.6g}, grown by a pixel) in {len(saturated)} frame(s) "
-            f"(frames {_indices(saturated)}, of {pixels} pixels each): the fit masks them"
+            f"{total} saturated pixel(s) (clipped at {level:.6g}, grown by a pixel: the {clipped} clipped pixels and "
+            f"their neighbours) in {len(saturated)} frame(s) (frames {_indices(saturated)}, of {pixels} pixels each): "
+            "the fit masks them"
         )
         if kept["short"]:
             warned.append(
@@ -399,9 +468,17 @@ def format_report(report: dict[str, Any]) -> str:
             f"exposure  {_span(report['exposure'])}; irradiance {_span(report['irradiance'])}",
             f"values    {_span(values) if values else 'none finite'}"
             + (f"; clipped at {report['saturation']:.6g}" if report["saturation"] is not None else "; none clipped"),
-            f"pixels    {counts['saturated']} saturated, {counts['nonfinite']} NaN or Inf, {counts['negative']} "
-            f"negative (of {report['width'] * report['height']} per frame)",
+            *_block(
+                "pixels",
+                [
+                    f"{counts['clipped']} clipped pixels (a channel at the clipping level: torchspec import's count), "
+                    f"{counts['saturated']} saturated (the clipped grown by a pixel: what the fit masks),",
+                    f"{counts['nonfinite']} NaN or Inf, {counts['negative']} negative; counted in each frame "
+                    f"({report['width'] * report['height']} pixels) and summed over the {report['frames']} frames",
+                ],
+            ),
         ]
+        lines += _brightness_line(report.get("brightness"), report["frames"])
         faults = [row for row in report["per_frame"] if row["index"] in set(report["frames_at_fault"])]
         if faults:
             described = [_fault(row) for row in faults[:_LISTED]]
@@ -415,12 +492,32 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _brightness_line(summary: dict[str, Any] | None, frames: int) -> list[str]:
+    """The ``brightness`` line of :func:`format_report`: how many frames were judged against their
+    neighbours in light direction, the range of their ratios and the frames flagged."""
+    if summary is None:
+        return []
+    if not summary["judged"]:
+        return [f"bright    frames not compared with their neighbours in light direction: {summary['reason']}"]
+    low, high = summary["range"]
+    flagged = f"; departing: frames {', '.join(map(str, summary['flagged']))}" if summary["flagged"] else ""
+    return [
+        f"bright    {summary['judged']} of {frames} frames against their neighbours in light direction: "
+        f"{low:.2f} .. {high:.2f} times as bright{flagged}"
+    ]
+
+
 def _fault(row: dict[str, Any]) -> str:
     if row["error"]:
         return f"frames[{row['index']}] {row['file']}: {row['error']}"
     found = [
         f"{row[name]} {label}"
-        for name, label in (("saturated", "saturated"), ("nonfinite", "NaN or Inf"), ("negative", "negative"))
+        for name, label in (
+            ("clipped", "clipped"),
+            ("saturated", "saturated (grown by a pixel)"),
+            ("nonfinite", "NaN or Inf"),
+            ("negative", "negative"),
+        )
         if row[name]
     ]
     return f"frames[{row['index']}] {row['file']}: {', '.join(found)}"

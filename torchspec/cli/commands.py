@@ -269,8 +269,14 @@ def _export(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     _check_output(args)
     written = export(args.svbrdf, args.output, to=args.to, light=args.light, irradiance=args.irradiance,
-                     overwrite=args.overwrite, capture=args.capture, progress=args.to == "web")
+                     overwrite=args.overwrite, capture=args.capture, progress=args.to == "web" and not args.quiet)
     print(f"wrote {written} ({args.to}; mappings and their limits: docs/export.md)")
+    if args.to == "rti":
+        import json
+
+        record = json.loads(written.read_text())
+        encoded = "the photographs' camera response" if record["encoding"]["transfer"] == "response" else "sRGB"
+        print(f"  lit by irradiance {record['irradiance']:.4g} ({record['irradiance_from']}); encoded as {encoded}")
     if args.to == "mitsuba" and args.light is None:
         print("  lit by a directional light at 45 deg elevation from the upper left (the default); "
               "choose another with --light X Y Z")

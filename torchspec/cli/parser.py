@@ -208,10 +208,13 @@ def _add_map_commands(commands) -> None:
                              "default: 45 deg elevation from the upper left, -0.5 0.5 0.707)")
     export.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
                         help="mitsuba: the emitter's irradiance, one number or one per channel (default: 1); "
-                             "rti: the fitted lights' irradiance, one number (default: pi, a white Lambertian "
-                             "surface facing the light shows 1)")
+                             "rti: the fitted lights' irradiance, one number (default: the photographs' own, the "
+                             "median exposure times irradiance of the frames fitted, as calibrated: as bright as "
+                             "they are; pi without the capture, a white Lambertian surface facing the light shows 1)")
     export.add_argument("--capture", type=Path, default=None,
-                        help="web: the capture the maps were fitted from (its photographs beside the relit fit)")
+                        help="the capture the maps were fitted from: web: its photographs beside the relit fit; "
+                             "rti: its photographs' brightness and encoding (default: the one svbrdf.json names)")
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(export)
 
     view = commands.add_parser("view", help="relight SVBRDF maps in the browser: a page served on 127.0.0.1")
@@ -222,6 +225,8 @@ def _add_map_commands(commands) -> None:
     view.add_argument("--no-cache", action="store_true",
                       help="neither read nor write the coarse levels' cache (MAPS/.torchspec-view/, or the user's "
                            "cache folder when MAPS is read-only): the pass over every row at each view")
+    view.add_argument("--quiet", action="store_true",
+                      help="no progress bar (the page's address is printed all the same)")
 
 
 def _add_capture_commands(commands) -> None:

@@ -28,7 +28,6 @@ Every file is written atomically and each export's manifest (``scene.xml``, ``sc
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -84,11 +83,14 @@ def export(
         light, irradiance: ``mitsuba`` only: see :func:`export_mitsuba` (irradiance 1 by
             default); without a light the scene is lit by :data:`DEFAULT_LIGHT` (a scene without
             an emitter, to light in Mitsuba, is :func:`export_mitsuba`'s ``light=None``). ``rti``
-            takes one irradiance, its fitted lights' (default pi, :func:`export_rti`).
+            takes one irradiance, its fitted lights' (default: the photographs', as bright as they
+            are; pi for maps without their capture: :func:`export_rti`).
         overwrite: write into a folder that already holds files; refused otherwise
             (:func:`torchspec.outputs.check_output`).
-        capture: ``web`` only: the capture the maps were fitted from, whose photographs the page
-            shows beside the relit fit (:func:`torchspec.view.export_web`).
+        capture: ``web``: the capture the maps were fitted from, whose photographs the page shows
+            beside the relit fit (:func:`torchspec.view.export_web`); ``rti``: the capture whose
+            photographs' brightness and encoding the .rti takes (default: the one ``svbrdf.json``
+            names, :func:`~torchspec.export.rti.rti_lighting`).
         progress: ``web`` only: a bar over the tiles written (on stderr).
 
     Returns:
@@ -107,8 +109,8 @@ def export(
     """
     if to not in FORMATS:
         raise ExportError(f"the export format must be one of {', '.join(FORMATS)}; got {to!r}.")
-    if capture is not None and to != "web":
-        raise ExportError(f"a capture can only be given to a web export; got one for {to!r}. Drop it.")
+    if capture is not None and to not in ("web", "rti"):
+        raise ExportError(f"a capture can only be given to a web or rti export; got one for {to!r}. Drop it.")
     if to == "web" and light is None and irradiance is None:
         from ..view import export_web  # the viewer's page, tiled maps (torchspec.view)
 
@@ -120,17 +122,17 @@ def export(
     if light is not None:
         raise ExportError(f"a light can only be added to a mitsuba export; got one for {to!r}. Drop the light.")
     if to == "rti":
-        return export_rti(maps, output, irradiance=_one_irradiance(irradiance), overwrite=overwrite)
+        return export_rti(maps, output, irradiance=_one_irradiance(irradiance), capture=capture, overwrite=overwrite)
     if irradiance is not None:
         raise ExportError(f"an irradiance can only be given to a mitsuba or rti export; got one for {to!r}. Drop it.")
     writer = {"gltf": export_gltf, "png16": export_png16, "openlime": export_openlime}[to]
     return writer(maps, output, overwrite=overwrite)
 
 
-def _one_irradiance(irradiance: float | Sequence[float] | None) -> float:
-    """The rti export's single irradiance (default pi)."""
+def _one_irradiance(irradiance: float | Sequence[float] | None) -> float | None:
+    """The rti export's single irradiance (``None``: the photographs', :func:`export_rti`)."""
     if irradiance is None:
-        return math.pi
+        return None
     values = [irradiance] if isinstance(irradiance, (int, float)) else list(irradiance)
     if len(values) != 1:
         raise ExportError(f"an rti export takes one irradiance (its lights are white); got {values}.")

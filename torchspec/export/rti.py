@@ -23,6 +23,7 @@ values are display values (sRGB-encoded, 0..1), like the photographs an RTI fitt
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,22 +34,25 @@ from torch import Tensor
 from .._version import __version__
 from ..atomic import atomic_path, write_json
 from ..brdf import SVBRDF
-from ..io import Maps
+from ..errors import TorchspecError
+from ..io import Capture, Maps, read_capture, read_svbrdf
 from ..lights import Kernel, Lights
 from ..outputs import check_output
 from ..rendering import render
-from ..residual_term import encode, hsh_basis
-from .arrays import ExportError, checked_svbrdf
+from ..residual_term import MAP_NAME, TermDomain, hsh_basis
+from .arrays import ExportError, ExportWarning, checked_svbrdf
 
 __all__ = [
     "FIT_LIGHTS",
     "FIT_THETA_MAX_DEG",
     "HSH_TERMS",
     "RtiFit",
+    "RtiLighting",
     "export_rti",
     "fit_hsh",
     "fit_rti",
     "hemisphere_directions",
+    "rti_lighting",
     "quantise",
     "read_rti",
     "rti_bytes",
@@ -98,10 +102,13 @@ def hemisphere_directions(
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
 
 
-def render_display(svbrdf: SVBRDF, directions: Tensor, irradiance: float) -> Tensor:
+def render_display(svbrdf: SVBRDF, directions: Tensor, irradiance: float, domain: TermDomain | None = None) -> Tensor:
     """``(*, K, 3)`` display values of ``svbrdf`` (leading dims ``*``) under point lights from
     ``directions (K, 3)`` of irradiance ``irradiance``, seen from ``(0, 0, 1)``: the render clipped to
-    ``[0, 1]`` and sRGB-encoded, grey maps as grey RGB; what a photograph of the relit maps shows."""
+    ``[0, 1]`` and encoded by ``domain`` (default sRGB; a capture's camera response,
+    :class:`~torchspec.residual_term.TermDomain`), grey maps as grey RGB; what a photograph of the
+    relit maps shows."""
+    domain = TermDomain() if domain is None else domain
     like = svbrdf.diffuse
     directions = directions.to(dtype=like.dtype, device=like.device)
     count = directions.shape[0]
@@ -109,7 +116,7 @@ def render_display(svbrdf: SVBRDF, directions: Tensor, irradiance: float) -> Ten
     lights = Lights(directions, Kernel("point"), one * irradiance, one[:, 0])
     view = torch.tensor([0.0, 0.0, 1.0], dtype=like.dtype, device=like.device)
     value = render(svbrdf, lights, view).clamp(0, 1)
-    return encode(value.expand(*value.shape[:-1], 3))
+    return domain.encode(value.expand(*value.shape[:-1], 3))
 
 
 def fit_hsh(values: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
@@ -180,36 +187,51 @@ def export_rti(
     maps: Maps | SVBRDF | str | Path,
     output: str | Path,
     *,
-    irradiance: float = math.pi,
+    irradiance: float | None = None,
     directions: Tensor | None = None,
+    capture: Capture | str | Path | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Write ``image.rti``, an HSH relightable image that RTIViewer opens, and ``rti.json``.
 
     Every pixel's 9 HSH coefficients per channel are the least squares fit of its display values
-    (:func:`render_display`: the point-light render, clipped to 1, sRGB-encoded) under
-    ``directions``, then quantised to 8 bits per coefficient with one scale and bias per basis
-    function (:func:`quantise`). The maps' second lobe is rendered with the rest; a residual term
-    (``residual_term.exr``) is not.
+    (:func:`render_display`: the point-light render, clipped to 1, encoded as the photographs the
+    maps were fitted from are) under ``directions``, then quantised to 8 bits per coefficient with
+    one scale and bias per basis function (:func:`quantise`). The maps' second lobe is rendered
+    with the rest; a residual term (``residual_term.exr``) is not. The lights' irradiance and the
+    encoding are those of the photographs (:func:`rti_lighting`): the .rti shows the object as
+    bright as its photographs.
 
     Args:
         maps: see :func:`export`; grey (``Y``) maps give a grey RTI.
         output: the folder to write.
-        irradiance: the lights' irradiance: ``pi`` (default) shows a white Lambertian surface
-            facing the light as 1 (255).
+        irradiance: the lights' irradiance; ``None`` (default): the photographs' (:func:`rti_lighting`:
+            the median exposure times irradiance, as calibrated, of the frames the maps were fitted
+            from; ``pi`` for maps without their capture, which shows a white Lambertian surface
+            facing the light as 1, 255).
         directions: ``(K, 3)`` unit light directions to fit, ``K >= 9``; default
             :func:`hemisphere_directions` (:data:`FIT_LIGHTS` lights up to :data:`FIT_THETA_MAX_DEG`).
+        capture: the capture the maps were fitted from; default the one ``svbrdf.json`` names
+            (``fit.capture``), when it can be read.
 
     Returns:
-        The path of ``rti.json`` (written last), which records the fit's lights, irradiance, RMS
-        error (display units) and the quantisation.
+        The path of ``rti.json`` (written last), which records the fit's lights, irradiance (and
+        where it comes from), encoding, RMS error (display units) and the quantisation.
 
     Raises:
         OutputError: ``output`` holds files and ``overwrite`` is not set, or cannot be written.
-        ExportError: bad ``irradiance`` or ``directions``; maps not of leading dims ``(H, W)``.
+        ExportError: bad ``irradiance`` or ``directions``; maps not of leading dims ``(H, W)``; a
+            capture of another size than the maps, or without the frames they were fitted from.
+        CaptureError: ``capture`` is given and cannot be read.
+
+    Warns:
+        ExportWarning: the capture ``svbrdf.json`` names cannot be read: irradiance pi.
     """
     check_output(output, overwrite=overwrite)
-    fit = fit_rti(maps, irradiance=irradiance, directions=directions)
+    folder = Path(maps) if isinstance(maps, (str, Path)) else None
+    maps = read_svbrdf(maps) if folder is not None else maps
+    lighting = rti_lighting(maps, capture, irradiance, folder=folder)
+    fit = fit_rti(maps, irradiance=lighting.irradiance, directions=directions, domain=lighting.domain)
     codes, scale, bias = quantise(fit.coefficients)
     folder = Path(output)
     manifest = folder / "rti.json"
@@ -228,8 +250,10 @@ def export_rti(
             "width": width,
             "height": height,
             "basis": "HSH order 3 (9 terms), RTIViewer's: value = 255 * sum_k c_k H_k(theta, phi)",
-            "values": "display values: the point-light render times irradiance, clipped to [0, 1], sRGB-encoded",
+            "values": "display values: the point-light render times irradiance, clipped to [0, 1], encoded",
             "irradiance": fit.irradiance,
+            "irradiance_from": lighting.source,
+            "encoding": lighting.domain.to_json(),
             "view": [0.0, 0.0, 1.0],
             "fit_directions": fit.directions.tolist(),
             "fit_rms": {"mean": float(fit.rms.mean()), "max": float(fit.rms.max())},
@@ -241,10 +265,117 @@ def export_rti(
     return manifest
 
 
+@dataclass(frozen=True)
+class RtiLighting:
+    """How the .rti's display values are lit and encoded (:func:`rti_lighting`).
+
+    Attributes:
+        irradiance: the fitted point lights' irradiance.
+        domain: the encoding of the display values: the photographs' (their estimated camera
+            response), else sRGB.
+        source: where the irradiance comes from, in words (``rti.json``'s ``irradiance_from``).
+    """
+
+    irradiance: float
+    domain: TermDomain
+    source: str
+
+
+def rti_lighting(
+    maps: Maps | SVBRDF,
+    capture: Capture | str | Path | None = None,
+    irradiance: float | None = None,
+    *,
+    folder: str | Path | None = None,
+) -> RtiLighting:
+    """The irradiance and encoding under which relit ``maps`` look as bright as the photographs
+    they were fitted from.
+
+    A photograph of frame ``k`` is ``exposure_k irradiance_k`` (times the gain the fit calibrated,
+    ``svbrdf.json``'s ``fit.lights.gains``) times the maps' render under a unit light, encoded by
+    the camera's response (an imported capture's ``source``; else the residual term's
+    ``encoding``; else sRGB). One irradiance lights every direction of the .rti: the median of
+    those products (over the frames fitted, ``fit.frames``, and the channels; an imported
+    capture's is 1). ``irradiance``, given, replaces it (the encoding kept). The capture is
+    ``capture``, else the one ``svbrdf.json`` names (``fit.capture``: as written, else beside the
+    map folder ``folder``); without one (an :class:`~torchspec.SVBRDF`, or a capture that cannot be read,
+    with an :class:`ExportWarning`) the irradiance is pi.
+
+    Raises:
+        ExportError: a capture of another size than the maps, or without the frames fitted.
+        CaptureError: ``capture`` is given and cannot be read.
+    """
+    meta = maps.meta if isinstance(maps, Maps) else {}
+    fit = meta.get("fit") if isinstance(meta.get("fit"), dict) else {}
+    if capture is not None and not isinstance(capture, Capture):
+        capture = read_capture(capture)
+    elif capture is None and fit.get("capture"):
+        capture = _named_capture(str(fit["capture"]), folder)
+    domain = TermDomain.from_json((meta.get(MAP_NAME) or {}).get("encoding"), f"svbrdf.json {MAP_NAME}.encoding")
+    if capture is not None and capture.extra.get("source"):
+        domain = TermDomain.of_source(capture.extra.get("source"))
+    if irradiance is not None:
+        return RtiLighting(float(irradiance), domain, "given (--irradiance)")
+    if capture is None:
+        return RtiLighting(math.pi, domain, "pi, no capture: a white Lambertian surface facing the light shows 1")
+    return _photographs_irradiance(maps, capture, fit, domain)
+
+
+def _named_capture(name: str, folder: str | Path | None) -> Capture | None:
+    """The capture ``svbrdf.json`` names: as written, else beside the map folder ``folder``;
+    ``None`` with an :class:`ExportWarning` when none can be read."""
+    folder = None if folder is None else Path(folder).resolve()
+    folder = folder.parent if folder is not None and folder.suffix.lower() == ".json" else folder
+    places = [Path(name)] + ([folder.parent / name, folder.parent / Path(name).name] if folder is not None else [])
+    problems = []
+    for place in dict.fromkeys(places):
+        try:
+            return read_capture(place)
+        except TorchspecError as error:
+            problems.append(str(error))
+    warnings.warn(
+        f"the capture the maps were fitted from (svbrdf.json fit.capture: {name}) cannot be read ({problems[0]}); "
+        "the .rti is lit by irradiance pi, not as the photographs: give the capture (--capture) or --irradiance.",
+        ExportWarning,
+        stacklevel=3,
+    )
+    return None
+
+
+def _photographs_irradiance(maps: Maps | SVBRDF, capture: Capture, fit: dict, domain: TermDomain) -> RtiLighting:
+    """:func:`rti_lighting`'s irradiance from ``capture``'s frames (and the fit's gains)."""
+    svbrdf = maps.svbrdf if isinstance(maps, Maps) else maps
+    if (capture.height, capture.width) != tuple(svbrdf.shape):
+        raise ExportError(
+            f"{capture.manifest} is {capture.width}x{capture.height} but the maps are "
+            f"{svbrdf.shape[1]}x{svbrdf.shape[0]}: export the maps with the capture they were fitted from."
+        )
+    count = len(capture.frames)
+    frames = fit.get("frames") or list(range(count))
+    if not all(isinstance(k, int) and 0 <= k < count for k in frames):
+        raise ExportError(
+            f"svbrdf.json fit.frames names frames {capture.manifest} does not have ({count} frames): export the "
+            "maps with the capture they were fitted from."
+        )
+    products = capture.exposure().numpy()[frames, None] * capture.irradiance().numpy()[frames]  # (F, C)
+    lights = fit.get("lights") or {}
+    words = f"the median exposure times irradiance of the {len(frames)} frames of {capture.root} fitted"
+    if "irradiance" in (lights.get("calibrated") or []) and lights.get("gains") is not None:
+        gains = np.asarray(lights["gains"], dtype=np.float64)
+        products = products * (gains if gains.shape == products.shape else gains.reshape(len(frames), -1))
+        words += ", times the gains the fit calibrated"
+    return RtiLighting(float(np.median(products)), domain, words + ": the photographs' brightness")
+
+
 def fit_rti(
-    maps: Maps | SVBRDF | str | Path, *, irradiance: float = math.pi, directions: Tensor | None = None
+    maps: Maps | SVBRDF | str | Path,
+    *,
+    irradiance: float = math.pi,
+    directions: Tensor | None = None,
+    domain: TermDomain | None = None,
 ) -> RtiFit:
-    """The HSH fit of :func:`export_rti` before quantisation (:class:`RtiFit`), in chunks of rows."""
+    """The HSH fit of :func:`export_rti` before quantisation (:class:`RtiFit`), in chunks of rows,
+    of the display values under lights of ``irradiance`` encoded by ``domain`` (default sRGB)."""
     svbrdf = checked_svbrdf(maps)
     if not (math.isfinite(irradiance) and irradiance > 0):
         raise ExportError(f"the irradiance must be a positive number; got {irradiance}.")
@@ -264,7 +395,7 @@ def fit_rti(
     coefficients, rms = [], []
     for top in range(0, height, rows):
         part = svbrdf[top : top + rows]
-        values = render_display(part, directions, irradiance).double()
+        values = render_display(part, directions, irradiance, domain).double()
         if not bool(torch.isfinite(values).all()):
             raise ExportError(
                 f"the maps render to NaN or Inf values in rows {top}..{top + part.shape[0] - 1}: "

@@ -8,7 +8,8 @@ web server can host (``torchspec export --to web``). Both lay the site out the s
                                         (:mod:`torchspec.view.light`),
                                         ``term``: the residual term's basis functions (0: none)
     tiles/L/R_C.bin                     the maps' tile at level L, row R, column C
-    photo/K/L/R_C.bin                   with a capture: frame K's photograph, the same tiling
+    photo/K/L/R_C.jpg                   with a capture: frame K's photograph, the same tiling, a
+                                        JPEG of the tile's own size (tiles.photo_jpeg)
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from ..report import MODEL_COLOURS
 from ..residual_term import MAP_NAME, TermDomain
 from .cache import Stopped
 from .light import light_quadrature, near_lights
-from .tiles import EXTRA_MAPS, KEEP_TEXELS, Pyramid, frame_pyramid
+from .tiles import EXTRA_MAPS, KEEP_TEXELS, PHOTO_QUALITY, Pyramid, frame_pyramid, photo_tile
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
 
@@ -49,8 +50,8 @@ STATIC = ("index.html", "viewer.js", "viewer.css")
 """The page's files, shipped in ``torchspec/view/static/``."""
 
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript", ".css": "text/css",
-          ".json": "application/json", ".bin": "application/octet-stream"}  # fmt: skip
-_TILE = re.compile(r"^/(?:tiles|photo/(\d+))/(\d+)/(\d+)_(\d+)\.bin$")
+          ".json": "application/json", ".bin": "application/octet-stream", ".jpg": "image/jpeg"}  # fmt: skip
+_TILE = re.compile(r"^/(?:tiles/(\d+)/(\d+)_(\d+)\.bin|photo/(\d+)/(\d+)/(\d+)_(\d+)\.jpg)$")
 WAIT = 0.5
 """Seconds a tile request waits for its level before the server answers 503 (asked again later)."""
 PHOTO_CACHE = 4
@@ -125,12 +126,17 @@ class Site:
         match = _TILE.match(name)
         if match is None:
             return None
-        frame, level, row, column = match.groups()
+        groups = match.groups()
+        frame, level, row, column = (None, *groups[:3]) if groups[0] is not None else groups[3:]
         try:
             pyramid = self.pyramid if frame is None else self.photo(int(frame))
             if pyramid is not None and not wait and not pyramid.ready(int(level), timeout=WAIT):
                 raise NotMade(path)
-            return pyramid.tile(int(level), int(row), int(column)) if pyramid is not None else None
+            if pyramid is None:
+                return None
+            if frame is not None:
+                return photo_tile(pyramid, int(level), int(row), int(column))
+            return pyramid.tile(int(level), int(row), int(column))
         except IndexError:
             return None
         except Stopped:  # a photograph dropped from the kept ones before its level was made
@@ -249,6 +255,13 @@ def open_site(
         "term_encoding": term_encoding(meta) if terms else None,
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
+        "photo": {
+            "format": "jpeg",
+            "files": "photo/K/L/R_C.jpg: frame K's tile, of its own size (not padded)",
+            "values": "the frame over its exposure times irradiance: S times the sRGB-decoded codes, S the number "
+            "after 'torchspec scale=' in the JPEG's comment",
+            "quality": PHOTO_QUALITY,
+        },
     }
     return Site(pyramid, manifest, capture, keep_texels=options.get("keep_texels", KEEP_TEXELS))
 
@@ -282,14 +295,17 @@ def export_web(
     total = len(pyramids) * sum(rows * columns for rows, columns in grids)  # a photograph's: the maps' tiling
     with bar(total, desc="export web", unit="tile", enabled=progress) as shown:
         for folder, pyramid in pyramids:
-            pyramid = pyramid if pyramid is not None else site.photo(int(folder.name))
+            photo = pyramid is None
+            pyramid = site.photo(int(folder.name)) if photo else pyramid
             for level in range(len(pyramid.levels)):
                 rows, columns = pyramid.grid(level)
                 (output / folder / str(level)).mkdir(parents=True, exist_ok=True)
                 for row in range(rows):
                     for column in range(columns):
-                        with atomic_path(output / folder / str(level) / f"{row}_{column}.bin") as tmp:
-                            tmp.write_bytes(pyramid.tile(level, row, column))
+                        name = f"{row}_{column}.{'jpg' if photo else 'bin'}"
+                        data = photo_tile(pyramid, level, row, column) if photo else pyramid.tile(level, row, column)
+                        with atomic_path(output / folder / str(level) / name) as tmp:
+                            tmp.write_bytes(data)
                         shown.update(1)
     write_json(output / "manifest.json", site.manifest)
     for name in STATIC:
@@ -323,7 +339,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_response(200)
         self.send_header("Content-Type", _TYPES.get(suffix, "application/octet-stream"))
         self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-cache" if suffix != ".bin" else "max-age=3600")
+        self.send_header("Cache-Control", "no-cache" if suffix not in (".bin", ".jpg") else "max-age=3600")
         self.end_headers()
         self.wfile.write(body)
 

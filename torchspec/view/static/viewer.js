@@ -68,7 +68,7 @@ uniform vec3 uPlace; // the tile's first texel in level-0 pixels (x, y) and a te
 uniform ivec2 uSize; // the image's width and height (level-0 pixels)
 uniform int uBlock; // a near light's direction is taken at the centre of blocks of this many pixels a side
 vec3 gLight; // the light's (centre) direction at this texel: uLight, or towards a near light (lightAt)
-uniform float uExposure, uGain;
+uniform float uExposure, uGain, uPhotoScale; // uPhotoScale: a photograph's tile's scale (its JPEG's comment)
 in vec2 vTex;
 out vec4 outColour;
 const float PI = 3.14159265358979;
@@ -351,7 +351,7 @@ void main() {
     int f = int(texelFetch(tKs2, ij, 0).a + 0.5);
     colour = (f & uUntrusted) != 0 ? vec3(0.9, 0.1, 0.1) : (f != 0 ? vec3(0.9, 0.7, 0.1) : vec3(0.15));
   } else if (uLayer == 8) colour = vec3(clamp(texelFetch(tStd, ij, 0)[uStd] * uGain, 0.0, 1.0));
-  else colour = srgb(texelFetch(tPhoto, ij, 0).rgb * uExposure);
+  else colour = srgb(texelFetch(tPhoto, ij, 0).rgb * uPhotoScale * uExposure); // the JPEG's sRGB codes, decoded
   outColour = vec4(colour, 1.0);
 }`;
 
@@ -360,6 +360,20 @@ function halfToFloat(h) {
   if (e === 0) return s * f * 2 ** -24;
   if (e === 31) return f ? NaN : s * Infinity;
   return s * (1 + f / 1024) * 2 ** (e - 15);
+}
+
+// The scale of a photograph's JPEG tile: the number after "torchspec scale=" in its comment (a COM
+// segment, 0xFFFE, before the scan).
+function photoScale(bytes) {
+  for (let i = 2; i + 4 <= bytes.length && bytes[i] === 0xff && bytes[i + 1] !== 0xda; ) {
+    const length = (bytes[i + 2] << 8) | bytes[i + 3];
+    if (bytes[i + 1] === 0xfe) {
+      const found = /torchspec scale=([0-9.eE+-]+)/.exec(new TextDecoder("latin1").decode(bytes.subarray(i + 4, i + 2 + length)));
+      if (found) return Number(found[1]);
+    }
+    i += 2 + length;
+  }
+  throw new Error("a photograph's tile without its scale (torchspec scale= in the JPEG's comment)");
 }
 
 function colourOf(hex) {
@@ -507,7 +521,7 @@ class Viewer {
   }
 
   url(photo, level, r, c) {
-    return photo ? `photo/${this.frame}/${level}/${r}_${c}.bin` : `tiles/${level}/${r}_${c}.bin`;
+    return photo ? `photo/${this.frame}/${level}/${r}_${c}.jpg` : `tiles/${level}/${r}_${c}.bin`;
   }
 
   // The tile at `url`, uploaded; null while it loads (its fetch queued) or waits to be asked again.
@@ -535,7 +549,8 @@ class Viewer {
           return r.ok ? r.arrayBuffer() : Promise.reject(new Error(`${url}: ${r.status}`));
         })
         .then((buffer) => {
-          if (buffer) return this.upload(entry, buffer, url.startsWith("photo"));
+          if (buffer && url.startsWith("photo")) return this.uploadPhoto(entry, buffer);
+          if (buffer) return this.upload(entry, buffer);
           [entry.state, entry.retry] = ["later", performance.now() + RETRY_MS];
           setTimeout(() => this.request(), RETRY_MS);
         })
@@ -551,11 +566,10 @@ class Viewer {
     }
   }
 
-  upload(entry, buffer, photo) {
+  upload(entry, buffer) {
     const gl = this.gl, n = this.m.tile;
     let offset = 0;
-    const textures = photo ? [{ dtype: "float16" }] : this.m.textures;
-    for (const spec of textures) {
+    for (const spec of this.m.textures) {
       const f32 = spec.dtype === "float32";
       const data = f32 ? new Float32Array(buffer, offset, n * n * 4) : new Uint16Array(buffer, offset, n * n * 4);
       offset += n * n * 4 * (f32 ? 4 : 2);
@@ -567,6 +581,23 @@ class Viewer {
       gl.texImage2D(gl.TEXTURE_2D, 0, f32 ? gl.RGBA32F : gl.RGBA16F, n, n, 0, gl.RGBA, f32 ? gl.FLOAT : gl.HALF_FLOAT, data);
       entry.textures.push(tex);
     }
+    entry.state = "ready";
+    this.evict();
+  }
+
+  // A photograph's tile: a JPEG of the tile's own size (torchspec/view/tiles.py photo_jpeg), its
+  // codes sRGB (decoded by the texture: SRGB8_ALPHA8), times the scale its comment holds.
+  async uploadPhoto(entry, buffer) {
+    const bitmap = await createImageBitmap(new Blob([buffer], { type: "image/jpeg" }),
+                                           { colorSpaceConversion: "none", premultiplyAlpha: "none" });
+    const gl = this.gl, tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.SRGB8_ALPHA8, gl.RGBA, gl.UNSIGNED_BYTE, bitmap);
+    bitmap.close();
+    entry.textures.push(tex);
+    entry.scale = photoScale(new Uint8Array(buffer));
     entry.state = "ready";
     this.evict();
   }
@@ -682,6 +713,7 @@ class Viewer {
       gl.bindTexture(gl.TEXTURE_2D, x);
     });
     gl.uniform2i(this.u.uValid, Math.min(n, w - c * n), Math.min(n, h - r * n));
+    if (t.scale !== undefined) gl.uniform1f(this.u.uPhotoScale, t.scale);
     gl.uniform3f(this.u.uPlace, c * span, r * span, 2 ** level);
     const sx = (x) => ((x - this.centre[0]) * this.zoom + p.w / 2) / p.w * 2 - 1;
     const sy = (y) => 1 - ((y - this.centre[1]) * this.zoom + p.h / 2) / p.h * 2;
