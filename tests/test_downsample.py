@@ -171,6 +171,14 @@ def test_a_fit_at_a_downsample_is_the_fit_of_the_reduced_frames(tmp_path):
     other = write_painting(tmp_path / "q", size=12, seed=5, grid=5)
     with pytest.raises(Exception, match="fitted from a 16x16 capture at --downsample 2"):
         render_capture(tmp_path / "maps", other, None)
+    from torchspec.view import open_site
+
+    site = open_site(tmp_path / "maps", painting, cache=False)  # the page's photographs at the maps' scale
+    try:
+        assert (site.capture.width, site.capture.height) == (6, 6)
+        assert torch.equal(site.capture.read_frames(), small.read_frames())
+    finally:
+        site.close()
 
 
 def test_fit_command_line_scale_and_its_errors(tmp_path, capsys):

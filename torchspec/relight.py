@@ -19,7 +19,7 @@ import torch
 from .brdf import SVBRDF
 from .errors import TorchspecError
 from .io import Capture, CaptureError, Maps, read_capture, read_svbrdf, write_capture
-from .io.scale import Scale, scaled
+from .io.scale import capture_at
 from .lights import Lights
 from .near_lights import lights_at
 from .outputs import check_apart, check_output
@@ -29,7 +29,7 @@ from .quadrature import Quadrature
 from .rendering import TILE_PIXELS, render, render_image
 from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["capture_at", "capture_for", "fit_positions", "psnr", "render_capture", "render_near", "residual_term_of"]
+__all__ = ["capture_for", "fit_positions", "psnr", "render_capture", "render_near", "residual_term_of"]
 
 
 def render_near(
@@ -123,25 +123,6 @@ def capture_for(maps: Maps, capture: Capture) -> Capture:
         CaptureError: the maps were fitted from a capture of another size.
     """
     return capture_at(capture, (maps.meta.get("fit") or {}).get("scale"))
-
-
-def capture_at(capture: Capture, record: dict | None) -> Capture:
-    """``capture`` read at the scale ``record`` (``svbrdf.json``'s ``fit.scale``: a crop and
-    downsample, :mod:`torchspec.io.scale`), clipped boxes kept at the level the capture records; the
-    capture itself for ``None``.
-
-    Raises:
-        CaptureError: the record is of a capture of another size.
-    """
-    if not record:
-        return capture
-    if list(record["full_size"]) != [capture.width, capture.height]:
-        width, height = record["full_size"]
-        raise CaptureError(
-            f"the maps were fitted from a {width}x{height} capture at --downsample {record['downsample']}, but "
-            f"{capture.manifest} is {capture.width}x{capture.height}: give the capture they were fitted from."
-        )
-    return scaled(capture, Scale.from_record(record), capture.saturation)
 
 
 def psnr(predicted: torch.Tensor, observed: torch.Tensor) -> float:

@@ -187,7 +187,7 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     previews = None
     if not args.no_previews:
         from ..io import read_capture
-        from ..relight import capture_at
+        from ..io.scale import capture_at
         from ..report import write_fit_previews
 
         seen = capture_at(read_capture(args.capture), result.stats.get("scale"))  # as the fit read it

@@ -32,9 +32,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import TorchspecError
-from .capture import Capture
+from .capture import Capture, CaptureError
 
-__all__ = ["DOWNSAMPLE", "CROP", "Scale", "ScaleError", "ScaledCapture", "reduce_image", "scaled"]
+__all__ = ["DOWNSAMPLE", "CROP", "Scale", "ScaleError", "ScaledCapture", "capture_at", "reduce_image", "scaled"]
 
 DOWNSAMPLE = "--downsample"
 """The option that sets :attr:`Scale.downsample`, named by errors."""
@@ -274,3 +274,22 @@ def scaled(capture: Capture, scale: Scale, level: float | None = None) -> Captur
         full=(width, height),
         level=level,
     )
+
+
+def capture_at(capture: Capture, record: dict | None) -> Capture:
+    """``capture`` read at the scale ``record`` (``svbrdf.json``'s ``fit.scale``: a crop and
+    downsample, :mod:`torchspec.io.scale`), clipped boxes kept at the level the capture records; the
+    capture itself for ``None``.
+
+    Raises:
+        CaptureError: the record is of a capture of another size.
+    """
+    if not record:
+        return capture
+    if list(record["full_size"]) != [capture.width, capture.height]:
+        width, height = record["full_size"]
+        raise CaptureError(
+            f"the maps were fitted from a {width}x{height} capture at --downsample {record['downsample']}, but "
+            f"{capture.manifest} is {capture.width}x{capture.height}: give the capture they were fitted from."
+        )
+    return scaled(capture, Scale.from_record(record), capture.saturation)

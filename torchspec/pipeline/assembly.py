@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import asdict, fields, replace
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -51,7 +52,7 @@ def run_stats(
     on a cluster, ``cluster`` (``stats["distributed"]``). Every driver builds the ``fit`` block of
     ``svbrdf.json`` here (then :func:`assemble`): the same keys, in the same order, from either."""
     stats = {
-        "capture": str(capture.root),
+        "capture": str(Path(capture.root).resolve()),  # absolute: the maps find it from anywhere
         "frames": picked,
         "scale": capture.record() if isinstance(capture, ScaledCapture) else None,
         "scene": scene_record(capture, picked),

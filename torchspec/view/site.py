@@ -35,6 +35,7 @@ from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
 from ..io.exr import exr_size
+from ..io.scale import capture_at
 from ..lights import Kernel
 from ..outputs import check_output
 from ..progress import bar
@@ -220,6 +221,8 @@ def open_site(
         pyramid = Pyramid.of_maps(bands[0], **options)
     if capture is not None and not isinstance(capture, Capture):
         capture = read_capture(capture)
+    if capture is not None and (capture.height, capture.width) != (height, width):  # a fit at a crop or downsample
+        capture = capture_at(capture, (bands[0].meta.get("fit") or {}).get("scale"))
     if capture is not None and (capture.height, capture.width) != (height, width):
         raise TorchspecError(
             f"{capture.manifest} is {capture.width}x{capture.height} but the maps are {width}x{height}: "
