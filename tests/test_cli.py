@@ -85,3 +85,17 @@ def test_a_missing_file_is_the_users_error(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "nowhere.yaml"), "-o", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "nowhere.yaml" in err and "Traceback" not in err
+
+
+def test_an_option_value_with_a_minus_sign_is_the_options():
+    """``--light -0.5,0.5,0.7`` (a direction to the left) is the value of --light, not an unknown option:
+    argparse alone refuses it ("expected one argument")."""
+    from torchspec.cli import negative_values
+
+    assert negative_values(["render", "m", "--light", "-0.5,0.5,0.7", "--light", "0,0,1", "-o", "r"]) == [
+        "render", "m", "--light=-0.5,0.5,0.7", "--light", "0,0,1", "-o", "r"
+    ]
+    plain = ["export", "m", "--light", "-0.5", "0.5", "0.707"]  # negative numbers: argparse takes them
+    assert negative_values(plain) == plain
+    assert negative_values(["fit", "c", "-o", "-out"]) == ["fit", "c", "-o", "-out"]  # not numbers: as given
+    assert negative_values(["fit", "--quiet", "-1,2"]) == ["fit", "--quiet=-1,2"]  # argparse then refuses it

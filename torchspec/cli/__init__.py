@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import shlex
 import sys
 import traceback
@@ -16,7 +17,18 @@ from ..pipeline.checkpoint import CHECKPOINT
 from .commands import COMMANDS, INTERRUPTED
 from .parser import OVERWRITE, build_parser
 
-__all__ = ["BUG", "CHECKPOINT", "COMMANDS", "INTERRUPTED", "OVERWRITE", "PIPE_CLOSED", "build_parser", "main"]
+__all__ = [
+    "BUG",
+    "CHECKPOINT",
+    "COMMANDS",
+    "INTERRUPTED",
+    "NUMBERS",
+    "OVERWRITE",
+    "PIPE_CLOSED",
+    "build_parser",
+    "main",
+    "negative_values",
+]
 
 BUG = 70
 """The exit status of an internal error (a bug in torchspec): ``EX_SOFTWARE`` of ``sysexits.h``."""
@@ -36,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         70 (``EX_SOFTWARE``) for a bug, printed with its traceback and a request to report it.
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(negative_values(sys.argv[1:] if argv is None else argv))
     if args.command is None:
         parser.print_help()
         return 2
@@ -81,3 +93,20 @@ def _warning_line(command: str):
 
     return show
 
+
+NUMBERS = re.compile(r"-\d*\.?\d+(?:[eE][-+]?\d+)?(?:,\s*[-+]?\d*\.?\d+(?:[eE][-+]?\d+)?)+")
+"""A comma list of numbers that starts with a minus sign (``-0.5,0.5,0.7``); argparse takes a single
+negative number (``--light -0.5 0.5 0.707``) as a value by itself."""
+
+
+def negative_values(argv: list[str]) -> list[str]:
+    """``argv`` with each option followed by a comma list of numbers that starts with a minus sign
+    (:data:`NUMBERS`, as ``--light -0.5,0.5,0.7``) joined to it (``--light=-0.5,0.5,0.7``): argparse takes such a value
+    for an option of its own and refuses it."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and NUMBERS.fullmatch(arg):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
