@@ -22,7 +22,8 @@ References:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, fields
 
 import kornia
 import torch
@@ -56,7 +57,8 @@ exactly (a clipped sensor repeats its ceiling; a smooth highlight does not)."""
 @dataclass(frozen=True)
 class Masks:
     """Samples to leave out of a ``(K, C, H, W)`` stack, each ``(K, H, W)`` bool (a sample is a
-    pixel in a frame, all channels together).
+    pixel in a frame, all channels together); :meth:`flat` and :meth:`of_pixels` give the same
+    three kinds over flat pixels, each ``(K, n)`` (e.g. a tile's, ``torchspec.pipeline.tile``).
 
     Attributes:
         nonfinite: NaN or Inf in some channel.
@@ -70,12 +72,24 @@ class Masks:
 
     @property
     def invalid(self) -> Tensor:
-        """Any of the three: ``(K, H, W)``."""
+        """Any of the three, in the masks' shape (``(K, H, W)``)."""
         return self.nonfinite | self.saturated | self.shadowed
 
     def counts(self) -> dict[str, int]:
-        """Samples flagged per kind (one host sync)."""
-        return {name: int(getattr(self, name).sum()) for name in ("nonfinite", "saturated", "shadowed")}
+        """Samples flagged per kind (one host sync per kind), in the fields' order."""
+        return {f.name: int(getattr(self, f.name).sum()) for f in fields(self)}
+
+    def map(self, change: Callable[[Tensor], Tensor]) -> Masks:
+        """Each kind's mask through ``change`` (the same for all three)."""
+        return Masks(**{f.name: change(getattr(self, f.name)) for f in fields(self)})
+
+    def flat(self) -> Masks:
+        """Each kind ``(K, H W)``: the pixels in row-major order (views where the masks are contiguous)."""
+        return self.map(lambda mask: mask.flatten(1))
+
+    def of_pixels(self, at: slice) -> Masks:
+        """The flat masks' (:meth:`flat`) pixels ``at``: each ``(K, n)``."""
+        return self.map(lambda mask: mask[:, at])
 
 
 def sample_masks(stack: Tensor, *, saturation: float | None = None, grow: int = 1, shadow: float = 0.02) -> Masks:

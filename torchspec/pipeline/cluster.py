@@ -52,7 +52,7 @@ from .plan import RUNTIME_BYTES, plan, setup
 from .result import Fit
 from .settings import FitConfig
 from .start import LightContext, light_context
-from .tile import MASK_KINDS, TileResult, fit_tile
+from .tile import MASK_KINDS, FitInputs, TileInputs, TileResult, fit_tile
 
 __all__ = ["ClusterError", "connect", "fit_on_cluster"]
 
@@ -489,16 +489,20 @@ def _fit_tiles(job: _Job, firsts: list[int]) -> tuple[list[int], dict]:
     clock = time.perf_counter()
     config = job.config
     masks = sample_masks(band, saturation=job.level, grow=config.grow, shadow=config.shadow)
-    kinds = [m.flatten(1) for m in (masks.nonfinite, masks.saturated, masks.shadowed)]  # (K, rows W)
+    flat_masks = masks.flat()  # each (K, rows W)
     flat = band.flatten(2)  # (K, C, rows W)
     summary["masks"] = time.perf_counter() - clock
     offset = rows[0] * job.capture.width
-    channels, ctx, folder = job.capture.channels, job.ctx, job.folder
+    # gains None: the lights as written (_distant refuses lights to calibrate)
+    shared = FitInputs(
+        view=job.view, channels=job.capture.channels, config=config, folder=job.folder, domain=job.domain
+    )
     for first in todo:
         at = slice(first - offset, job.stop(first) - offset)
-        values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
+        values, tile_masks = flat[:, :, at], flat_masks.of_pixels(at)
+        inputs = TileInputs(first=first, values=values, masks=tile_masks, lights=job.lights, ctx=job.ctx)
         try:
-            fit_tile(first, values, tile_masks, job.lights, job.view, channels, config, ctx, folder, domain=job.domain)
+            fit_tile(inputs, shared)
         except Exception as error:
             raise ClusterError(
                 f"{job.describe(first)} of {job.capture.root} failed on worker {_worker()}: "

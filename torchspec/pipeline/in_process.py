@@ -16,7 +16,7 @@ from .plan import calibrated, plan, setup
 from .result import Fit
 from .settings import FitConfig
 from .start import light_context
-from .tile import fit_tile
+from .tile import FitInputs, TileInputs, fit_tile
 from .tiling import tiling_of
 
 __all__ = ["fit"]
@@ -74,7 +74,6 @@ def fit(
     clock = time.perf_counter()
     config = job.config
     masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
-    kinds = [m.flatten(1) for m in (masks.nonfinite, masks.saturated, masks.shadowed)]  # (K, H W) views
     job, calibration = calibrated(job, stack, ~(masks.nonfinite | masks.saturated))
     lights, ctx = job.lights, light_context(job.lights)
     mask_seconds = time.perf_counter() - clock
@@ -84,7 +83,9 @@ def fit(
     config, tile = plan(config, k, c, h, w, stack.element_size(), stack.device)
     tiling = tiling_of(h, w, tile, job.positions)
     flat = tiling.pixels(stack.flatten(2))  # (K, C, H W) in the fit's order (a view for row-major tiles)
-    kinds = [tiling.pixels(m) for m in kinds]
+    flat_masks = masks.flat().map(tiling.pixels)  # each (K, H W) in the fit's order
+    shared = FitInputs(view=view, channels=capture.channels, config=config, folder=folder, gains=job.gains,
+                       domain=job.domain)  # fmt: skip
     done = {}
     if folder is not None:
         done = open_checkpoint(folder, job_record(capture, job.picked, config, tile, pixels), resume)
@@ -95,11 +96,10 @@ def fit(
                 if first in done:  # resumed: the tile as it was computed (its times are that run's)
                     out = done[first].to(view.device)
                 else:
-                    at = slice(first, stop)
-                    values, tile_masks = flat[:, :, at], [m[:, at] for m in kinds]
-                    here, here_ctx = tiling.lights(lights, ctx, first, stop)
-                    out = fit_tile(first, values, tile_masks, here, view, capture.channels, config, here_ctx, folder,
-                                   job.gains, job.domain)  # fmt: skip
+                    tile_lights, tile_ctx = tiling.lights(lights, ctx, first, stop)
+                    values, tile_masks = flat[:, :, first:stop], flat_masks.of_pixels(slice(first, stop))
+                    inputs = TileInputs(first=first, values=values, masks=tile_masks, lights=tile_lights, ctx=tile_ctx)
+                    out = fit_tile(inputs, shared)
                 parts.append(out)
                 bar.update(stop - first)
         except KeyboardInterrupt as interrupt:

@@ -15,6 +15,7 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..lights import Lights
 from ..models import get_model
+from ..photometric import Masks
 from ..rendering import render
 from ..residual_term import ResidualTerm, TermDomain, blend, fit_term
 from ..threads import fit_threads
@@ -27,9 +28,9 @@ from .settings import MODEL_CODES, FitConfig
 from .smoothing import PlainFit, plain_alternative
 from .start import LightContext, starting_point
 
-__all__ = ["MASK_KINDS", "TERM_REFIT", "TileResult", "fit_pixels", "fit_tile"]
+__all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TileResult", "fit_pixels", "fit_tile"]
 
-MASK_KINDS = ("nonfinite", "saturated", "shadowed")
+MASK_KINDS = tuple(f.name for f in fields(Masks))
 """The masks of :class:`torchspec.photometric.Masks` that :func:`fit_tile` takes and counts."""
 TERM_REFIT = 2
 """Solver steps of each fold's refit that judges the residual term (:func:`held_out_values`). The
@@ -237,29 +238,63 @@ def held_out_values(
     return out
 
 
-def fit_tile(
-    first: int,
-    values: Tensor,
-    masks: list[Tensor],
-    lights: Lights,
-    view: Tensor,
-    channels: tuple[str, ...],
-    config: FitConfig,
-    ctx: LightContext,
-    folder: Path | None,
-    gains: Tensor | None = None,
-    domain: TermDomain | None = None,
-) -> TileResult:
-    """One tile, as every driver fits it (``gains``, ``domain``: :func:`fit_pixels`'s): the pixels ``first ..
-    first + n - 1`` of the image from their values ``(K, C, n)`` and their masks of
-    :data:`MASK_KINDS` (each ``(K, n)``); saved in the checkpoint ``folder`` when given; on
-    ``config.threads`` torch threads (:func:`torchspec.threads.fit_threads`). Returns
-    :func:`fit_pixels`'s result with the count of masked samples of each kind."""
-    y = values.permute(2, 0, 1)  # (n, K, C)
-    valid = ~(masks[0] | masks[1] | masks[2]).T
+@dataclass(frozen=True)
+class FitInputs:
+    """What every tile of one fit shares, built once by each driver (:func:`fit_tile`).
+
+    Attributes:
+        view: ``(3,)`` the unit direction towards the camera, in the fit's dtype and on its device.
+        channels: the capture's channel names (``C``).
+        config: the fit's settings, as planned (:func:`~torchspec.pipeline.plan.plan`).
+        folder: the checkpoint folder each finished tile is saved in, or ``None``.
+        gains: ``(K, C)`` the lights' calibrated gains (:func:`fit_pixels`'s), or ``None``.
+        domain: the residual term's encoding (:func:`fit_pixels`'s), or ``None`` (sRGB).
+    """
+
+    view: Tensor
+    channels: tuple[str, ...]
+    config: FitConfig
+    folder: Path | None = None
+    gains: Tensor | None = None
+    domain: TermDomain | None = None
+
+
+@dataclass(frozen=True)
+class TileInputs:
+    """One tile of ``n`` pixels of the image, ``first .. first + n - 1`` in the fit's pixel order
+    (:func:`fit_tile`).
+
+    Attributes:
+        first: the tile's first pixel (its key in the checkpoint).
+        values: ``(K, C, n)`` the pixels' recorded values.
+        masks: the pixels' samples to leave out, each kind ``(K, n)``
+            (:meth:`torchspec.photometric.Masks.of_pixels`).
+        lights: the ``K`` lights as this tile sees them (under near lights, from its centre).
+        ctx: ``lights``'s :class:`~torchspec.pipeline.start.LightContext`.
+    """
+
+    first: int
+    values: Tensor
+    masks: Masks
+    lights: Lights
+    ctx: LightContext
+
+
+def fit_tile(tile: TileInputs, shared: FitInputs) -> TileResult:
+    """One tile, as every driver fits it: :func:`fit_pixels` on ``tile``'s pixels, its samples of
+    every kind of :data:`MASK_KINDS` left out (the non-finite ones also from the residual term's);
+    saved in the checkpoint ``shared.folder`` when given; on ``config.threads`` torch threads
+    (:func:`torchspec.threads.fit_threads`). Returns :func:`fit_pixels`'s result with the count of
+    masked samples of each kind (``TileResult.masked``)."""
+    y = tile.values.permute(2, 0, 1)  # (n, K, C)
+    masks, config = tile.masks, shared.config
+    valid, kept = ~masks.invalid.T, ~masks.nonfinite.T
     with fit_threads(config.threads):  # auto: the cores free now (other processes share them)
-        out = fit_pixels(y, valid, lights, view, channels, config, ctx, kept=~masks[0].T, gains=gains, domain=domain)
-    out = replace(out, masked={name: int(m.sum()) for name, m in zip(MASK_KINDS, masks, strict=True)})
-    if folder is not None:
-        save_tile(folder, first, out)
+        out = fit_pixels(
+            y, valid, tile.lights, shared.view, shared.channels, config, tile.ctx,
+            kept=kept, gains=shared.gains, domain=shared.domain,
+        )  # fmt: skip
+    out = replace(out, masked=masks.counts())
+    if shared.folder is not None:
+        save_tile(shared.folder, tile.first, out)
     return out
