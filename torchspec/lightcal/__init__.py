@@ -143,6 +143,71 @@ class LambertFit:
     rms: Tensor
 
 
+@dataclass(frozen=True)
+class _Sample:
+    """Pixels the lights are estimated from (:func:`calibrate_lights`'s ``sample``), ``n`` of them.
+
+    Attributes:
+        values: ``(n, K, C)`` the pixels' values in the working dtype (0 where not ``ok``).
+        ok: ``(n, K, C)`` bool, the usable samples.
+        points: ``(n, 3)`` the pixels' points on the object plane (the module's geometry).
+        index: ``(n,)`` the pixels' flat indices in the image.
+    """
+
+    values: Tensor
+    ok: Tensor
+    points: Tensor
+    index: Tensor
+
+    def at(self, rows: Tensor) -> _Sample:
+        """The pixels ``rows`` of the sample (an index into its ``n``)."""
+        return _Sample(self.values[rows], self.ok[rows], self.points[rows], self.index[rows])
+
+
+@dataclass(frozen=True)
+class _Steps:
+    """How :func:`calibrate_lights`'s alternation (:func:`_alternate`) starts and runs.
+
+    Attributes:
+        positions: ``(K, 3)`` the lights' starting positions, or ``None`` (distant lights).
+        gains: ``(K, C)`` the starting gains.
+        options: ``shadow``, ``cut`` and ``explain`` of :func:`_explained_pass`.
+        near, iterations, damping, tolerance, give_up: :func:`calibrate_lights`'s.
+    """
+
+    positions: Tensor | None
+    gains: Tensor
+    options: dict[str, float]
+    near: bool
+    iterations: int
+    damping: float
+    tolerance: float
+    give_up: float | tuple[float, float] | None
+
+
+@dataclass(frozen=True)
+class _Alternation:
+    """The outcome of :func:`_alternate`.
+
+    Attributes:
+        gains: ``(K, C)`` the lights' gains.
+        positions: ``(K, 3)`` their positions, or ``None`` (distant lights).
+        covariance: ``(K P, K P)`` of the lights' parameters (:func:`_deviations`), ``None`` before a step.
+        level: the explained pixels' bound on the relative RMS of the last pass (``None`` without one).
+        iterations: the iterations run (steps taken).
+        stopped: whether ``give_up`` stopped it.
+        sample: the pixels it ran on (the calibration is judged on them where it ``stopped``).
+    """
+
+    gains: Tensor
+    positions: Tensor | None
+    covariance: Tensor | None
+    level: Tensor | None
+    iterations: int
+    stopped: bool
+    sample: _Sample
+
+
 def _check(frames: Tensor, directions: Tensor, valid: Tensor | None) -> None:
     if frames.dim() != 4:
         raise LightCalibrationError(f"frames must have shape (K, C, H, W); got {tuple(frames.shape)}.")
@@ -171,13 +236,12 @@ def _ratio_gains(
     the last round, of the first: under the gains given)``."""
     rms_level = first = values.new_tensor(math.inf)
     for round_ in range(rounds):
-        b, _, lit, rms, sel, _ = _explained_pass(
-            values, ok, points, directions, positions, gains, **options, shift=True
-        )
-        rms_level = rms[sel].median()
+        found = _explained_pass(values, ok, points, directions, positions, gains, **options, shift=True)
+        sel = found.explained
+        rms_level = found.rms[sel].median()
         first = rms_level if round_ == 0 else first
-        pred = _Design.of(_lighting(points[sel], directions, positions)[1], gains).predict(b[sel])
-        use = lit[sel] & (pred > 0.1 * pred.amax(1, keepdim=True))
+        pred = _Design.of(_lighting(points[sel], directions, positions)[1], gains).predict(found.b[sel])
+        use = found.lit[sel] & (pred > 0.1 * pred.amax(1, keepdim=True))
         ratio = torch.where(use, values[sel] / pred.clamp_min(1e-300), torch.nan).nanmedian(0).values
         ratio = _normalised(ratio.nan_to_num(1.0))
         gains = _normalised(gains * ratio)
@@ -284,13 +348,12 @@ def calibrate_lights(
         (chosen, misfit), written = dome_radius(*start, gains, options)
         positions = None if chosen is None else chosen * dirs
     gains = _ratio_gains(*start, positions, gains, options, 8)[0]
-    steps = (positions, gains, options, near, iterations, damping, tolerance, give_up)
-    (values, ok, points, index), found = _alternate_sample((values, ok, points, index), few, dirs, steps)
-    gains, positions, covariance, level, done, stopped = found
-    std = _deviations(covariance, gains, c + 3 if near else c)
-    # stopped: refused anyway, judged on the sample (a pass over every pixel cost realrti-item3 10 of 24 s)
-    sample = (values, ok, points, dirs, positions, gains, options, level, index, height, width)
-    final = _sample_pass(*sample) if stopped else _full_pass(frames, valid, dirs, positions, gains, options, level)
+    steps = _Steps(positions=positions, gains=gains, options=options, near=near, iterations=iterations,
+                   damping=damping, tolerance=tolerance, give_up=give_up)  # fmt: skip
+    found = _alternate_sample(_Sample(values, ok, points, index), few, dirs, steps)
+    gains, positions = found.gains, found.positions
+    std = _deviations(found.covariance, gains, c + 3 if near else c)
+    final = _final_pass(frames, valid, dirs, found, options)
     out = {"dtype": frames.dtype, "device": device}
     centre = dirs if positions is None else positions / positions.norm(dim=-1, keepdim=True)
     return LightCalibration(
@@ -301,12 +364,12 @@ def calibrate_lights(
         directions=centre.to(**out),
         explained=final.explained,
         rms=final.rms.to(**out),
-        iterations=done,
+        iterations=found.iterations,
         radius=chosen,
         radius_misfit=misfit,
         radius_as_written=written[0],
         radius_misfit_as_written=written[1],
-        judged=_judged(index if stopped else None, height, width, device),
+        judged=_judged(found.sample.index if found.stopped else None, height, width, device),
     )
 
 
@@ -327,57 +390,65 @@ def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
     )
 
 
-def _alternate_sample(sample: tuple, few: Tensor, dirs: Tensor, steps: tuple) -> tuple[tuple, tuple]:
-    """``(the sample (values, ok, points, index) judged, _alternate's outcome)``: with a give-up and
-    a ``sample`` larger than the start's pixels ``few`` (:data:`RADIUS_SAMPLE`), its tests on those
-    first; where they stop the calibration, ``few`` are the sample (``judged``); else (or without a
-    give-up) the alternation on the whole sample, as if that trial had not been made."""
-    give_up = steps[-1]
-    if give_up is not None and few.shape[0] < sample[0].shape[0]:
-        part = tuple(t[few] for t in sample)
-        found = _alternate(*part[:3], dirs, *steps, trial=True)
-        if found[-1]:  # stopped there: the calibration is judged on those pixels
-            return part, found
-    return sample, _alternate(*sample[:3], dirs, *steps)
+def _alternate_sample(sample: _Sample, few: Tensor, dirs: Tensor, steps: _Steps) -> _Alternation:
+    """:func:`_alternate` on the sample: with a give-up and a ``sample`` larger than the start's
+    pixels ``few`` (:data:`RADIUS_SAMPLE`), its tests on those first; where they stop the
+    calibration, the outcome on ``few`` (judged on them); else (or without a give-up) the alternation
+    on the whole sample, as if that trial had not been made."""
+    if steps.give_up is not None and few.shape[0] < sample.values.shape[0]:
+        found = _alternate(sample.at(few), dirs, steps, trial=True)
+        if found.stopped:  # stopped there: the calibration is judged on those pixels
+            return found
+    return _alternate(sample, dirs, steps)
 
 
-def _alternate(
-    values, ok, points, dirs, positions, gains, options, near, iterations, damping, tolerance, give_up, trial=False
-):
-    """:func:`calibrate_lights`'s alternation of maps and lights on the sample: ``(gains, positions,
-    covariance of the lights' parameters (``None`` before a step), level, iterations run, whether
-    give_up stopped it)``; ``trial``: only up to give_up's last test (what is returned is then
-    of use only where it stopped)."""
-    done, covariance, level, strict = 0, None, None, False
+def _alternate(sample: _Sample, dirs: Tensor, steps: _Steps, trial: bool = False) -> _Alternation:
+    """:func:`calibrate_lights`'s alternation of maps and lights on the ``sample``; ``trial``: only
+    up to give_up's last test (what is returned is then of use only where it stopped)."""
+    values, ok, points = sample.values, sample.ok, sample.points
+    gains, positions, damping, give_up = steps.gains, steps.positions, steps.damping, steps.give_up
+    run, covariance, level, strict, stopped = 0, None, None, False, False  # run: the steps taken
     bounds = dict(zip((1, 3), give_up if isinstance(give_up, tuple) else (None, give_up), strict=True))
-    for done in range(1, max(iterations, 1) + 1):
-        b, weight, lit, _, sel, level = _explained_pass(
-            values, ok, points, dirs, positions, gains, **options, shift=not strict
-        )
+    for done in range(1, max(steps.iterations, 1) + 1):
+        found = _explained_pass(values, ok, points, dirs, positions, gains, **steps.options, shift=not strict)
+        b, sel, level = found.b, found.explained, found.level
         bound = bounds.get(done)
         if (
             bound is not None
-            and _median_misfit(values, points, dirs, positions, gains, b, lit & sel[:, None, None]) > bound
+            and _median_misfit(values, points, dirs, positions, gains, b, found.lit & sel[:, None, None]) > bound
         ):
-            return gains, positions, covariance, level, done - 1, True
+            stopped = True
+            break
         if trial and done >= max(bounds):
-            return gains, positions, covariance, level, done - 1, False
+            break
         gains, positions, covariance, change, damping = _update(
-            values[sel], weight[sel], b[sel], points[sel], dirs, positions, gains, near, damping
+            values[sel], found.weight[sel], b[sel], points[sel], dirs, positions, gains, steps.near, damping
         )
-        if strict and change < tolerance:
+        run = done
+        if strict and change < steps.tolerance:
             break
         # the first half with frame shifts (gains far off), the rest strict (highlights out)
-        strict = strict or change < 1e-3 or 2 * done >= iterations
-    return gains, positions, covariance, level, done, False
+        strict = strict or change < 1e-3 or 2 * done >= steps.iterations
+    return _Alternation(
+        gains=gains, positions=positions, covariance=covariance, level=level, iterations=run, stopped=stopped,
+        sample=sample,
+    )  # fmt: skip
 
 
-def _sample_pass(values, ok, points, dirs, positions, gains, options, level, index, height, width) -> LambertFit:
-    """:func:`_full_pass` of the sample's pixels ``index`` only (``values, ok, points``): its maps
-    and ``explained`` are 0 and False elsewhere."""
-    b, _, lit, _, explained, _ = _explained_pass(values, ok, points, dirs, positions, gains, **options, level=level)
+def _final_pass(frames: Tensor, valid: Tensor | None, dirs: Tensor, found: _Alternation, options) -> LambertFit:
+    """The maps, ``explained`` and misfits under the calibrated lights (``found``): every pixel's
+    (:func:`_full_pass`), or where give_up ``stopped`` the calibration (refused anyway), the pixels'
+    of ``found.sample`` only, 0 and False elsewhere (a pass over every pixel cost realrti-item3 10
+    of 24 s)."""
+    gains, positions, level = found.gains, found.positions, found.level
+    if not found.stopped:
+        return _full_pass(frames, valid, dirs, positions, gains, options, level)
+    height, width = frames.shape[2:]
+    values, points, index = found.sample.values, found.sample.points, found.sample.index
+    passed = _explained_pass(values, found.sample.ok, points, dirs, positions, gains, **options, level=level)
+    b, explained = passed.b, passed.explained
     pred = _Design.of(_lighting(points, dirs, positions)[1], gains).predict(b)
-    residual2, energy = _frame_sums(values, pred, lit & explained[:, None, None])
+    residual2, energy = _frame_sums(values, pred, passed.lit & explained[:, None, None])
     every = values.new_zeros((height * width, *b.shape[1:])).index_copy_(0, index, b)
     flat = torch.zeros(height * width, dtype=torch.bool, device=index.device).index_copy_(0, index, explained)
     return _lambert(every, flat, (residual2 / energy.clamp_min(1e-300)).sqrt(), height, width, values.dtype)
@@ -397,14 +468,12 @@ def _full_pass(frames, valid, dirs, positions, gains, options, level, pixels=Non
         index = torch.arange(s, min(s + SOLVE_CHUNK, height * width), device=frames.device)
         values, ok = _gather(frames, valid, index, work)
         points = every[index]
-        b, _, lit, rms, explained, _ = _explained_pass(
-            values, ok, points, dirs, positions, gains, **options, level=level
-        )
-        use = explained if flat_pixels is None else flat_pixels[index]
-        pred = _Design.of(_lighting(points, dirs, positions)[1], gains).predict(b)
-        sums = _frame_sums(values, pred, lit & use[:, None, None])
+        found = _explained_pass(values, ok, points, dirs, positions, gains, **options, level=level)
+        use = found.explained if flat_pixels is None else flat_pixels[index]
+        pred = _Design.of(_lighting(points, dirs, positions)[1], gains).predict(found.b)
+        sums = _frame_sums(values, pred, found.lit & use[:, None, None])
         residual2, energy = residual2 + sums[0], energy + sums[1]
-        rows.append((b, explained))
+        rows.append((found.b, found.explained))
     b, explained = (torch.cat(t) for t in zip(*rows, strict=True))
     return _lambert(b, explained, (residual2 / energy.clamp_min(1e-300)).sqrt(), height, width, frames.dtype)
 
@@ -458,5 +527,5 @@ def lambert_fit(
     index = _sample(height * width, sample, device)
     values, ok = _gather(frames, valid, index, work)
     points = image_points(height, width, dtype=work, device=device)[index]
-    level = _explained_pass(values, ok, points, dirs, positions, gains, **options)[-1]
+    level = _explained_pass(values, ok, points, dirs, positions, gains, **options).level
     return _full_pass(frames, valid, dirs, positions, gains, options, level, pixels)

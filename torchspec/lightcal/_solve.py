@@ -145,9 +145,32 @@ def _gather(frames: Tensor, valid: Tensor | None, index: Tensor, dtype) -> tuple
     return torch.where(ok, values, torch.zeros_like(values)), ok
 
 
-def _explained_pass(values, ok, points, directions, positions, gains, *, shadow, cut, explain, level=None, shift=False):
-    """Photometric stereo of a pixel sample in chunks: ``(b, weight, lit, rms, explained (n,), level)``,
-    explained within ``level`` (``explain`` times the median pixel's relative RMS unless given)."""
+@dataclass(frozen=True)
+class ExplainedPass:
+    """Robust photometric stereo of ``n`` pixels under given lights (:func:`_explained_pass`).
+
+    Attributes:
+        b: ``(n, C, 3)`` each pixel's solution per channel (albedo times normal), solved on ``weight``.
+        weight: ``(n, K, C)`` bool, the inliers (:func:`_stereo`).
+        lit: ``(n, K, C)`` bool, the valid samples in front of ``b``'s normal.
+        rms: ``(n,)`` each pixel's relative RMS on its inliers.
+        explained: ``(n,)`` bool, the pixels with enough inliers and ``rms`` within ``level``.
+        level: the largest ``rms`` of an explained pixel (a 0-dim tensor, or the level given).
+    """
+
+    b: Tensor
+    weight: Tensor
+    lit: Tensor
+    rms: Tensor
+    explained: Tensor
+    level: Tensor | float
+
+
+def _explained_pass(
+    values, ok, points, directions, positions, gains, *, shadow, cut, explain, level=None, shift=False
+) -> ExplainedPass:
+    """Photometric stereo of a pixel sample in chunks (:class:`ExplainedPass`), explained within
+    ``level`` (``explain`` times the median pixel's relative RMS unless given)."""
     parts = []
     for s in range(0, values.shape[0], SOLVE_CHUNK):
         unit, vector = _lighting(points[s : s + SOLVE_CHUNK], directions, positions)
@@ -164,7 +187,7 @@ def _explained_pass(values, ok, points, directions, positions, gains, *, shadow,
         )
     if level is None:
         level = explain * rms[enough].median()
-    return b, weight, lit, rms, enough & (rms <= level), level
+    return ExplainedPass(b=b, weight=weight, lit=lit, rms=rms, explained=enough & (rms <= level), level=level)
 
 
 def _derivatives(values, b, points, directions, positions, gains, near: bool):
