@@ -1,11 +1,13 @@
 """The package's layout against the style guide (``docs/architecture.md``): the longest modules and
 functions, every import of an underscore name across module boundaries outside its own subpackage,
-and every tensor the package makes without saying its device.
+every tensor the package makes without saying its device, and every import cycle of its modules.
 
 Run ``python experiments/architecture.py`` (``--json`` for the numbers as JSON); it exits 1 when a module
 is over ``MODULE_LINES`` lines, a function over ``FUNCTION_LINES``, an underscore name crosses a
-boundary or a tensor is made without ``device=`` or a reason to be on the CPU
-(:func:`deviceless_constructors`), so ``tests/test_architecture.py`` keeps the layout as it is.
+boundary, a tensor is made without ``device=`` or a reason to be on the CPU
+(:func:`deviceless_constructors`) or the package's modules import each other in a cycle, lazy and
+type-only imports included (:func:`import_cycles`), so ``tests/test_architecture.py`` keeps the
+layout as it is.
 """
 
 from __future__ import annotations
@@ -72,6 +74,16 @@ def _is_module(parts: list[str]) -> bool:
     return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
 
 
+def _source(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module a ``from ... import`` in ``package`` takes its names from."""
+    source = node.module or ""
+    if not node.level:
+        return source
+    anchor = package.split(".")
+    anchor = anchor[: len(anchor) - (node.level - 1)]
+    return ".".join(anchor + ([source] if source else []))
+
+
 def private_imports(folders: tuple[str, ...] = SCANNED) -> list[str]:
     """Every import of an underscore name across a module boundary that the layout forbids:
     ``file:line imports module.name``.
@@ -91,11 +103,7 @@ def private_imports(folders: tuple[str, ...] = SCANNED) -> list[str]:
             for node in ast.walk(tree):
                 targets = []
                 if isinstance(node, ast.ImportFrom):
-                    base = node.module or ""
-                    if node.level:
-                        anchor = package.split(".")
-                        anchor = anchor[: len(anchor) - (node.level - 1)]
-                        base = ".".join(anchor + ([base] if base else []))
+                    base = _source(node, package)
                     targets = [(base, alias.name) for alias in node.names]
                 elif isinstance(node, ast.Import):
                     targets = [(alias.name, "") for alias in node.names]
@@ -145,17 +153,138 @@ def deviceless_constructors(root: Path = PACKAGE) -> list[str]:
     return found
 
 
+def _in_type_checking(node: ast.AST, parents: dict[ast.AST, ast.AST]) -> bool:
+    while node in parents:
+        node = parents[node]
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            return True
+    return False
+
+
+def _in_function(node: ast.AST, parents: dict[ast.AST, ast.AST]) -> bool:
+    while node in parents:
+        node = parents[node]
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            return True
+    return False
+
+
+def import_graph(root: Path = PACKAGE) -> dict[str, dict[str, list[str]]]:
+    """``{module: {imported module: ["line kind", ...]}}`` of the package, from its source: every
+    ``import`` and ``from ... import`` anywhere in a module, at the top level (``top``), inside a
+    function (``lazy``) or under ``if TYPE_CHECKING:`` (``type``); relative imports resolved.
+
+    A package is its ``__init__`` (module ``torchspec.io`` is ``torchspec/io/__init__.py``).
+    ``import a.b`` imports ``a.b``; ``from a import b`` imports the submodule ``a.b`` when there is
+    one, else ``a`` itself (its ``__init__`` when ``a`` is a package). The parent packages that
+    Python initialises before any submodule are not edges: every module would otherwise depend on
+    ``torchspec/__init__``, which imports the package's API, and all would be one cycle; a module
+    that takes a name from its package's ``__init__`` (``from . import x`` where ``x`` is no
+    submodule) does import it. Imports of other packages are left out."""
+    top = root.name
+    base = root.parent
+    names = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = list(path.relative_to(base).with_suffix("").parts)
+        is_package = parts[-1] == "__init__"
+        names[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    graph: dict[str, dict[str, list[str]]] = {module: {} for module in names}
+    for module, (path, is_package) in names.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
+        package = module if is_package else module.rpartition(".")[0]
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                source = _source(node, package)
+                targets = [f"{source}.{a.name}" if f"{source}.{a.name}" in names else source for a in node.names]
+            else:
+                continue
+            kind = "type" if _in_type_checking(node, parents) else "lazy" if _in_function(node, parents) else "top"
+            for target in targets:
+                if target.split(".")[0] != top:
+                    continue
+                while target not in names:  # import a.b.name of a module a.b (not from ... import)
+                    target = target.rpartition(".")[0]
+                where = graph[module].setdefault(target, [])
+                if target != module and f"{node.lineno} {kind}" not in where:
+                    where.append(f"{node.lineno} {kind}")
+        graph[module] = {target: where for target, where in graph[module].items() if where}
+    return graph
+
+
+def import_cycles(graph: dict[str, dict[str, list[str]]] | None = None) -> list[list[str]]:
+    """The import cycles of the package (:func:`import_graph`, lazy and type-only imports included):
+    each strongly connected component of more than one module, its modules sorted; the
+    components sorted by their first module."""
+    graph = import_graph() if graph is None else graph
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    for start in sorted(graph):  # Tarjan's algorithm, iterative
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, successors = work[-1]
+            for successor in successors:
+                if successor not in index:
+                    index[successor] = low[successor] = len(index)
+                    stack.append(successor)
+                    on_stack.add(successor)
+                    work.append((successor, iter(sorted(graph[successor]))))
+                    break
+                if successor in on_stack:
+                    low[node] = min(low[node], index[successor])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = []
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.append(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        found.append(sorted(component))
+    return sorted(found)
+
+
+def cycle_edges(cycle: list[str], graph: dict[str, dict[str, list[str]]] | None = None) -> list[str]:
+    """``module -> module (line kind, ...)`` of every import inside one cycle of :func:`import_cycles`."""
+    graph = import_graph() if graph is None else graph
+    members = set(cycle)
+    return [
+        f"{module} -> {target} ({', '.join(where)})"
+        for module in cycle
+        for target, where in sorted(graph[module].items())
+        if target in members
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print the numbers as JSON")
     parser.add_argument("--most", type=int, default=5, help="how many of the longest to list (default: 5)")
     args = parser.parse_args(argv)
     mods, funcs, crossing, deviceless = modules(), functions(), private_imports(), deviceless_constructors()
+    graph = import_graph()
+    cycles = import_cycles(graph)
     over = [row for row in mods if row[1] > MODULE_LINES] + [row for row in funcs if row[1] > FUNCTION_LINES]
     if args.json:
         print(json.dumps({"modules": mods[: args.most], "functions": funcs[: args.most],
                           "private_imports": crossing, "over_limits": over,
-                          "deviceless": deviceless}, indent=1))
+                          "deviceless": deviceless,
+                          "import_cycles": [cycle_edges(cycle, graph) for cycle in cycles]}, indent=1))
     else:
         print(f"longest modules (limit {MODULE_LINES} lines):")
         for name, lines in mods[: args.most]:
@@ -169,7 +298,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tensors made without device= or a reason to be on the CPU: {len(deviceless)}")
         for line in deviceless[: args.most]:
             print(f"  {line}")
-    return 1 if over or crossing or deviceless else 0
+        edges = sum(len(targets) for targets in graph.values())
+        print(f"import cycles ({len(graph)} modules, {edges} imports, lazy and type-only included): {len(cycles)}")
+        for cycle in cycles:
+            print(f"  {len(cycle)} modules:")
+            for line in cycle_edges(cycle, graph):
+                print(f"    {line}")
+    return 1 if over or crossing or deviceless or cycles else 0
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """The package's layout keeps the limits of ``docs/architecture.md``, measured by
 ``experiments/architecture.py``: module and function lengths, underscore names that stay inside
-their subpackage, and no function of a package hiding a module of the same name."""
+their subpackage, no import cycle (lazy and type-only imports included) and no function of a
+package hiding a module of the same name."""
 
 import importlib
 import importlib.util
@@ -63,6 +64,40 @@ def test_the_device_check_finds_a_constructor_without_device(tmp_path):
     )
     found = ARCHITECTURE.deviceless_constructors(package)
     assert [line.split(":")[:2] for line in found] == [["torchspec/m.py", "2"], ["torchspec/m.py", "10"]]
+
+
+def test_no_modules_import_each_other_in_a_cycle():
+    """Issue 38: no import cycle, lazy (inside a function) and type-only (``if TYPE_CHECKING:``)
+    imports included: a cycle held apart by a lazy import is a cycle of the design all the same."""
+    graph = ARCHITECTURE.import_graph()
+    assert len(graph) > 100 and "torchspec.pipeline.tile" in graph["torchspec.pipeline.in_process"]
+    cycles = ARCHITECTURE.import_cycles(graph)
+    assert len(cycles) == 0, "import cycles:\n" + "\n".join(
+        line for cycle in cycles for line in ARCHITECTURE.cycle_edges(cycle, graph)
+    )
+
+
+def test_the_cycle_finder_counts_lazy_type_only_and_package_imports(tmp_path):
+    package = tmp_path / "torchspec"
+    (package / "sub").mkdir(parents=True)
+    (package / "__init__.py").write_text("from . import a, sub\n")
+    (package / "a.py").write_text("def f():\n    from .sub import b  # lazy: a submodule\n")
+    (package / "sub" / "__init__.py").write_text("from .b import B\n")
+    (package / "sub" / "b.py").write_text(
+        "from typing import TYPE_CHECKING\nimport torch\nif TYPE_CHECKING:\n    from ..c import C\nB = 1\n"
+    )
+    (package / "c.py").write_text("import torchspec.a\nfrom torchspec.sub import B  # the package's __init__\n")
+    (package / "d.py").write_text("from . import c\n")
+    graph = ARCHITECTURE.import_graph(package)
+    assert graph == {
+        "torchspec": {"torchspec.a": ["1 top"], "torchspec.sub": ["1 top"]},
+        "torchspec.a": {"torchspec.sub.b": ["2 lazy"]},
+        "torchspec.c": {"torchspec.a": ["1 top"], "torchspec.sub": ["2 top"]},
+        "torchspec.d": {"torchspec.c": ["1 top"]},
+        "torchspec.sub": {"torchspec.sub.b": ["1 top"]},
+        "torchspec.sub.b": {"torchspec.c": ["4 type"]},
+    }
+    assert ARCHITECTURE.import_cycles(graph) == [["torchspec.a", "torchspec.c", "torchspec.sub", "torchspec.sub.b"]]
 
 
 def test_the_layout_script_passes():

@@ -36,8 +36,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .errors import TorchspecError
+from .gauss import legendre
 from .geometry import from_plane
-from .quadrature import legendre
 
 __all__ = [
     "Kernel",

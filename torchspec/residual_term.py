@@ -19,7 +19,7 @@ wrong slope: on RealRTI item7 it predicted left-out photographs worse than the m
 
 :func:`fit_term` fits the coefficients by least squares on a fit's valid samples and keeps them
 only at the pixels where they predict frames left out of their fit better than the physical model
-alone (:func:`torchspec.pipeline.prediction.predicts_better`, the same rule that chooses models):
+alone (:func:`torchspec.statistics.predicts_better`, the same rule that chooses models):
 a term that only fits the frames it saw is not kept.
 """
 
@@ -36,6 +36,7 @@ from .io.images import Transfer
 from .lights import Lights, diffuse_directions
 from .photometric import MAD_SCALE
 from .response import ResponseCurve
+from .statistics import predicts_better  # the selection rule of the fit's models
 
 __all__ = [
     "MAP_NAME",
@@ -320,7 +321,7 @@ def fit_term(
         folds: ``(S, K)`` each frame's fold per scheme
             (:func:`torchspec.pipeline.prediction.light_folds`).
         order: the basis' order (:data:`TERMS`).
-        z: the margin of :func:`~torchspec.pipeline.prediction.predicts_better`.
+        z: the margin of :func:`~torchspec.statistics.predicts_better`.
         ridge: Tikhonov damping relative to each pixel's mean diagonal (a pixel whose valid frames
             leave a coefficient undetermined gets it near 0 rather than a wild value).
         held_out: ``(n, S, K, C)`` the physical model's prediction of each sample from a fit
@@ -333,8 +334,6 @@ def fit_term(
     Returns:
         a :class:`ResidualTerm` of ``n`` pixels, fitted on all valid samples where chosen.
     """
-    from .pipeline.prediction import predicts_better  # the selection rule of the fit's models
-
     dtype = observed.dtype
     lights = lights.to(dtype=dtype, device=observed.device)
     scale = lights.scale[None]  # (1, K, C or 1)
@@ -391,11 +390,9 @@ def blend(with_model: ResidualTerm, alone: ResidualTerm, z: float = 3.0) -> Resi
 
     (1 where the two predict alike). ``w < 1`` is kept only where the blend predicts the left-out
     frames better than the model with its term by ``z``
-    (:func:`~torchspec.pipeline.prediction.predicts_better`, in ``with_model``'s noise units):
+    (:func:`~torchspec.statistics.predicts_better`, in ``with_model``'s noise units):
     the model is not given up for what noise would make look better. Its coefficients are
     ``w c_model + (1 - w) c_alone`` (:attr:`ResidualTerm.weight` ``= w``)."""
-    from .pipeline.prediction import predicts_better  # the selection rule of the fit's models
-
     model, other = with_model.left_out, alone.left_out
     if model is None or other is None:
         raise TorchspecError("blend needs the left-out errors of both terms (fit_term's left_out).")

@@ -13,15 +13,12 @@ import shlex
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from ..errors import TorchspecError
-
-if TYPE_CHECKING:
-    from .capture import Capture
 
 FORMAT = "torchspec.capture"
 VERSIONS = (1,)
@@ -376,8 +373,30 @@ def _relative_file(where: Where, key: str, value: Any) -> str:
     return value
 
 
-def to_manifest(capture: Capture, source: Path) -> dict[str, Any]:
-    """The JSON manifest of ``capture`` (validated by :func:`parse_manifest`, not here)."""
+class ManifestFields(Protocol):
+    """What :func:`to_manifest` reads of a capture: the fields of a
+    :class:`~torchspec.io.capture.Capture` that its manifest holds (typed here, as the module that
+    reads captures imports this one)."""
+
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def channels(self) -> tuple[str, ...]: ...
+    @property
+    def view(self) -> tuple[float, float, float]: ...
+    @property
+    def light(self) -> LightSpec: ...
+    @property
+    def frames(self) -> tuple[Frame, ...]: ...
+    @property
+    def extra(self) -> dict: ...
+
+
+def to_manifest(capture: ManifestFields, source: Path) -> dict[str, Any]:
+    """The JSON manifest of ``capture`` (a :class:`~torchspec.io.capture.Capture`; validated by
+    :func:`parse_manifest`, not here)."""
     clash = [key for key in capture.extra if key in _KNOWN]
     if clash:
         raise CaptureError(f"Capture.extra for {source} must not hold the format's keys; got {clash}. Set the fields.")

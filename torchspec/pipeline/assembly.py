@@ -20,10 +20,10 @@ from ..lm import STATUS
 from ..residual_term import ResidualTerm
 from .checks import Checks
 from .plan import FitWarning, frame_warnings
+from .records import PlainFit, TileResult
 from .result import Fit
 from .settings import MODEL_CODES, FitConfig
-from .smoothing import PlainFit, smooth
-from .tile import TileResult
+from .smoothing import smooth
 from .tiling import sum_counts
 from .verdict import LOW_QUALITY, trust_warnings
 

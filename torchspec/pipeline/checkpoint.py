@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -18,10 +17,8 @@ from .._version import __version__
 from ..atomic import atomic_path, read_json, write_json
 from ..errors import TorchspecError
 from ..io import Capture
+from .records import TileResult
 from .settings import FitConfig
-
-if TYPE_CHECKING:
-    from .tile import TileResult
 
 __all__ = [
     "CHECKPOINT",
@@ -89,7 +86,7 @@ def save_tile(folder: Path, first: int, tile: TileResult) -> None:
 
 
 def read_tile(path: Path) -> tuple[int, TileResult]:
-    """The first pixel and the :class:`~torchspec.pipeline.tile.TileResult` saved in ``path`` (on the CPU).
+    """The first pixel and the :class:`~torchspec.pipeline.records.TileResult` saved in ``path`` (on the CPU).
 
     Raises:
         TorchspecError: ``path`` is not a readable tile (written atomically: damage from outside).

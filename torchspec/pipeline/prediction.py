@@ -12,7 +12,8 @@ lobe whose peak only the left-out frames saw) takes a large step, and its predic
 refit's would. Cost: one evaluation of the model's Jacobian per fitted model and pixel.
 
 A larger model is kept only where it predicts the left-out samples better than the model chosen
-so far by more than the noise would make it (:func:`predicts_better`).
+so far by more than the noise would make it (:func:`torchspec.statistics.predicts_better`,
+re-exported here).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from ..brdf import SVBRDF
 from ..lm import bounded
 from ..models import Model, get_model
 from ..rendering import render
+from ..statistics import predicts_better  # re-exported: the rule lives with the statistics
 from .samples import TileSamples
 from .settings import FitConfig
 from .solver import compiled_or_eager
@@ -292,18 +294,3 @@ def _damped_solve(matrix: Tensor, rhs: Tensor) -> Tensor:
     solution, info = torch.linalg.solve_ex(damped, rhs)
     ok = (info == 0)[..., None] & solution.isfinite().all(-1, keepdim=True)
     return torch.where(ok, solution, torch.zeros_like(solution))
-
-
-def predicts_better(candidate: Tensor, current: Tensor, z: float) -> Tensor:
-    """``(m,)`` bool: ``candidate``'s left-out residuals ``(m, S, K, C)`` predict better than
-    ``current``'s by more than the noise would make them.
-
-    With ``d = e_current^2 - e_candidate^2`` per sample, in noise units, the candidate's
-    improvement ``sum d`` must exceed ``z`` standard deviations of what noise alone would give it:
-    two models whose predictions differ by ``delta`` on a sample differ in ``d`` by ``2 e delta``,
-    of variance ``4 delta^2`` (``e`` of unit variance), so the bound is ``2 z sqrt(sum delta^2)``.
-    Averaged over the schemes; in every scheme the candidate must predict better.
-    """
-    gain = (current.square() - candidate.square()).sum((2, 3))  # (m, S)
-    spread = 2.0 * (current - candidate).square().sum((2, 3)).sqrt()
-    return (gain.mean(1) > z * spread.mean(1)) & (gain > 0).all(1)

@@ -21,7 +21,8 @@ from ..brdf import SVBRDF
 from ..layout import lobe_support
 from ..lm import DIVERGED, LMResult
 from ..models import ALPHA_BOUNDS, get_model
-from .prediction import held_out, held_out_refit, light_folds, predicts_better, second_lobe_held_out
+from ..statistics import predicts_better
+from .prediction import held_out, held_out_refit, light_folds, second_lobe_held_out
 from .samples import TileSamples
 from .settings import AUTO, MODEL_CODES, FitConfig
 from .solver import Solved, solve_pixels
@@ -234,7 +235,7 @@ def _climb(
     model too (from the specular start and from a broad lobe about the photometric-stereo normal:
     a broad lobe leaves no peak to detect); each next model is tried, from the previous one's
     solution, where that leaves a misfit. A model is kept where it predicts the left-out frames
-    better than the one kept so far (:func:`~torchspec.pipeline.prediction.predicts_better`),
+    better than the one kept so far (:func:`~torchspec.statistics.predicts_better`),
     the first lobe than the pixel's fit without one (for a detected peak, one step from the
     photometric-stereo fit; where the lobe is not kept, that fit is then made)."""
     ladder, channels = config.ladder, data.channels

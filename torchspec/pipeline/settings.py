@@ -103,7 +103,7 @@ class FitConfig:
         dual_gate: ``auto`` tries ``ward-dual`` only where a second lobe added to the one-lobe fit,
             to first order (:func:`~torchspec.pipeline.prediction.second_lobe_held_out`), predicts
             the left-out frames better than the model kept so far by more than ``dual_gate``
-            deviations of the noise (:func:`~torchspec.pipeline.prediction.predicts_better`) at one
+            deviations of the noise (:func:`~torchspec.statistics.predicts_better`) at one
             of a few roughnesses; ``None``: wherever ``dual_rms`` lets it.
         trust_rms: a pixel whose chosen model leaves a misfit (a residual above the noise) with a
             relative RMS above ``trust_rms`` of its level is flagged ``poor_fit``, untrusted

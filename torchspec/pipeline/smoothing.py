@@ -8,13 +8,14 @@ Each tile fits its lobed pixels without a lobe too (:func:`plain_alternative`, a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import torch
 from torch import Tensor
 
 from ..errors import TorchspecError
 from .checks import quality_of, solver_flags, with_flags
+from .records import PlainFit  # re-exported: the records live in records
 from .result import Fit
 from .samples import TileSamples
 from .selection import assess, plain_start
@@ -23,25 +24,6 @@ from .solver import solve_pixels
 from .start import StartingPoint
 
 __all__ = ["SMOOTH_SWEEPS", "PlainFit", "plain_alternative", "smooth", "smooth_choice"]
-
-
-@dataclass(frozen=True)
-class PlainFit:
-    """Every pixel's fit without a lobe, leading dims ``(n,)`` (a tile) or ``(H, W)`` (an image):
-    ``normal (*, 3)``, ``diffuse (*, C)``, ``criterion`` (``inf`` where a pixel has none), the
-    solver's ``status`` and ``iterations``, ``residual``, ``quality``, ``flags`` and the
-    deviations ``std_normal``, ``std_diffuse (*, C)``, as in :class:`~torchspec.pipeline.result.Fit`."""
-
-    normal: Tensor
-    diffuse: Tensor
-    criterion: Tensor
-    status: Tensor
-    iterations: Tensor
-    residual: Tensor
-    quality: Tensor
-    flags: Tensor
-    std_normal: Tensor
-    std_diffuse: Tensor
 
 
 def plain_alternative(

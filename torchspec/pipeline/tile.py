@@ -12,7 +12,6 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
 from ..lights import Lights
 from ..models import get_model
 from ..photometric import Masks
@@ -20,12 +19,13 @@ from ..rendering import render
 from ..residual_term import ResidualTerm, TermDomain, blend, fit_term
 from ..threads import fit_threads
 from .checkpoint import save_tile
-from .checks import Checks, check_choice, overshoot, quality_of, with_flags
+from .checks import check_choice, overshoot, quality_of, with_flags
 from .prediction import held_out_refit, light_folds
+from .records import PlainFit, TileResult  # re-exported: the records live in records
 from .samples import TileSamples
 from .selection import select_models
 from .settings import MODEL_CODES, FitConfig
-from .smoothing import PlainFit, plain_alternative
+from .smoothing import plain_alternative
 from .start import LightContext, starting_point
 
 __all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TileResult", "fit_pixels", "fit_tile"]
@@ -38,56 +38,6 @@ refits were most of the term's time; on ``experiments/rti_relight.py``'s capture
 2 steps predicted the left-out photographs as 5 did (item3 30.62 against 30.60 dB, item7 32.94 and
 32.94, item9 25.11 and 25.12, SynthRTI m1 52.09 and 52.09, m8 38.90 and 38.87), in 0.6 of the time
 on item3 (2.5 s against 4.2 s)."""
-
-
-@dataclass(frozen=True)
-class TileResult:
-    """The fit of one tile of ``n`` pixels, the fields of :class:`~torchspec.pipeline.result.Fit`
-    with leading dim ``(n,)``, and what the image's assembly needs besides.
-
-    Attributes:
-        svbrdf, flags, residual, quality, status, iterations, lobe, model, criterion, std: as
-            :class:`~torchspec.pipeline.result.Fit`'s.
-        checks: the peak checks behind two flags.
-        tried: pixels fitted per model.
-        noise: ``(2,)`` the sensor's ``(a, b)`` (zeros when not estimated).
-        times: seconds per stage.
-        plain: every pixel's fit without a lobe (``FitConfig.smooth`` only; else ``None``).
-        masked: the count of masked samples per kind of :data:`MASK_KINDS` (:func:`fit_tile`).
-        term: the residual term (``FitConfig.residual_term``; else ``None``).
-    """
-
-    svbrdf: SVBRDF
-    flags: Tensor
-    checks: Checks
-    residual: Tensor
-    quality: Tensor
-    status: Tensor
-    iterations: Tensor
-    lobe: Tensor
-    model: Tensor
-    criterion: Tensor
-    std: dict[str, Tensor]
-    tried: dict[str, int]
-    noise: Tensor
-    times: dict[str, float]
-    plain: PlainFit | None = None
-    masked: dict[str, int] | None = None
-    term: ResidualTerm | None = None
-
-    def to(self, device: torch.device | str) -> TileResult:
-        """Every tensor moved to ``device``."""
-        return _moved(self, device)
-
-
-def _moved(value, device):
-    if isinstance(value, (Tensor, SVBRDF)):
-        return value.to(device=device)
-    if isinstance(value, dict):
-        return {name: _moved(item, device) for name, item in value.items()}
-    if isinstance(value, (TileResult, Checks, PlainFit, ResidualTerm)):
-        return replace(value, **{f.name: _moved(getattr(value, f.name), device) for f in fields(value)})
-    return value
 
 
 def fit_pixels(

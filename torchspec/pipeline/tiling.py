@@ -14,8 +14,8 @@ from torch import Tensor
 from ..lights import Lights
 from ..near_lights import block_order, block_sizes, image_points, lights_at
 from ..rendering import TILE_PIXELS
+from .records import TileResult
 from .start import LightContext, light_context
-from .tile import TileResult
 
 __all__ = ["Tiling", "tiling_of", "near_block", "merge_tiles", "sum_counts"]
 

@@ -1,0 +1,92 @@
+"""The records the stages of a tile's fit hand on and the whole image's assembly, the checkpoint and
+the cluster driver share: a tile's result (:class:`TileResult`) and every pixel's fit without a
+lobe (:class:`PlainFit`). Here, below every module that makes or reads them, so that the
+checkpoint (which saves tiles) imports no stage that fits one; :mod:`~torchspec.pipeline.tile` and
+:mod:`~torchspec.pipeline.smoothing` re-export them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+from ..brdf import SVBRDF
+from ..residual_term import ResidualTerm
+from .checks import Checks
+
+__all__ = ["PlainFit", "TileResult"]
+
+
+@dataclass(frozen=True)
+class PlainFit:
+    """Every pixel's fit without a lobe, leading dims ``(n,)`` (a tile) or ``(H, W)`` (an image):
+    ``normal (*, 3)``, ``diffuse (*, C)``, ``criterion`` (``inf`` where a pixel has none), the
+    solver's ``status`` and ``iterations``, ``residual``, ``quality``, ``flags`` and the
+    deviations ``std_normal``, ``std_diffuse (*, C)``, as in :class:`~torchspec.pipeline.result.Fit`."""
+
+    normal: Tensor
+    diffuse: Tensor
+    criterion: Tensor
+    status: Tensor
+    iterations: Tensor
+    residual: Tensor
+    quality: Tensor
+    flags: Tensor
+    std_normal: Tensor
+    std_diffuse: Tensor
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """The fit of one tile of ``n`` pixels, the fields of :class:`~torchspec.pipeline.result.Fit`
+    with leading dim ``(n,)``, and what the image's assembly needs besides.
+
+    Attributes:
+        svbrdf, flags, residual, quality, status, iterations, lobe, model, criterion, std: as
+            :class:`~torchspec.pipeline.result.Fit`'s.
+        checks: the peak checks behind two flags.
+        tried: pixels fitted per model.
+        noise: ``(2,)`` the sensor's ``(a, b)`` (zeros when not estimated).
+        times: seconds per stage.
+        plain: every pixel's fit without a lobe (``FitConfig.smooth`` only; else ``None``).
+        masked: the count of masked samples per kind of :data:`~torchspec.pipeline.tile.MASK_KINDS`
+            (:func:`~torchspec.pipeline.tile.fit_tile`).
+        term: the residual term (``FitConfig.residual_term``; else ``None``).
+    """
+
+    svbrdf: SVBRDF
+    flags: Tensor
+    checks: Checks
+    residual: Tensor
+    quality: Tensor
+    status: Tensor
+    iterations: Tensor
+    lobe: Tensor
+    model: Tensor
+    criterion: Tensor
+    std: dict[str, Tensor]
+    tried: dict[str, int]
+    noise: Tensor
+    times: dict[str, float]
+    plain: PlainFit | None = None
+    masked: dict[str, int] | None = None
+    term: ResidualTerm | None = None
+
+    def to(self, device: torch.device | str) -> TileResult:
+        """Every tensor moved to ``device``."""
+        return _moved(self, device)
+
+
+def _moved(value, device):
+    """``value`` with every tensor in it moved to ``device``: a tensor or :class:`~torchspec.brdf.SVBRDF`,
+    a dict of them, or a record of this module, :class:`~torchspec.pipeline.checks.Checks` or
+    :class:`~torchspec.residual_term.ResidualTerm` field by field; anything else as it is."""
+    if isinstance(value, (Tensor, SVBRDF)):
+        return value.to(device=device)
+    if isinstance(value, dict):
+        return {name: _moved(item, device) for name, item in value.items()}
+    if isinstance(value, (TileResult, Checks, PlainFit, ResidualTerm)):
+        return replace(value, **{f.name: _moved(getattr(value, f.name), device) for f in fields(value)})
+    return value
