@@ -70,7 +70,7 @@ def fit_positions(capture: Capture, meta: dict) -> tuple[torch.Tensor | None, st
     """The near lights' positions ``(K, 3)`` (float64; ``None``: distant lights) under which maps
     predict ``capture``'s frames, and what they come from: the capture's (``frames[k].position``),
     unless the fit calibrated them from the photographs (``meta``: ``svbrdf.json``, its
-    ``fit.lights``: :func:`torchspec.pipeline.plan.calibrated`): one dome radius (every frame at
+    ``fit.lights``: :func:`torchspec.pipeline.calibration.calibrated`): one dome radius (every frame at
     that distance along its direction), or the positions of the frames it fitted (``fit.frames``;
     the others keep the capture's, else lie at the calibrated positions' median distance along
     their direction). Calibrated gains are not used: a frame the fit left out has none.

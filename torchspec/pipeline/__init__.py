@@ -18,8 +18,10 @@ the whole image, :mod:`~torchspec.pipeline.assembly` joins the tiles into a :cla
 (:mod:`~torchspec.pipeline.result`), after :mod:`~torchspec.pipeline.smoothing` with
 ``FitConfig.smooth``. Two drivers run the tiles: :func:`fit` in this process
 (:mod:`~torchspec.pipeline.in_process`) and :func:`fit_on_cluster` on a Dask cluster
-(:mod:`~torchspec.pipeline.cluster`); both plan the fit alike (:mod:`~torchspec.pipeline.plan`) and
-share the checkpoint format (:mod:`~torchspec.pipeline.checkpoint`). The settings:
+(:mod:`~torchspec.pipeline.cluster`); both plan the fit alike (:mod:`~torchspec.pipeline.plan`),
+decide by one policy whether its lights are calibrated from the photographs
+(:mod:`~torchspec.pipeline.calibration`: in this process; a cluster refuses such a fit) and share
+the checkpoint format (:mod:`~torchspec.pipeline.checkpoint`). The settings:
 :mod:`~torchspec.pipeline.settings`.
 """
 

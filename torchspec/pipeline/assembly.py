@@ -48,7 +48,7 @@ def run_stats(
     frames, the scale it was read at (:class:`~torchspec.io.scale.ScaledCapture`; ``None``: full
     size), its lights and view (:func:`scene_record`), the settings, the device, the pixels and
     tiling, the tiles resumed, ``seconds`` per stage so far, the masked samples per kind, ``lights``
-    (the record of :func:`torchspec.pipeline.plan.calibrated`; ``None``: the lights as written) and,
+    (the record of :func:`torchspec.pipeline.calibration.calibrated`; ``None``: the lights as written) and,
     on a cluster, ``cluster`` (``stats["distributed"]``). Every driver builds the ``fit`` block of
     ``svbrdf.json`` here (then :func:`assemble`): the same keys, in the same order, from either."""
     stats = {

@@ -47,6 +47,7 @@ from ..photometric import peak_of, sample_masks, saturation_level
 from ..progress import bar as progress_bar
 from ..residual_term import TermDomain
 from .assembly import assemble, run_stats
+from .calibration import calibrates
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, refuse_unfinished, tile_name
 from .plan import RUNTIME_BYTES, plan, setup
 from .result import Fit
@@ -151,7 +152,7 @@ class _Job:
 
     @property
     def domain(self) -> TermDomain:
-        """The residual term's encoding (:attr:`torchspec.pipeline.plan.Setup.domain`)."""
+        """The residual term's encoding (:attr:`torchspec.pipeline.records.Setup.domain`)."""
         return TermDomain.of_source(self.capture.extra.get("source"))
 
     @property
@@ -180,18 +181,14 @@ class _Job:
 
 
 def _distant(begun):
-    """``begun`` (a :class:`~torchspec.pipeline.plan.Setup`), if its lights are distant and known.
+    """``begun`` (a :class:`~torchspec.pipeline.records.Setup`), if its lights are distant and known.
 
     Raises:
         TorchspecError: near lights (frames with a ``position``), or lights to calibrate from the
-            photographs (``FitConfig.calibrate``), which a fit on a cluster does not handle yet.
+            photographs (``FitConfig.calibrate``: :func:`~torchspec.pipeline.calibration.calibrates`),
+            which a fit on a cluster does not handle yet.
     """
-    calibrate = begun.config.calibrate
-    if (
-        begun.positions is not None
-        or calibrate in ("gains", "positions", "dome")
-        or (calibrate == "auto" and begun.capture.unknown)
-    ):
+    if begun.positions is not None or calibrates(begun.config.calibrate, begun.capture.unknown):
         what = (
             "give near-light positions" if begun.positions is not None else "are to be calibrated from the photographs"
         )

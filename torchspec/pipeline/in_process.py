@@ -11,8 +11,9 @@ from ..io import Capture
 from ..photometric import sample_masks
 from ..progress import bar as progress_bar
 from .assembly import assemble, run_stats
+from .calibration import calibrated
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, refuse_unfinished
-from .plan import calibrated, plan, setup
+from .plan import plan, setup
 from .result import Fit
 from .settings import FitConfig
 from .start import light_context

@@ -2,21 +2,59 @@
 the cluster driver share: a tile's result (:class:`TileResult`) and every pixel's fit without a
 lobe (:class:`PlainFit`). Here, below every module that makes or reads them, so that the
 checkpoint (which saves tiles) imports no stage that fits one; :mod:`~torchspec.pipeline.tile` and
-:mod:`~torchspec.pipeline.smoothing` re-export them.
+:mod:`~torchspec.pipeline.smoothing` re-export them. Also what every driver starts from
+(:class:`Setup`) and the warning of a fit (:class:`FitWarning`), which the planning
+(:mod:`~torchspec.pipeline.plan`, which re-exports them) and the light calibration
+(:mod:`~torchspec.pipeline.calibration`) share without importing each other.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
-from ..residual_term import ResidualTerm
+from ..io import Capture
+from ..lights import Lights
+from ..residual_term import ResidualTerm, TermDomain
 from .checks import Checks
+from .settings import FitConfig
 
-__all__ = ["PlainFit", "TileResult"]
+__all__ = ["FitWarning", "PlainFit", "Setup", "TileResult"]
+
+
+class FitWarning(UserWarning):
+    """Something a fit ran through but its user should know: lights that miss where the peaks lie,
+    many pixels stopped at the solver's iteration limit (also listed in ``stats["warnings"]``)."""
+
+
+@dataclass(frozen=True)
+class Setup:
+    """What every driver of a fit starts from.
+
+    Attributes:
+        config: the settings; capture: the capture (its manifest read); picked: the frames fitted.
+        lights: the picked frames' lights (``K``), on the settings' device and dtype.
+        view: ``(3,)`` the view direction, alike.
+        positions: ``(K, 3)`` the picked frames' near-light positions (``Frame.position``; object
+            units, :mod:`torchspec.near_lights`), alike; ``None`` for distant lights.
+        gains: ``(K, C)`` the gains :func:`~torchspec.pipeline.calibration.calibrated` found (in
+            ``lights``' irradiance), else ``None``.
+        domain: the encoding the residual term is fitted in: the capture's estimated camera response
+            where its import estimated one (``source.transfer: response``), else sRGB
+            (:class:`torchspec.residual_term.TermDomain`).
+    """
+
+    config: FitConfig
+    capture: Capture
+    picked: list[int]
+    lights: Lights
+    view: Tensor
+    positions: Tensor | None = None
+    gains: Tensor | None = None
+    domain: TermDomain = field(default_factory=TermDomain)
 
 
 @dataclass(frozen=True)

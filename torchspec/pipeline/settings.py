@@ -113,7 +113,7 @@ class FitConfig:
             per model and pixel); ``N``: ``N`` steps of the solver per fold (all folds of all pixels
             in one batch: about ``folds`` times the cost of the fits).
         calibrate: the lights estimated from the photographs with the maps
-            (:func:`torchspec.pipeline.plan.calibrated`): ``auto`` (what the capture's manifest
+            (:func:`torchspec.pipeline.calibration.calibrated`): ``auto`` (what the capture's manifest
             lists as ``unknown``: its irradiance, a gain per frame and channel, with a dome radius
             for lights written as directions, kept where the gains are refused; its lights'
             positions), ``gains``, ``positions`` (near lights' positions and gains), ``dome`` (gains
