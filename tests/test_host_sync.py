@@ -54,17 +54,8 @@ def _problem(kernel: Kernel, count: int = 6):
     return svbrdf, lights, observed, weight
 
 
-EXTENDED_PICKS = pytest.mark.xfail(
-    strict=True,
-    reason="not yet: under an extended kernel each step still picks, with one nonzero each, the pixel-frame pairs "
-    "whose diffuse clamp (diffuse.py) and whose lobe (nodes.py fallback_rule) reach the horizon (issue 36)",
-)
-
-
 @pytest.mark.parametrize(
-    "kernel",
-    [Kernel("point"), pytest.param(Kernel("gaussian", sigma=0.08), marks=EXTENDED_PICKS)],
-    ids=["point", "gaussian"],
+    "kernel", [Kernel("point"), Kernel("gaussian", sigma=0.08)], ids=["point", "gaussian"]
 )
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_a_solver_step_does_not_wait_for_the_device(name, kernel, monkeypatch):

@@ -15,6 +15,7 @@ from torch import Tensor
 from .errors import TorchspecError
 from .fusion import fused
 from .lights import Kernel, Lights
+from .lm.picks import keep, pick_pairs
 from .quadrature import CLAMPS, legendre
 
 __all__ = ["diffuse_integral", "clamped_diffuse", "ACROSS"]
@@ -29,7 +30,9 @@ def diffuse_integral(
     """``integral D_k <n, w>^+`` ``(N, K)`` for normals ``(N, 3)`` and the frames' effective
     directions ``direction (K, 3)`` (:func:`torchspec.lights.diffuse_directions`): ``<n, d_k>``,
     clamped exactly where the kernel reaches behind the normal's horizon
-    (:func:`clamped_diffuse`, for the pairs one ``nonzero`` per call picks).
+    (:func:`clamped_diffuse`, for the pairs :func:`torchspec.lm.picks.pick_pairs` picks: one
+    ``nonzero`` per call, or inside a solver step a fixed number of pairs, without a host
+    synchronisation).
 
     A pair is picked when the normal's horizon passes within the ``margin`` of the rule
     ``CLAMPS[clamp]`` in kernel stds of the kernel's mean: the signed distance ``g / |grad g|`` of
@@ -58,17 +61,17 @@ def diffuse_integral(
     gx, gy = grad[..., 0], grad[..., 1]  # a quadratic form written out: no batched small products
     spread = (gx * gx * cov[:, 0, 0] + 2.0 * gx * gy * cov[:, 0, 1] + gy * gy * cov[:, 1, 1]).clamp(min=0.0).sqrt()
     rule = CLAMPS[clamp]
-    pairs = (g < rule.margin * spread).nonzero()
-    if pairs.shape[0]:
-        p, k = pairs[:, 0], pairs[:, 1]
+    p, k, valid = pick_pairs(g < rule.margin * spread, "diffuse clamp")
+    if p.shape[0]:
         nodes = {"order": rule.order, "lines": rule.lines}
-        integral = fused(clamped_diffuse, compile, pairs.shape[0])
+        integral = fused(clamped_diffuse, compile, p.shape[0])
+        linear = value[p, k]
         if gradient:
-            exact, slope = integral(kernel, centre[k], normal[p], value[p, k], direction=direction[k], **nodes)
-            grad_n = grad_n.index_put((p, k), slope)
+            exact, slope = integral(kernel, centre[k], normal[p], linear, direction=direction[k], **nodes)
+            grad_n = grad_n.index_put((p, k), keep(valid, slope, grad_n[p, k]))
         else:
-            exact = integral(kernel, centre[k], normal[p], value[p, k], **nodes)
-        value = value.index_put((p, k), exact)
+            exact = integral(kernel, centre[k], normal[p], linear, **nodes)
+        value = value.index_put((p, k), keep(valid, exact, linear))
     return (value, grad_n) if gradient else value
 
 

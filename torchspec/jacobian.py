@@ -40,6 +40,7 @@ from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
 from .geometry import angles_from_normal, normal_derivative, normal_from_angles
 from .lights import Lights, diffuse_directions
+from .lm.picks import keep
 from .lobe import at_nodes, lobe_frame, pick
 from .nodes import fallback_rule, fast_rule, node_rules
 from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
@@ -361,7 +362,7 @@ def _lobe_parts(
             fallback = fallback_rule(kernel, centre, pixels, reaches, orders[1], compiled) if auto else None
         if fallback is not None:
             # Broadcast unlike the main call: compiled apart (a second compilation, once).
-            p, k, rule = fallback
+            p, k, valid, rule = fallback
             value, d_value_n, d_value_shape = fused(_integrate_fallback, compiled, p.shape[0])(
                 kernel,
                 centre[k][:, None],
@@ -370,9 +371,9 @@ def _lobe_parts(
                 None if isotropic else frame_dt[p],
                 *(r.detach() for r in rule),
             )
-            spec = spec.index_put((p, k), value[:, 0])
-            d_spec_n = d_spec_n.index_put((p, k), d_value_n[:, 0])
-            d_spec_shape = d_spec_shape.index_put((p, k), d_value_shape[:, 0])
+            spec = spec.index_put((p, k), keep(valid, value[:, 0], spec[p, k]))
+            d_spec_n = d_spec_n.index_put((p, k), keep(valid, d_value_n[:, 0], d_spec_n[p, k]))
+            d_spec_shape = d_spec_shape.index_put((p, k), keep(valid, d_value_shape[:, 0], d_spec_shape[p, k]))
 
     return spec, d_spec_n, d_spec_shape
 

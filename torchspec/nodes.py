@@ -22,6 +22,7 @@ from torch import Tensor
 
 from .fusion import FIXED_SIZES, fused
 from .lights import Kernel, polar_nodes
+from .lm.picks import pick_pairs
 from .lobe import LobeFrame, from_slope, lobe_moments, pick, slope_at
 from .quadrature import hermite, legendre
 
@@ -250,8 +251,8 @@ def node_rules(kernel: Kernel, centre: Tensor, p: LobeFrame, path: str, orders: 
     """The nodes of every pixel-frame pair on ``path`` (``fast``, ``reference`` or ``auto``) for
     frames centred at ``centre (F, 3)`` and the orders ``(fast, reference)``
     (:meth:`torchspec.quadrature.Quadrature.orders`): x, y, area ``(N, F, Q)``, and for ``auto``
-    the pairs ``(pixel, frame)`` whose product reaches the horizon with their reference nodes
-    ``(M, 1, Q')`` (else ``None``)."""
+    the pairs ``(pixel, frame)`` whose product reaches the horizon, their validity and their
+    reference nodes ``(M, 1, Q')`` (:func:`fallback_rule`; else ``None``)."""
     fast, reference = orders
     if path == "reference":
         return reference_rule(kernel, centre[None], p, reference), None
@@ -262,12 +263,15 @@ def node_rules(kernel: Kernel, centre: Tensor, p: LobeFrame, path: str, orders: 
 
 
 def fallback_rule(kernel: Kernel, centre: Tensor, p: LobeFrame, reaches: Tensor, order: int, compile: bool = False):
-    """The pairs ``(pixel, frame)`` of ``reaches (N, F)`` with their reference nodes ``(M, 1, Q')``
-    (x, y, area), or ``None`` when there are none; ``compile``: the rule fused by torch.compile."""
-    cut = reaches.nonzero()
-    if not cut.shape[0]:
+    """The pairs ``(pixel, frame)`` of ``reaches (N, F)`` (:func:`torchspec.lm.picks.pick_pairs`:
+    one ``nonzero``, or inside a solver step a fixed number of pairs, without a host
+    synchronisation), whether each is one of them (``valid (M,)``, ``None``: all are) and their
+    reference nodes ``(M, 1, Q')`` (x, y, area); ``None`` when there are none. A caller writes
+    back the valid pairs' values only (:func:`torchspec.lm.picks.keep`). ``compile``: the rule
+    fused by torch.compile."""
+    pixel, frame, valid = pick_pairs(reaches, "lobe fallback")
+    if not pixel.shape[0]:
         return None
-    pixel, frame = cut[:, 0], cut[:, 1]
-    rule = fused(reference_rule, compile, cut.shape[0])
-    return pixel, frame, rule(kernel, centre[frame][:, None], pick(p, pixel), order)
+    rule = fused(reference_rule, compile, pixel.shape[0])
+    return pixel, frame, valid, rule(kernel, centre[frame][:, None], pick(p, pixel), order)
 

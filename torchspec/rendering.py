@@ -40,6 +40,7 @@ from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
 from .geometry import from_plane
 from .lights import Lights, diffuse_directions
+from .lm.picks import keep
 from .lobe import lobe_at, lobe_frame, pick
 from .nodes import node_rules
 from .progress import bar
@@ -211,12 +212,12 @@ def _specular(svbrdf, lights, view, path, orders, compile=False, lobe="ward") ->
     (lx, ly, area), fallback = node_rules(kernel, centre, pixels, path, orders)
     value = integrate(kernel, centre[None], pixels, lx, ly, area)
     if fallback is not None:  # auto: the pairs whose product reaches the horizon, by the reference rule
-        p, k, (lx, ly, area) = fallback
+        p, k, valid, (lx, ly, area) = fallback
         if lobe == "ward":
             exact = _integrate(kernel, centre[k][:, None], pick(pixels, p), lx, ly, area)[:, 0]
         else:
             exact = integrate(kernel, centre[k][:, None], None, lx, ly, area, index=p)[:, 0]
-        value = value.index_put((p, k), exact)
+        value = value.index_put((p, k), keep(valid, exact, value[p, k]))
     return value
 
 

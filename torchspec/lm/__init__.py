@@ -4,6 +4,8 @@
   :class:`LMResult` and the status codes (:data:`STATUS`); the module docstring states the
   algorithm (steps, acceptance, damping, convergence and failure).
 - :mod:`torchspec.lm.bounds`: bounds by reparametrisation, :class:`Bounds` and :func:`bounded`.
+- :mod:`torchspec.lm.picks`: a residual function's picks of pairs, of a size fixed at the solver's
+  check (no host synchronisation in a step), their overflow seen there and its steps taken again.
 """
 
 from .bounds import Bounds, bounded

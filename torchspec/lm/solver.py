@@ -53,9 +53,11 @@ Converged and failed problems are frozen. The loop runs at most ``max_iterations
 ``check_every`` steps (and before the first) it counts the running problems, which is the solver's
 only host synchronisation: it stops when none is left and otherwise drops the finished ones, so
 ``residual_fn`` is then called on a compacted subset of the rows, with their indices. The models'
-residual functions add none under point lights (``tests/test_host_sync.py``); under an extended
-kernel they still pick, once per step each, the pixel-frame pairs whose diffuse clamp and whose
-lobe reach the horizon.
+residual functions add none (``tests/test_host_sync.py``): under an extended kernel they pick the
+pixel-frame pairs whose diffuse clamp and whose lobe reach the horizon with picks of a size fixed
+at the check (:mod:`torchspec.lm.picks`), whose counts the check reads in the same
+synchronisation; where a pick held more pairs than its size, the steps since the last check are
+taken again from it with larger sizes (the results are those of exact picks).
 
 References:
     Marquardt, "An algorithm for least-squares estimation of nonlinear parameters", SIAM J.
@@ -78,6 +80,7 @@ from torch import Tensor
 
 from ..config import ConfigError
 from ..errors import TorchspecError
+from .picks import Capacities
 
 __all__ = [
     "CONVERGED",
@@ -240,13 +243,16 @@ def _checked_normal(out: NormalEquations, x: Tensor) -> tuple[Tensor, Tensor, Te
     return out.cost.detach(), out.hess.detach(), out.grad.detach()
 
 
-def _evaluate(residual_fn: ResidualFn, x: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Cost ``(M,)``, ``J^T J`` ``(M, P, P)``, ``J^T r`` ``(M, P)`` and finiteness ``(M,)`` at ``x``.
+def _evaluate(
+    residual_fn: ResidualFn, x: Tensor, index: Tensor, capacities: Capacities | None = None, exact: bool = False
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cost ``(M,)``, ``J^T J`` ``(M, P, P)``, ``J^T r`` ``(M, P)`` and finiteness ``(M,)`` at ``x``,
+    the residual function's picks under ``capacities`` (exact with ``exact``), if given.
 
     Rows that are not finite get cost ``inf``, ``J^T J = I`` and ``J^T r = 0`` so that later
     batched algebra on them stays harmless (their values are never used).
     """
-    out = residual_fn(x, index)
+    out = residual_fn(x, index) if capacities is None else capacities.evaluate(residual_fn, x, index, exact=exact)
     if isinstance(out, NormalEquations):
         cost, hess, grad = _checked_normal(out, x)
     else:
@@ -318,8 +324,10 @@ def _newton_stop(state: _State, xtol: float) -> _State:
     return state
 
 
-def _step(state: _State, residual_fn: ResidualFn, config: LMConfig) -> _State:
-    """One LM step of every running problem; the others are left as they are."""
+def _step(state: _State, residual_fn: ResidualFn, config: LMConfig, capacities: Capacities | None = None) -> _State:
+    """One LM step of every running problem, the residual function's picks under ``capacities``;
+    the others are left as they are. ``state`` itself is left as it is (the solver may take the
+    step again from it)."""
     x, cost, hess, grad, lam, running = state.x, state.cost, state.hess, state.grad, state.damping, state.running
     finfo = torch.finfo(x.dtype)
     ftol, xtol, gtol = (max(tol, _ROUNDING * finfo.eps) for tol in (config.ftol, config.xtol, config.gtol))
@@ -335,7 +343,7 @@ def _step(state: _State, residual_fn: ResidualFn, config: LMConfig) -> _State:
     step = torch.where(solvable[:, None], step, torch.zeros_like(step))
 
     trial = x + step
-    cost_t, hess_t, grad_t, finite_t = _evaluate(residual_fn, trial, state.index)
+    cost_t, hess_t, grad_t, finite_t = _evaluate(residual_fn, trial, state.index, capacities)
     usable = solvable & finite_t
     actual = torch.where(usable, cost - cost_t, torch.zeros_like(cost))
     predicted = 0.5 * (lam * (scale * step * step).sum(-1) - (step * grad).sum(-1))
@@ -380,12 +388,13 @@ def _check_params(params) -> None:
         raise TorchspecError(f"params must have at least one column (N, P >= 1); got shape {tuple(params.shape)}.")
 
 
-def _start(residual_fn: ResidualFn, x0: Tensor, out: LMResult, config: LMConfig) -> _State:
-    """Every problem at its start ``x0 (N, P)``, evaluated: ``DIVERGED`` where not finite,
-    ``CONVERGED`` where the ``gtol`` test holds, running otherwise; fills ``out.initial_cost``."""
+def _start(residual_fn: ResidualFn, x0: Tensor, out: LMResult, config: LMConfig, capacities: Capacities) -> _State:
+    """Every problem at its start ``x0 (N, P)``, evaluated (its picks exact, setting the first
+    ``capacities``): ``DIVERGED`` where not finite, ``CONVERGED`` where the ``gtol`` test holds,
+    running otherwise; fills ``out.initial_cost``."""
     n = x0.shape[0]
     index = torch.arange(n, device=x0.device)
-    cost, hess, grad, finite = _evaluate(residual_fn, x0, index)
+    cost, hess, grad, finite = _evaluate(residual_fn, x0, index, capacities, exact=True)
     out.initial_cost.copy_(cost)
     gtol = max(config.gtol, _ROUNDING * torch.finfo(x0.dtype).eps)
     start_converged = finite & _gradient_small(grad, hess, cost, gtol)
@@ -418,7 +427,10 @@ def solve(
     :class:`NormalEquations`), in the dtype and on the device of ``x``. Use ``index`` to pick each
     problem's own data (``data[index]``): after each check the finished problems are dropped, so
     row ``m`` of ``x`` is problem ``index[m]``, not ``m``. Each problem's outputs must depend on
-    its own row only. Outputs are detached.
+    its own row only. Outputs are detached. Its picks of pairs
+    (:func:`torchspec.lm.picks.pick_pairs`) are exact at the start and of a size fixed at the
+    last check in the steps; a step whose pick overflowed is taken again, so ``residual_fn`` may
+    be called more than once at the same point.
 
     Args:
         residual_fn: see above; shapes are checked on every call.
@@ -461,18 +473,40 @@ def solve(
             progress(0, 0)
         return out
 
-    state = _start(residual_fn, x0, out, config)
-    xtol = max(config.xtol, _ROUNDING * torch.finfo(params.dtype).eps)
-
+    capacities = Capacities()
+    state = _start(residual_fn, x0, out, config, capacities)
     every = config.check_every or (1 if params.device.type == "cpu" else 4)
-    for k in range(config.max_iterations + 1):
+    _iterate(state, residual_fn, out, config, every, capacities, progress)
+    return out
+
+
+def _iterate(
+    state: _State,
+    residual_fn: ResidualFn,
+    out: LMResult,
+    config: LMConfig,
+    every: int,
+    capacities: Capacities,
+    progress: Callable[[int, int], object] | None,
+) -> None:
+    """:func:`solve`'s steps from ``state``, checked every ``every`` steps (the one host
+    synchronisation): the running problems are counted and ``out`` filled; where a residual
+    function's pick held more pairs than its capacity (:mod:`torchspec.lm.picks`), the steps
+    since the last check are taken again from it, with capacities that hold them."""
+    n = out.params.shape[0]
+    xtol = max(config.xtol, _ROUNDING * torch.finfo(out.params.dtype).eps)
+    saved, at, k = state, 0, 0  # the state after the last check, and its step
+    while True:
         if k > 0:
-            state = _step(state, residual_fn, config)
+            state = _step(state, residual_fn, config, capacities)
         if k % every == 0 or k == config.max_iterations:
             state = _newton_stop(state, xtol)
+            running, overflowed = capacities.check(state.running.sum())  # the host synchronisation
+            if overflowed:  # a pick was cut short: its steps again, from the last check
+                state, k = saved, at + 1
+                continue
             for name in ("params", "cost", "status", "iterations", "damping"):
                 getattr(out, name)[state.index] = getattr(state, "x" if name == "params" else name)
-            running = int(state.running.sum())  # the host synchronisation
             last = running == 0 or k == config.max_iterations
             if progress is not None:
                 progress(n if last else n - running, n)
@@ -480,4 +514,5 @@ def solve(
                 break
             if running < state.running.shape[0]:
                 state = state.take(state.running.nonzero().squeeze(-1))
-    return out
+            saved, at = state, k
+        k += 1
