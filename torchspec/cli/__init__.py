@@ -48,7 +48,9 @@ def main(argv: list[str] | None = None) -> int:
         70 (``EX_SOFTWARE``) for a bug, printed with its traceback and a request to report it.
     """
     parser = build_parser()
-    args = parser.parse_args(negative_values(sys.argv[1:] if argv is None else argv))
+    given = list(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(negative_values(given))
+    args.argv = given  # the command line as typed: what an interrupted command says to run again
     if args.command is None:
         parser.print_help()
         return 2

@@ -33,14 +33,15 @@ def device_option(parser: argparse.ArgumentParser, args: argparse.Namespace):
 
 
 
-def _again(*extra: str) -> str:
-    """The command line of ``sys.argv`` without ``--resume``, ``extra`` added: what runs it again."""
-    return " ".join(["torchspec", *(shlex.quote(a) for a in sys.argv[1:] if a != "--resume"), *extra])
+def _again(args: argparse.Namespace, *extra: str) -> str:
+    """The command line as typed (``args.argv``, set by :func:`torchspec.cli.main`) without
+    ``--resume``, ``extra`` added: what runs it again."""
+    return " ".join(["torchspec", *(shlex.quote(a) for a in args.argv if a != "--resume"), *extra])
 
 
-def _rerun() -> str:
-    """The command line that continues the interrupted command of ``sys.argv``: the same, with ``--resume``."""
-    return _again("--resume")
+def _rerun(args: argparse.Namespace) -> str:
+    """The command line that continues the interrupted command ``args``: the same, with ``--resume``."""
+    return _again(args, "--resume")
 
 
 def _check_output(args: argparse.Namespace, path: Path | None = None, **rule) -> Path:
@@ -182,7 +183,7 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             result = _fit_on_cluster(args, config, checkpoint)
         write_fit(args.output, result, overwrite=True)  # checked above, before the fit
     except KeyboardInterrupt as stop:  # Ctrl-C at any point: reading, calibrating, a tile, writing
-        return _fit_interrupted(stop, checkpoint)
+        return _fit_interrupted(args, stop, checkpoint)
     shutil.rmtree(checkpoint, ignore_errors=True)  # the maps are written: the tiles are no longer needed
     previews = None
     if not args.no_previews:
@@ -197,7 +198,7 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     return 0
 
 
-def _fit_interrupted(stop: KeyboardInterrupt, checkpoint: Path) -> int:
+def _fit_interrupted(args: argparse.Namespace, stop: KeyboardInterrupt, checkpoint: Path) -> int:
     """Say, in one line, what an interrupted fit saved and the command that continues it (or runs it
     again, when no tile was saved: the checkpoint, which holds no work, is removed); exit 130."""
     from ..pipeline import FitInterrupted
@@ -205,12 +206,12 @@ def _fit_interrupted(stop: KeyboardInterrupt, checkpoint: Path) -> int:
     saved = len(list(checkpoint.glob("tile-*.pt"))) if checkpoint.is_dir() else 0
     if saved:
         total = f" of {stop.total}" if isinstance(stop, FitInterrupted) else ""
-        print(f"torchspec fit: interrupted: {saved}{total} tiles are saved in {checkpoint}; continue with: {_rerun()}",
-              file=sys.stderr)
+        print(f"torchspec fit: interrupted: {saved}{total} tiles are saved in {checkpoint}; continue with: "
+              f"{_rerun(args)}", file=sys.stderr)
     else:
         shutil.rmtree(checkpoint, ignore_errors=True)  # no tile: nothing to continue, the same command starts over
         print(f"torchspec fit: interrupted before any tile was saved: nothing is written. Run it again with: "
-              f"{_again()}", file=sys.stderr)
+              f"{_again(args)}", file=sys.stderr)
     return INTERRUPTED
 
 
@@ -348,7 +349,7 @@ def _acquire(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             capture = acquire(client, camera, args.output, light=light, layout=args.layout, radius=args.radius,
                               resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     except (AcquisitionStopped, AcquisitionInterrupted) as stop:
-        print(f"torchspec acquire: {stop} Continue with: {_rerun()}", file=sys.stderr)
+        print(f"torchspec acquire: {stop} Continue with: {_rerun(args)}", file=sys.stderr)
         return INTERRUPTED if isinstance(stop, AcquisitionInterrupted) else 1
     print(f"wrote {args.output}: {len(capture.frames)} frames of {capture.width}x{capture.height} "
           f"{''.join(capture.channels)}")
