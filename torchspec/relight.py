@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .brdf import SVBRDF
@@ -29,7 +30,7 @@ from .quadrature import Quadrature
 from .rendering import TILE_PIXELS, render, render_image
 from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["capture_for", "fit_positions", "psnr", "render_capture", "render_near", "residual_term_of"]
+__all__ = ["capture_for", "fit_positions", "fitted_scales", "psnr", "render_capture", "render_near", "residual_term_of"]
 
 
 def render_near(
@@ -64,6 +65,19 @@ def render_near(
         out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
         out[index] = values
     return out.reshape(height, width, *out.shape[1:])
+
+
+def fitted_scales(exposure, irradiance, lights: dict) -> tuple[np.ndarray, bool]:
+    """Each fitted frame's ``exposure x irradiance`` ``(F, C)`` (``exposure (F,)``, ``irradiance
+    (F, C)``), times the gains the fit calibrated (``svbrdf.json``'s ``fit.lights``: ``gains`` where
+    ``calibrated`` lists ``irradiance``; one per frame and channel, or per frame), and whether it did:
+    each photograph's brightness over the maps' render under a unit light."""
+    products = np.asarray(exposure, dtype=np.float64)[:, None] * np.asarray(irradiance, dtype=np.float64)
+    calibrated = "irradiance" in (lights.get("calibrated") or []) and lights.get("gains") is not None
+    if calibrated:
+        gains = np.asarray(lights["gains"], dtype=np.float64)
+        products = products * (gains if gains.shape == products.shape else gains.reshape(products.shape[0], -1))
+    return products, calibrated
 
 
 def fit_positions(capture: Capture, meta: dict) -> tuple[torch.Tensor | None, str]:

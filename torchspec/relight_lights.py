@@ -50,7 +50,7 @@ from .outputs import check_output
 from .pipeline.assembly import scene_record
 from .pipeline.plan import device_of
 from .quadrature import Quadrature
-from .relight import capture_for, render_near, residual_term_of
+from .relight import capture_for, fitted_scales, render_near, residual_term_of
 from .rendering import render_image
 
 __all__ = ["FORMATS", "LIGHTS_JSON", "LIGHTS_LP", "NewLight", "Scene", "parse_light", "read_new_lights",
@@ -191,12 +191,9 @@ def scene_of(maps: Maps, svbrdf_dir: Path | str, capture: Capture | None = None)
 def _default_irradiance(record: dict, calibration: dict) -> tuple[tuple[float, ...], str]:
     """Per channel, the median over the fitted frames of ``exposure x irradiance x gain``, and
     how it was chosen, in words."""
-    scale = np.asarray(record["exposure"], dtype=np.float64)[:, None] * np.asarray(record["irradiance"], np.float64)
-    gains = calibration.get("gains") if "irradiance" in (calibration.get("calibrated") or []) else None
-    if gains is not None:
-        scale = scale * np.asarray(gains, dtype=np.float64)
+    scale, gains = fitted_scales(record["exposure"], record["irradiance"], calibration)
     count = scale.shape[0]
-    what = "exposure x irradiance x the calibrated gain" if gains is not None else "exposure x irradiance"
+    what = "exposure x irradiance x the calibrated gain" if gains else "exposure x irradiance"
     return tuple(float(v) for v in np.median(scale, axis=0)), f"the median over the fit's {count} frames of {what}"
 
 

@@ -38,6 +38,7 @@ from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
 from ..lights import Kernel, Lights
 from ..outputs import check_output
+from ..relight import fitted_scales
 from ..rendering import render
 from ..residual_term import MAP_NAME, TermDomain, hsh_basis
 from .arrays import ExportError, ExportWarning, checked_svbrdf
@@ -357,12 +358,10 @@ def _photographs_irradiance(maps: Maps | SVBRDF, capture: Capture, fit: dict, do
             f"svbrdf.json fit.frames names frames {capture.manifest} does not have ({count} frames): export the "
             "maps with the capture they were fitted from."
         )
-    products = capture.exposure().numpy()[frames, None] * capture.irradiance().numpy()[frames]  # (F, C)
-    lights = fit.get("lights") or {}
+    products, gains = fitted_scales(capture.exposure().numpy()[frames], capture.irradiance().numpy()[frames],
+                                    fit.get("lights") or {})  # fmt: skip
     words = f"the median exposure times irradiance of the {len(frames)} frames of {capture.root} fitted"
-    if "irradiance" in (lights.get("calibrated") or []) and lights.get("gains") is not None:
-        gains = np.asarray(lights["gains"], dtype=np.float64)
-        products = products * (gains if gains.shape == products.shape else gains.reshape(len(frames), -1))
+    if gains:
         words += ", times the gains the fit calibrated"
     return RtiLighting(float(np.median(products)), domain, words + ": the photographs' brightness")
 
