@@ -258,3 +258,19 @@ def test_a_tabulated_kernel_needs_its_capture(tmp_path):
     (tmp_path / "point.json").write_text('{"kernel": "point"}')
     report = render_lights(maps, tmp_path / "out", [parse_light("0,0,1")], light_model=tmp_path / "point.json")
     assert torch.allclose(report["images"][0], torch.full((3, 3, 4), 0.5 / np.pi))
+
+
+def test_maps_and_capture_moved_together_find_each_other(painting, tmp_path):
+    """fit.capture is written as an absolute path; maps that do not record their scene, moved with
+    their capture to another folder, find it by its folder's name beside them (relight.capture_places),
+    as the .rti export does."""
+    from torchspec.relight import capture_places
+
+    moved = tmp_path / "elsewhere"
+    shutil.copytree(painting, moved / "painting")
+    folder, gone = moved / "maps", str(tmp_path / "gone" / "painting")
+    write_svbrdf(folder, read_svbrdf(painting / "truth").svbrdf, meta={"fit": {"capture": gone}})
+    assert capture_places(gone, folder)[-1] == moved.resolve() / "painting"
+    scene = scene_of(read_svbrdf(folder), folder)  # no fit.scene: read from the capture found beside
+    assert scene.source == str(read_capture(moved / "painting").manifest)
+    assert scene.root == (moved / "painting").resolve()

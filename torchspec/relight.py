@@ -30,7 +30,16 @@ from .quadrature import Quadrature
 from .rendering import TILE_PIXELS, render, render_image
 from .residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 
-__all__ = ["capture_for", "fit_positions", "fitted_scales", "psnr", "render_capture", "render_near", "residual_term_of"]
+__all__ = [
+    "capture_places",
+    "capture_for",
+    "fit_positions",
+    "fitted_scales",
+    "psnr",
+    "render_capture",
+    "render_near",
+    "residual_term_of",
+]
 
 
 def render_near(
@@ -65,6 +74,15 @@ def render_near(
         out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
         out[index] = values
     return out.reshape(height, width, *out.shape[1:])
+
+
+def capture_places(name: str, maps_folder: str | Path) -> list[Path]:
+    """Where the capture that ``svbrdf.json``'s ``fit.capture`` names (``name``) may be, in order:
+    as written (an absolute path), beside the maps' folder ``maps_folder`` as written (a relative
+    one, as older fits wrote it), or by its folder's name beside the maps (maps and capture moved
+    together)."""
+    beside = Path(maps_folder).resolve().parent
+    return list(dict.fromkeys([Path(name), beside / name, beside / Path(name).name]))
 
 
 def fitted_scales(exposure, irradiance, lights: dict) -> tuple[np.ndarray, bool]:

@@ -50,7 +50,7 @@ from .outputs import check_output
 from .pipeline.assembly import scene_record
 from .pipeline.plan import device_of
 from .quadrature import Quadrature
-from .relight import capture_for, fitted_scales, render_near, residual_term_of
+from .relight import capture_for, capture_places, fitted_scales, render_near, residual_term_of
 from .rendering import render_image
 
 __all__ = ["FORMATS", "LIGHTS_JSON", "LIGHTS_LP", "NewLight", "Scene", "parse_light", "read_new_lights",
@@ -165,9 +165,8 @@ def scene_of(maps: Maps, svbrdf_dir: Path | str, capture: Capture | None = None)
     fit = maps.meta.get("fit") or {}
     record, root, source = fit.get("scene"), None, f"{svbrdf_dir / 'svbrdf.json'}"
     if capture is None and (record is None or record["light"].get("kernel") == "tabulated"):  # its table: there
-        beside = svbrdf_dir.resolve().parent
-        named = [Path(fit["capture"]), beside / fit["capture"]] if fit.get("capture") else []  # as given, or beside
-        for folder in named + ([beside] if svbrdf_dir.name == "truth" else []):
+        named = capture_places(fit["capture"], svbrdf_dir) if fit.get("capture") else []
+        for folder in named + ([svbrdf_dir.resolve().parent] if svbrdf_dir.name == "truth" else []):
             if (folder / "capture.json").is_file():
                 capture = read_capture(folder)
                 break

@@ -38,7 +38,7 @@ from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
 from ..lights import Kernel, Lights
 from ..outputs import check_output
-from ..relight import fitted_scales
+from ..relight import capture_places, fitted_scales
 from ..rendering import render
 from ..residual_term import MAP_NAME, TermDomain, hsh_basis
 from .arrays import ExportError, ExportWarning, checked_svbrdf
@@ -327,9 +327,8 @@ def _named_capture(name: str, folder: str | Path | None) -> Capture | None:
     ``None`` with an :class:`ExportWarning` when none can be read."""
     folder = None if folder is None else Path(folder).resolve()
     folder = folder.parent if folder is not None and folder.suffix.lower() == ".json" else folder
-    places = [Path(name)] + ([folder.parent / name, folder.parent / Path(name).name] if folder is not None else [])
     problems = []
-    for place in dict.fromkeys(places):
+    for place in [Path(name)] if folder is None else capture_places(name, folder):
         try:
             return read_capture(place)
         except TorchspecError as error:
