@@ -81,20 +81,18 @@ def _azimuth_steps(directions: Tensor) -> Tensor:
     return torch.stack([u[..., 0], -u[..., 1]], -1)  # surface y is up: a row less
 
 
-def marched_distances(step: float, reach: float, growth: float = 0.1) -> Tensor:
+def marched_distances(step: float, reach: float, levels: int = 3) -> Tensor:
     """The distances (pixels, float64 on the CPU: a small table) at which :func:`horizon` samples a
-    ray: from ``step`` growing by ``growth`` each sample while that is finer than ``step`` (the
-    angle of a near occluder changes fast with the distance), then every ``step``, up to ``reach``
-    (included). A light is not hidden by what lies within ``step`` of the pixel: there the surface's
-    own slope (its attached shadow, ``<n, w> <= 0``) decides."""
-    near = []
-    t = step
-    while t * growth < step and t < reach:
-        near.append(t)
-        t *= 1.0 + growth
-    start = near[-1] + step if near else step
+    ray: from ``step`` on, ``2^levels`` times finer than ``step`` up to ``2 step``, half as fine
+    again up to ``4 step``, ..., then every ``step``, up to ``reach`` (included): the angle of a near
+    occluder changes fast with the distance, and every distance is a multiple of ``step / 2^levels``
+    (whole pixels are sampled when ``step`` divides 1). A light is not hidden by what lies within
+    ``step`` of the pixel: there the surface's own slope (its attached shadow, ``<n, w> <= 0``)
+    decides."""
+    near = [step * 2**level * (1.0 + i / 2**levels) for level in range(levels) for i in range(2**levels)]
+    start = step * 2**levels
     far = [start + i * step for i in range(max(0, math.ceil((reach - start) / step)))]
-    return torch.tensor([*near, *(t for t in far if t < reach), reach], dtype=torch.float64, device="cpu")
+    return torch.tensor([t for t in near + far if t < reach] + [reach], dtype=torch.float64, device="cpu")
 
 
 def shadow_reach(height: Tensor, directions: Tensor, pitch: float = 1.0, margin: float = 0.0) -> float:
