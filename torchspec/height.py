@@ -131,16 +131,16 @@ def _check(normal: Tensor, weight: Tensor | None, pitch: float) -> tuple[Tensor,
     if not normal.is_floating_point():
         raise TorchspecError(f"height_from_normals needs floating-point normals; got {normal.dtype}.")
     if min(normal.shape[-3:-1]) < 1:
-        raise TorchspecError(f"height_from_normals needs a non-empty image; got normals of shape {tuple(normal.shape)}.")
+        raise TorchspecError(
+            f"height_from_normals needs a non-empty image; got normals of shape {tuple(normal.shape)}."
+        )
     if not (isinstance(pitch, (int, float)) and math.isfinite(pitch) and pitch > 0):
         raise TorchspecError(f"height_from_normals needs a finite pitch > 0 (the pixel pitch); got {pitch!r}.")
     batched = normal.dim() == 4
     normal = normal if batched else normal[None]
     if weight is not None:
-        if not isinstance(weight, Tensor) or tuple(weight.shape[-2:]) != tuple(normal.shape[1:3]) or weight.dim() not in (
-            2,
-            3,
-        ):
+        size = tuple(normal.shape[1:3])
+        if not isinstance(weight, Tensor) or weight.dim() not in (2, 3) or tuple(weight.shape[-2:]) != size:
             shape = tuple(weight.shape) if isinstance(weight, Tensor) else type(weight).__name__
             raise TorchspecError(
                 f"height_from_normals: weight must have shape (H, W) or (B, H, W) = {tuple(normal.shape[1:3])} "

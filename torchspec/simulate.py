@@ -22,8 +22,10 @@ from .config import ConfigError
 from .geometry import from_plane
 from .io import Capture, Frame, LightSpec, Maps, write_capture
 from .lights import Kernel, Lights
+from .relief import ReliefConfig, relief
 from .rendering import render_image
 from .synth import MirrorConfig, PaintingConfig, SensorConfig, mirror, painting, sense
+from .visibility import kernel_visibility
 
 __all__ = [
     "SceneConfig",
@@ -42,11 +44,16 @@ FORMAT_KERNELS = ("point", "gaussian", "tabulated")
 @dataclass(frozen=True)
 class SceneConfig:
     """``kind``: ``painting`` or ``mirror`` (a constant near-mirror, also the paper's single surface
-    point: set its ``ks``, ``kd``, ``alpha`` and tilt)."""
+    point: set its ``ks``, ``kd``, ``alpha`` and tilt). ``relief`` (none by default): a height field
+    (:class:`~torchspec.relief.ReliefConfig`) whose normals replace the scene's and, with its
+    ``shadows``, whose cast shadows darken the frames (the visibility of
+    :func:`torchspec.visibility.kernel_visibility` multiplies the rendered values, diffuse and
+    specular alike); its height goes to ``truth/height.exr``."""
 
     kind: str = "painting"
     painting: PaintingConfig = field(default_factory=PaintingConfig)
     mirror: MirrorConfig = field(default_factory=MirrorConfig)
+    relief: ReliefConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -94,7 +101,8 @@ class SimulationConfig:
 @dataclass(frozen=True)
 class Simulation:
     """A simulated capture before it is written: manifest, frames ``(K, C, H, W)`` float32 as
-    recorded, the saturation mask, the truth and its region map, and the light."""
+    recorded, the saturation mask, the truth and its region map, the light, and the relief's
+    height ``(H, W)`` in pixels (``None`` without ``scene.relief``)."""
 
     capture: Capture
     frames: Tensor
@@ -102,6 +110,7 @@ class Simulation:
     truth: SVBRDF
     regions: Tensor
     light: dict
+    height: Tensor | None = None
 
 
 def layout(config: LayoutConfig) -> Tensor:
@@ -165,6 +174,9 @@ def simulate(
     if truth.diffuse.shape[-1] != count:
         raise ConfigError(f"channels: the list names {count} channels but the scene has {truth.diffuse.shape[-1]}.")
     truth = replace(truth, channels=tuple(config.channels))
+    shape = relief(config.scene.relief, *truth.shape, device=device) if config.scene.relief is not None else None
+    if shape is not None:
+        truth = replace(truth, normal=shape.normal.to(truth.normal))
     centres = layout(config.layout).to(device)
     k = centres.shape[0]
     kernel = _kernel(config.light)
@@ -172,6 +184,9 @@ def simulate(
     lights = Lights(centres, kernel, irradiance, torch.ones(k, dtype=dtype, device=centres.device))
     view = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=centres.device)
     values = render_image(truth, lights, view, progress=progress, desc="simulate")  # (H, W, K, C)
+    if shape is not None and config.scene.relief.shadows:
+        softness = math.radians(config.scene.relief.softness_deg)
+        values = values * kernel_visibility(shape.height, lights, 1.0, softness)[..., None]
     recorded, saturated = sense(values.permute(2, 3, 0, 1), config.sensor)  # (K, C, H, W)
     light = {"kernel": config.light.kernel, "domain": config.light.domain, "sigma": config.light.sigma}
     if config.light.kernel == "supergaussian":
@@ -200,7 +215,8 @@ def simulate(
         extra={"generator": {"name": config.name, "torchspec": asdict(config)}},
     )
     recorded, saturated, regions = recorded.float().cpu(), saturated.cpu(), regions.cpu()
-    return Simulation(capture, recorded, saturated, truth.to(torch.float32).to("cpu"), regions, light)
+    height_map = None if shape is None else shape.height.float().cpu()
+    return Simulation(capture, recorded, saturated, truth.to(torch.float32).to("cpu"), regions, light, height_map)
 
 
 def write_simulation(path: Path | str, simulation: Simulation, *, overwrite: bool = False) -> Capture:
@@ -209,7 +225,12 @@ def write_simulation(path: Path | str, simulation: Simulation, *, overwrite: boo
     from .atomic import write_json
 
     path = Path(path)
-    maps = Maps(simulation.truth, {"model": "ward", "source": "torchspec simulate"}, {"regions": simulation.regions})
+    extra = {"regions": simulation.regions}
+    meta = {"model": "ward", "source": "torchspec simulate"}
+    if simulation.height is not None:
+        extra["height"] = simulation.height
+        meta["height"] = {"unit": "pixel", "pitch": 1.0}
+    maps = Maps(simulation.truth, meta, extra)
     capture = Capture(**{**simulation.capture.__dict__, "root": path})
     written = write_capture(path, capture, simulation.frames, truth=maps, overwrite=overwrite)
     write_json(path / "truth" / "light.json", simulation.light)

@@ -41,7 +41,19 @@ from torch import Tensor
 from .errors import TorchspecError
 from .lights import Lights, nodes
 
-__all__ = ["horizon", "visibility", "kernel_visibility", "elevation", "shadow_reach", "marched_distances", "CHUNK_ELEMENTS"]
+__all__ = [
+    "horizon",
+    "visibility",
+    "kernel_visibility",
+    "elevation",
+    "shadow_reach",
+    "marched_distances",
+    "CHUNK_ELEMENTS",
+    "SOFTNESS",
+]
+
+SOFTNESS = math.radians(1.0)
+"""The default penumbra width in elevation, radians (1 degree)."""
 
 CHUNK_ELEMENTS = 1 << 23
 """The most height samples (pixels x lights x steps) one chunk of :func:`horizon` takes at once."""
@@ -184,7 +196,7 @@ def visibility(
     height: Tensor,
     directions: Tensor,
     pitch: float = 1.0,
-    softness: float | Tensor = math.radians(1.0),
+    softness: float | Tensor = SOFTNESS,
     *,
     step: float = 0.5,
     reach: float | None = None,
@@ -217,7 +229,7 @@ def kernel_visibility(
     height: Tensor,
     lights: Lights,
     pitch: float = 1.0,
-    softness: float = math.radians(1.0),
+    softness: float = SOFTNESS,
     *,
     rule: str = "probit",
     order: int = 4,
@@ -253,7 +265,8 @@ def kernel_visibility(
     radius = torch.linalg.vector_norm(l, dim=-1, keepdim=True)
     u = torch.where(radius > 0, l / torch.where(radius > 0, radius, torch.ones_like(radius)), torch.zeros_like(l))
     cov = kernel.covariance(centre)  # (K, 2, 2)
-    radial = torch.where(radius[:, 0] > 0, torch.einsum("ki,kij,kj->k", u, cov, u), 0.5 * cov.diagonal(dim1=-2, dim2=-1).sum(-1))
+    along = torch.einsum("ki,kij,kj->k", u, cov, u)
+    radial = torch.where(radius[:, 0] > 0, along, 0.5 * cov.diagonal(dim1=-2, dim2=-1).sum(-1))  # zenith: the mean
     wz = (1.0 - radius[:, 0].square()).clamp(min=1e-6).sqrt()
     mean = torch.cat([l, wz[:, None]], -1)
     soft = torch.sqrt(softness**2 + (math.pi / 8.0) * radial / wz.square())
