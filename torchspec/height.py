@@ -159,7 +159,7 @@ def height_from_normals(
     *,
     max_slope_deg: float = 85.0,
     iterations: int = 200,
-    tol: float = 1e-6,
+    tol: float | None = None,
     floor: float = 1e-3,
 ) -> Tensor:
     """The least-squares height field of a normal map (the module's docstring gives the model).
@@ -172,7 +172,8 @@ def height_from_normals(
         pitch: the pixel pitch in the unit wanted for the heights (1: heights in pixels).
         max_slope_deg: normals tilted further are taken at this tilt (keeping their azimuth).
         iterations: conjugate-gradient iterations of the weighted solve.
-        tol: a weighted solve whose relative residual ends above it warns (one host sync).
+        tol: a weighted solve whose relative residual ends above it warns (one host sync); default
+            the square root of the dtype's epsilon.
         floor: every edge's weight is raised by ``floor`` times the mean weight.
 
     Returns:
@@ -204,7 +205,7 @@ def height_from_normals(
     return height if batched else height[0]
 
 
-def _weighted(tc, tr, valid, weight, iterations: int, tol: float, floor: float) -> Tensor:
+def _weighted(tc, tr, valid, weight, iterations: int, tol: float | None, floor: float) -> Tensor:
     """Preconditioned conjugate gradients on ``D^T W D h = D^T W t`` (module docstring)."""
     w = valid.to(tc.dtype) if weight is None else weight
     w = torch.where(valid & torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
@@ -229,17 +230,21 @@ def _weighted(tc, tr, valid, weight, iterations: int, tol: float, floor: float) 
     z = poisson_solve(r) / scale
     p = z
     rz = (r * z).sum(dim=(-2, -1), keepdim=True)
+    # An image whose residual has fallen to rounding stops moving (in place of a host-side test).
+    floor_rz = rz * torch.finfo(rz.dtype).eps ** 2
     for _ in range(iterations):
         ap = _laplacian(p, wc, wr)
         pap = (p * ap).sum(dim=(-2, -1), keepdim=True)
-        alpha = torch.where(pap > 0, rz / torch.where(pap > 0, pap, torch.ones_like(pap)), torch.zeros_like(pap))
+        active = (rz > floor_rz) & (pap > 0)
+        alpha = torch.where(active, rz / torch.where(active, pap, torch.ones_like(pap)), torch.zeros_like(pap))
         h = h + alpha * p
         r = r - alpha * ap
         z = poisson_solve(r) / scale
         rz_new = (r * z).sum(dim=(-2, -1), keepdim=True)
-        beta = torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, torch.ones_like(rz)), torch.zeros_like(rz))
+        beta = torch.where(active, rz_new / torch.where(active, rz, torch.ones_like(rz)), torch.zeros_like(rz))
         p = z + beta * p
-        rz = rz_new
+        rz = torch.where(active, rz_new, rz)
+    tol = math.sqrt(torch.finfo(b.dtype).eps) if tol is None else tol
     residual = (b - _laplacian(h, wc, wr)).square().sum(dim=(-2, -1)).sqrt()
     size = b.square().sum(dim=(-2, -1)).sqrt()
     if bool((residual > tol * size.clamp(min=torch.finfo(b.dtype).tiny)).any()):

@@ -72,9 +72,7 @@ class Relief:
     normal: Tensor
 
 
-def relief(
-    config: ReliefConfig, height: int, width: int, *, dtype: torch.dtype = torch.float64, device=None
-) -> Relief:
+def relief(config: ReliefConfig, height: int, width: int, *, dtype: torch.dtype = torch.float64, device=None) -> Relief:
     """The relief of ``config`` over an ``height x width`` image (drawn in float64 on the CPU, cast to
     ``dtype`` and moved to ``device`` at the end).
 

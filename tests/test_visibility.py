@@ -1,0 +1,146 @@
+"""Cast shadows (torchspec.visibility): the batched horizon against a brute-force ray march in
+float64, soft visibility's derivatives, flat fields, extended kernels, shapes refused."""
+
+import math
+
+import pytest
+import torch
+
+from torchspec.errors import TorchspecError
+from torchspec.lights import Kernel, Lights
+from torchspec.relief import ReliefConfig, relief
+from torchspec.visibility import elevation, horizon, kernel_visibility, marched_distances, visibility
+
+F64 = torch.float64
+
+
+def brute_horizon(height, directions, start=0.5, step=1.0 / 32):
+    """The horizon by marching each ray in fine steps over the bilinear height field, light by
+    light, indexing the four neighbours directly (no grid_sample): the reference."""
+    rows, cols = height.shape
+    r, c = torch.meshgrid(torch.arange(rows, dtype=F64), torch.arange(cols, dtype=F64), indexing="ij")
+    t = torch.arange(start, math.hypot(rows, cols) + step, step, dtype=F64)
+    out = []
+    for w in directions.tolist():
+        u = torch.tensor([w[0], -w[1]], dtype=F64)
+        u = u / u.norm()
+        pc, pr = c[..., None] + t * u[0], r[..., None] + t * u[1]
+        inside = (pc >= 0) & (pc <= cols - 1) & (pr >= 0) & (pr <= rows - 1)
+        pc, pr = pc.clamp(0, cols - 1), pr.clamp(0, rows - 1)
+        c0, r0 = pc.floor().long().clamp(max=cols - 2), pr.floor().long().clamp(max=rows - 2)
+        fc, fr = pc - c0, pr - r0
+        v = (height[r0, c0] * (1 - fc) + height[r0, c0 + 1] * fc) * (1 - fr) + (
+            height[r0 + 1, c0] * (1 - fc) + height[r0 + 1, c0 + 1] * fc
+        ) * fr
+        rise = torch.where(inside, (v - height[..., None]) / t, torch.tensor(-1e300, dtype=F64))
+        out.append(torch.atan(rise.amax(-1)))
+    return torch.stack(out, -1)
+
+
+def _lights(count, seed, low=10.0, high=60.0):
+    g = torch.Generator().manual_seed(seed)
+    phi = 2 * math.pi * torch.rand(count, generator=g, dtype=F64)
+    el = torch.deg2rad(low + (high - low) * torch.rand(count, generator=g, dtype=F64))
+    return torch.stack([el.cos() * phi.cos(), el.cos() * phi.sin(), el.sin()], -1)
+
+
+@pytest.fixture(scope="module")
+def field():
+    return relief(ReliefConfig(bump_height=(3.0, 7.0), ridge_height=3.0, ridge_width=1.5, seed=0), 32, 32).height
+
+
+@pytest.fixture(scope="module")
+def reference(field):
+    dirs = _lights(8, 0)
+    return dirs, brute_horizon(field, dirs)
+
+
+def test_horizon_matches_the_brute_force_march(field, reference):
+    dirs, truth = reference
+    fast = horizon(field, dirs)
+    seen = truth > -1.5  # rays that stay in the image for some distance
+    err = (fast - truth)[seen].abs()
+    assert math.degrees(float(err.mean())) < 0.3 and math.degrees(float(err.max())) < 6.0
+    assert bool((fast <= truth + 1e-9)[seen].all())  # the samples are a subset of the march's
+
+
+def test_hard_visibility_agrees_away_from_the_shadow_edge(field, reference):
+    dirs, truth = reference
+    e = elevation(dirs).expand_as(truth)
+    lit, fast_lit = e > truth, visibility(field, dirs) > 0.5
+    away = (e - truth).abs() > math.radians(2.0)
+    assert float((lit == fast_lit)[away].to(F64).mean()) > 0.98
+    assert float((lit == fast_lit).to(F64).mean()) > 0.98
+    assert 0.02 < float((~lit).to(F64).mean()) < 0.5  # the relief does cast shadows
+
+
+def test_signs_of_the_azimuth():
+    h = torch.zeros(7, 7, dtype=F64)
+    h[3, 5] = 4.0  # east of the centre
+    h[1, 3] = 4.0  # north of the centre (up the image: a smaller row)
+    east, north, west = torch.tensor([[1.0, 0, 0.3], [0, 1.0, 0.3], [-1.0, 0, 0.3]], dtype=F64)
+    v = visibility(h, torch.stack([east, north, west]))[3, 3]
+    assert v[0] < 0.01 and v[1] < 0.01 and v[2] > 0.99
+
+
+def test_flat_field_sees_every_light_above_the_softness(device):
+    flat = torch.zeros(6, 8, dtype=torch.float32, device=device)
+    dirs = _lights(5, 1, low=5.0).to(device=device, dtype=torch.float32)
+    v = visibility(flat, dirs)
+    assert v.shape == (6, 8, 5) and v.dtype == torch.float32 and v.device.type == device.type
+    assert bool((v > 0.99).all())
+
+
+def test_gradcheck_in_height_and_direction():
+    g = torch.Generator().manual_seed(3)
+    h = (2 * torch.rand(5, 6, generator=g, dtype=F64)).requires_grad_()
+    d = torch.tensor([[0.6, 0.3, 0.4], [-0.5, 0.2, 0.5]], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda h, d: visibility(h, d, softness=0.2, reach=4.0), (h, d))
+
+
+def test_per_pixel_directions_equal_shared_ones(field):
+    dirs = _lights(3, 2)
+    shared = horizon(field[:12, :12], dirs)
+    each = horizon(field[:12, :12], dirs.expand(12, 12, 3, 3))
+    assert torch.allclose(shared, each, atol=1e-12)
+
+
+def test_chunking_does_not_change_the_result(field, monkeypatch):
+    import torchspec.visibility as module
+
+    dirs = _lights(4, 4)
+    whole = horizon(field, dirs)
+    monkeypatch.setattr(module, "CHUNK_ELEMENTS", 3000)
+    assert torch.allclose(horizon(field, dirs), whole, atol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", [Kernel("gaussian", "projected", 0.05), Kernel("gaussian", "angular", 0.08)])
+def test_extended_kernel_probit_against_its_quadrature(field, kernel):
+    dirs = _lights(4, 5, low=15.0, high=45.0)
+    one = torch.ones(4, 1, dtype=F64)
+    lights = Lights(dirs, kernel, one, one[:, 0])
+    probit = kernel_visibility(field, lights)
+    quadrature = kernel_visibility(field, lights, rule="nodes", order=4)
+    point = visibility(field, dirs)
+    assert float((probit - quadrature).abs().mean()) < 0.5 * float((point - quadrature).abs().mean())
+    point_lights = Lights(dirs, Kernel("point"), one, one[:, 0])
+    assert torch.equal(kernel_visibility(field, point_lights), point)
+
+
+def test_marched_distances():
+    t = marched_distances(0.5, 10.0)
+    assert float(t[0]) == 0.5 and float(t[-1]) == 10.0 and bool((t[1:] > t[:-1]).all())
+    assert {1.0, 2.0, 3.0, 4.0, 5.0} <= set(t.tolist())
+
+
+@pytest.mark.parametrize(
+    "height, dirs, match",
+    [
+        (torch.zeros(3, 4, 1), torch.ones(2, 3), r"\(H, W\).*\(3, 4, 1\)"),
+        (torch.zeros(3, 4), torch.ones(2, 2), r"\(K, 3\).*\(2, 2\)"),
+        (torch.zeros(3, 4), torch.ones(4, 3, 2, 3), r"\(H, W, K, 3\).*\(4, 3, 2, 3\)"),
+    ],
+)
+def test_bad_shapes_are_refused(height, dirs, match):
+    with pytest.raises(TorchspecError, match=match):
+        horizon(height, dirs)
