@@ -68,7 +68,8 @@ def test_weights_ignore_corrupted_normals():
     plain = _rms(height_from_normals(corrupted), r.height)  # NaN pixel: weight 0 in both
     weighted = _rms(height_from_normals(corrupted, weight, iterations=40), r.height)
     clean = _rms(height_from_normals(r.normal), r.height)
-    assert weighted < 0.1 * plain and weighted < clean + 0.05
+    # The corrupted pixels' slopes are lost (filled flat): a small error left, far below the plain one's.
+    assert weighted < 0.1 * plain and clean < weighted < 0.05 * float(r.height.std())
 
 
 def test_uniform_weights_match_the_closed_form():
