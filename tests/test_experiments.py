@@ -527,3 +527,16 @@ def test_bench_gpu_runs(tmp_path):
     assert large["import_note"] == "" and large["fit_note"] == "", large
     assert large["jpegs_to_maps_seconds"] > 0 and "total" in large["fit_stage_seconds"]
     assert json.loads((tmp_path / "tiny.json").read_text())["large"]["frames"] == 12
+
+
+def test_shadows_synthetic_runs(tmp_path):
+    result = _main(
+        "shadows_synthetic",
+        tmp_path,
+        "size: 24\nlights: 3\nbrute_step: 0.125\nrelief: {bumps: 3, seed: 1}\n",
+    )
+    saved = json.loads((tmp_path / "shadows_synthetic.json").read_text())
+    exact = saved["height"]["exact_unweighted"]["rms_px"]
+    assert exact == pytest.approx(result["height"]["exact_unweighted"]["rms_px"])
+    assert saved["height"]["noisy_weighted"]["rms_px"] < saved["height"]["noisy_unweighted"]["rms_px"]
+    assert saved["shadows"]["agreement"] > 0.95
