@@ -20,6 +20,23 @@ first (``SVBRDF.specular``) and the broader the second (``SVBRDF.specular2``).
 
 Bounds are kept by reparametrisation in the solver (:class:`torchspec.lm.Bounds`): softplus for
 the coefficients, which may reach 0, and a sigmoid for the roughness.
+
+The models are a registry (:data:`MODELS`, :func:`register`): a :class:`Model` declares its
+parameters once (:class:`torchspec.params.Param`) and its lobe as an object
+(:class:`torchspec.lobes.Lobe`); its packing, bounds, Jacobian columns and deviations, its code in
+:data:`MODEL_CODES`, the ladder's checks, ``fit --model``'s choices and the maps a fit writes
+follow. A model whose lobe has no closed forms is rendered on the nodes and its Jacobian taken by
+forward-mode AD (:meth:`Model.residuals`); the pipeline's deviations and second-lobe gate know
+Ward's lobe only (:func:`torchspec.least_squares.sandwich_terms`).
+
+Example:
+    >>> from torchspec.lobes import BECKMANN
+    >>> beckmann = Model("beckmann-iso", (NORMAL, DIFFUSE, GREY, ALPHA), BECKMANN)
+    >>> with registered(beckmann):
+    ...     MODEL_CODES.index("beckmann-iso"), beckmann.size(3)
+    (5, 7)
+    >>> "beckmann-iso" in MODELS
+    False
 """
 
 from __future__ import annotations
@@ -42,7 +59,23 @@ from .params import FIELDS, Param, check_params
 from .quadrature import Quadrature
 from .rendering import render
 
-__all__ = ["Model", "MODELS", "MODEL_CODES", "get_model", "register", "unregister", "registered", "ALPHA_BOUNDS"]
+__all__ = [
+    "Model",
+    "MODELS",
+    "MODEL_CODES",
+    "BUILT_IN",
+    "get_model",
+    "register",
+    "unregister",
+    "registered",
+    "split_lobe",
+    "sharper_first",
+    "NORMAL",
+    "DIFFUSE",
+    "GREY",
+    "ALPHA",
+    "ALPHA_BOUNDS",
+]
 
 ALPHA_BOUNDS = (1e-3, 1.0)
 """The roughness a fit may take: below, the lobe is narrower than any light kernel resolves; above,
@@ -311,9 +344,13 @@ def sharper_first(svbrdf: SVBRDF) -> SVBRDF:
 
 
 NORMAL = Param("a, b", "normal", size=2)
+"""The normal's two tilt angles (:func:`torchspec.geometry.normal_from_angles`), every model's first."""
 DIFFUSE = Param("k_d", "diffuse", per_channel=True, bound="nonnegative")
+"""``k_d`` per channel, every model's second."""
 GREY = Param("k_s", "specular", bound="nonnegative")
+"""One grey ``k_s`` (``replace(GREY, per_channel=True)``: one per channel)."""
 ALPHA = Param("alpha", "roughness", bound="roughness")
+"""One isotropic roughness."""
 
 MODELS: dict[str, Model] = {}
 """The registered models by name (:func:`register`), in the order of their codes

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
+from ..errors import TorchspecError
 from ..geometry import normal_derivative
 from ..least_squares import sandwich_terms
 from ..lights import Lights
@@ -112,6 +113,11 @@ def uncertainty(
         model: the fitted model; svbrdf: its solution ``(m,)``; observed: ``(m, K, C)``.
         quadrature: of the model's evaluation (:attr:`FitConfig.rule`), compiled when it says so.
     """
+    if model.lobe is not None and not model.lobe.analytic:
+        raise TorchspecError(
+            f"model {model.name!r}: the fit's deviations and peak checks need a lobe with closed forms "
+            f"(Ward's); its {model.lobe.name} lobe can be fitted (Model.residuals), not yet assessed."
+        )
     n, c = svbrdf.diffuse.shape
     select = model.selection(c, weight)
     if n == 0:
