@@ -34,7 +34,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .brdf import SVBRDF, beckmann_cosine, lambert
+from .brdf import SVBRDF, lambert
 from .diffuse import diffuse_integral
 from .errors import TorchspecError
 from .fusion import FIXED_SIZES, fused
@@ -42,6 +42,7 @@ from .geometry import from_plane
 from .lights import Lights, diffuse_directions
 from .lm.picks import keep
 from .lobe import lobe_at, lobe_frame, pick
+from .lobes import WARD, Lobe, as_lobe
 from .nodes import node_rules
 from .progress import bar
 from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
@@ -49,6 +50,8 @@ from .quadrature import BUDGET, Quadrature, check_quadrature, choose_path
 __all__ = ["render", "render_image", "LOBES", "ROW_CHUNKS", "TILE_PIXELS"]
 
 LOBES = ("ward", "beckmann")
+"""The lobes ``lobe=`` names by a string (:data:`torchspec.lobes.LOBES`); any
+:class:`torchspec.lobes.Lobe` object is taken too."""
 ROW_CHUNKS = 32
 """:func:`render_image` renders an image in about this many chunks of rows (a progress bar that moves)."""
 TILE_PIXELS = 4096
@@ -61,7 +64,7 @@ def render(
     view: Tensor,
     *,
     quadrature: Quadrature = Quadrature(),
-    lobe: str = "ward",
+    lobe: str | Lobe = "ward",
 ) -> Tensor:
     """Predicted values of every pixel under every frame: ``(*, K, C)``.
 
@@ -74,7 +77,8 @@ def render(
             (:class:`torchspec.quadrature.Quadrature`); its ``compile`` fuses the specular node
             integration with ``torch.compile``.
         lobe: ``ward`` (the format's model) or ``beckmann`` (:func:`torchspec.brdf.beckmann_cosine`,
-            the physically based renderers' lobe, to tell a model's residual from an integration's).
+            the physically based renderers' lobe, to tell a model's residual from an integration's),
+            or any :class:`torchspec.lobes.Lobe` (integrated on the same nodes as Beckmann's).
 
     Returns:
         ``(*, K, C)`` in the dtype and on the device of ``svbrdf``.
@@ -92,7 +96,8 @@ def render(
         >>> round(float(render(maps, lights, torch.tensor([0.0, 0, 1], dtype=torch.float64))), 6)  # k_d / pi
         0.31831
     """
-    chosen = _check(svbrdf, lights, view, quadrature, lobe)
+    lobe = as_lobe(lobe)
+    chosen = _check(svbrdf, lights, view, quadrature)
     count = svbrdf.diffuse.shape[-1]
     lead = svbrdf.shape
     flat = svbrdf.flatten()
@@ -124,7 +129,7 @@ def render_image(
     view: Tensor,
     *,
     quadrature: Quadrature = Quadrature(),
-    lobe: str = "ward",
+    lobe: str | Lobe = "ward",
     progress: bool = False,
     desc: str = "render",
 ) -> Tensor:
@@ -154,10 +159,8 @@ def render_image(
     return torch.cat(parts)
 
 
-def _check(svbrdf: SVBRDF, lights: Lights, view: Tensor, quadrature: Quadrature, lobe: str) -> str:
+def _check(svbrdf: SVBRDF, lights: Lights, view: Tensor, quadrature: Quadrature) -> str:
     """The specular path of :func:`render`'s arguments, once they are checked."""
-    if lobe not in LOBES:
-        raise TorchspecError(f"lobe must be one of {LOBES}; got {lobe!r}.")
     check_quadrature(quadrature)
     if view.shape != (3,):
         raise TorchspecError(f"view must have shape (3,); got {tuple(view.shape)}.")
@@ -187,7 +190,7 @@ def _add_second_lobe(value: Tensor, second: SVBRDF, lights, view, path, orders, 
     return value
 
 
-def _specular(svbrdf, lights, view, path, orders, compile=False, lobe="ward") -> Tensor:
+def _specular(svbrdf, lights, view, path, orders, compile=False, lobe: Lobe = WARD) -> Tensor:
     """``integral D_k S dl`` for the pixels of ``svbrdf (N,)`` and every frame: ``(N, K)``, on the
     path ``path`` (:func:`torchspec.quadrature.choose_path`) with the orders ``(fast, reference)``.
 
@@ -197,11 +200,11 @@ def _specular(svbrdf, lights, view, path, orders, compile=False, lobe="ward") ->
     kernel, centre = lights.kernel, lights.directions
     pixels = lobe_frame(svbrdf, view)
     integrate = (
-        fused(_integrate, compile, svbrdf.normal.shape[0]) if lobe == "ward" else _integrate_beckmann(svbrdf, view)
+        fused(_integrate, compile, svbrdf.normal.shape[0]) if lobe.analytic else _integrate_lobe(svbrdf, view, lobe)
     )
     if path == "point":
-        if lobe == "beckmann":
-            return beckmann_cosine(
+        if not lobe.analytic:
+            return lobe.cosine(
                 centre[None],
                 view,
                 svbrdf.normal[:, None],
@@ -213,7 +216,7 @@ def _specular(svbrdf, lights, view, path, orders, compile=False, lobe="ward") ->
     value = integrate(kernel, centre[None], pixels, lx, ly, area)
     if fallback is not None:  # auto: the pairs whose product reaches the horizon, by the reference rule
         p, k, valid, (lx, ly, area) = fallback
-        if lobe == "ward":
+        if lobe.analytic:
             exact = _integrate(kernel, centre[k][:, None], pick(pixels, p), lx, ly, area)[:, 0]
         else:
             exact = integrate(kernel, centre[k][:, None], None, lx, ly, area, index=p)[:, 0]
@@ -229,15 +232,15 @@ def _integrate(kernel, centre, pixels, lx, ly, area) -> Tensor:
 FIXED_SIZES.add(_integrate)
 
 
-def _integrate_beckmann(svbrdf: SVBRDF, view: Tensor):
-    """The node integration with :func:`torchspec.brdf.beckmann_cosine` in place of Ward's lobe."""
+def _integrate_lobe(svbrdf: SVBRDF, view: Tensor, lobe: Lobe):
+    """The node integration with ``lobe`` (:meth:`torchspec.lobes.Lobe.cosine`) in place of Ward's."""
 
     def integrate(kernel, centre, pixels, lx, ly, area, index=None):
         part = svbrdf if index is None else svbrdf[index]
         shape = (-1,) + (1,) * (lx.dim() - 1)
         w = from_plane(torch.stack(torch.broadcast_tensors(lx, ly), -1))
         rotation = None if part.rotation is None else part.rotation.reshape(shape)
-        lobe = beckmann_cosine(w, view, part.normal.reshape(*shape, 3), part.roughness.reshape(*shape, 2), rotation)
-        return (area * kernel.density_xy(lx, ly, centre[..., None, :]) * lobe).sum(-1)
+        value = lobe.cosine(w, view, part.normal.reshape(*shape, 3), part.roughness.reshape(*shape, 2), rotation)
+        return (area * kernel.density_xy(lx, ly, centre[..., None, :]) * value).sum(-1)
 
     return integrate

@@ -30,6 +30,8 @@ from .rendering import render
 
 __all__ = [
     "MODEL_COLOURS",
+    "EXTRA_COLOURS",
+    "model_colours",
     "REGIONS",
     "REGION_COLOURS",
     "STAT_LABELS",
@@ -112,8 +114,10 @@ def _rgb(image: np.ndarray) -> np.ndarray:
 
 
 MODEL_COLOURS = ("#bdbdbd", "#1f77b4", "#2ca02c", "#ff7f0e", "#d62728")
-"""The colour of each model code (``MODEL_CODES``: diffuse, ward-iso, ward-iso-colour, ward-aniso,
-ward-dual), the same in ``report.png`` and ``previews/model.png``."""
+"""The colour of each built-in model code (``MODEL_CODES``: diffuse, ward-iso, ward-iso-colour,
+ward-aniso, ward-dual), the same in ``report.png`` and ``previews/model.png``."""
+EXTRA_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+"""The colours of the codes of models registered after the built-in ones, in turn."""
 REGION_COLOURS = ("#e0d7c6", "#8c564b", "#d4a017", "#9467bd")
 """The colour of each region code (:data:`REGIONS`)."""
 
@@ -152,6 +156,19 @@ def shared_limit(*maps: np.ndarray | None, quantile: float = 0.99) -> float:
     their ``quantile``-th quantiles, so that one outlier does not squash the scale; > 0."""
     tops = [float(np.quantile(m[np.isfinite(m)], quantile)) for m in maps if m is not None and np.isfinite(m).any()]
     return max(tops + [1e-6])
+
+
+def model_colours(count: int | None = None) -> tuple[str, ...]:
+    """A colour for each of ``count`` model codes (by default the registered models'):
+    :data:`MODEL_COLOURS`, then :data:`EXTRA_COLOURS` in turn.
+
+    Example:
+        >>> model_colours(7)[5:]
+        ('#9467bd', '#8c564b')
+    """
+    count = len(MODELS) if count is None else count
+    extra = max(count - len(MODEL_COLOURS), 0)
+    return (MODEL_COLOURS + tuple(EXTRA_COLOURS[i % len(EXTRA_COLOURS)] for i in range(extra)))[:count]
 
 
 def _categorical(colours: tuple[str, ...]):
@@ -261,7 +278,7 @@ def write_previews(
         save("roughness2.png", alpha2, "second lobe alpha", cmap="viridis", vmin=0.0, vmax=shared_limit(alpha2))
     if model is not None:
         codes = model.cpu().numpy().astype(np.float64)
-        save("model.png", codes, "model of each pixel", key=(tuple(MODELS), MODEL_COLOURS))
+        save("model.png", codes, "model of each pixel", key=(tuple(MODELS), model_colours()))
     if residual is not None:
         r = np.log10(np.clip(residual.cpu().double().numpy(), 1e-6, None))
         save("residual.png", r, "log10 relative residual", cmap="inferno", vmin=-6.0, vmax=0.0)
@@ -316,7 +333,7 @@ def write_report(
         ("k_d (sRGB)", _rgb(display(s.diffuse.numpy(), 1.0)), None, None, None),
         ("k_s (fit)", ks, "magma", (0.0, ks_top), None),
         ("alpha (fit)", alpha, "viridis", (0.0, alpha_top), None),
-        ("model", fit.model.cpu().double().numpy(), None, None, (tuple(MODELS), MODEL_COLOURS)),
+        ("model", fit.model.cpu().double().numpy(), None, None, (tuple(MODELS), model_colours())),
         ("log10 rel. residual", residual, "inferno", None, None),
     ]
     if t is not None:

@@ -7,7 +7,9 @@ import argparse
 from pathlib import Path
 
 from .._version import __version__
+from ..models import MODELS
 from ..pipeline.checkpoint import CHECKPOINT
+from ..pipeline.settings import CALIBRATE
 
 __all__ = ["OVERWRITE", "WORKFLOW", "add_device", "add_overwrite", "add_scale", "build_parser"]
 
@@ -130,10 +132,10 @@ def _add_fit_command(commands) -> None:
     fit.add_argument("--no-previews", action="store_true",
                      help="write the maps only, no PNG previews in OUTPUT/previews/")
     fit.add_argument("--model", default=None,
-                     choices=["auto", "diffuse", "ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual"],
+                     choices=["auto", *MODELS],
                      help="auto (default): each pixel's model by what it predicts of frames left out of its fit; "
                           "or one forced on every pixel")
-    fit.add_argument("--calibrate", default=None, choices=["auto", "none", "gains", "positions", "dome"],
+    fit.add_argument("--calibrate", default=None, choices=list(CALIBRATE),
                      help="estimate the lights from the photographs with the maps: auto (default: what the capture's "
                           "manifest lists as unknown, e.g. an imported capture's irradiance, with a dome radius "
                           "where the photographs show one), none, gains (one per frame and channel), positions "

@@ -65,7 +65,8 @@ def check_choice(choice: Choice, data: TileSamples, few: Tensor, config: FitConf
     flags = solver_flags(choice.status, few)
     if not config.noise_known:  # the checks need the sensor's noise
         return flags, Checks(peak_misfit, astray)
-    lobed = torch.tensor([get_model(name).lobe for name in MODEL_CODES], device=like.device)[choice.code.long()]
+    lobed = torch.tensor([get_model(name).lobe is not None for name in MODEL_CODES], device=like.device)
+    lobed = lobed[choice.code.long()]
     weak = lobed & (choice.peak.lobe_snr < WEAK_LOBE_SNR)
     flags = with_flags(flags, ("weak_lobe", weak))
     index = (lobed & ~few & ~weak).nonzero()[:, 0]

@@ -94,7 +94,8 @@ class Choice:
 
     Attributes:
         svbrdf: the chosen maps ``(n,)`` (``rotation`` with an anisotropic model in the ladder,
-            ``specular2``, ``roughness2`` with ``ward-dual``; 0 where the chosen model lacks them).
+            ``specular2``, ``roughness2`` with a model of a second lobe in it, ``ward-dual``; 0 where
+            the chosen model lacks them: the maps each model's parameters fill, :meth:`Model.fills`).
         status, iterations, cost: the solver's, ``(n,)``.
         code: ``(n,)`` int8 index of the chosen model in :data:`MODEL_CODES`.
         criterion: ``(n,)`` (``inf`` where none was chosen, NaN without a noise estimate).
@@ -121,10 +122,11 @@ class Choice:
         """No fit chosen yet: photometric stereo's normal and ``k_d``, no lobe."""
         ps = start.diffuse
         n, c = ps.diffuse.shape
-        grey = len(ladder) == 1 and get_model(ladder[0]).grey
+        models = [get_model(name) for name in ladder]
+        grey = len(models) == 1 and models[0].grey
         zeros = ps.diffuse.new_zeros
-        rotation = zeros(n) if any(get_model(name).anisotropic for name in ladder) else None
-        dual = any(get_model(name).dual for name in ladder)  # a second lobe's maps, 0 where not fitted
+        rotation = zeros(n) if any(model.fills("rotation") for model in models) else None
+        dual = any(model.fills("specular2") for model in models)  # a second lobe's maps, 0 where not fitted
         second = (zeros((n, 1)), zeros((n, 2))) if dual else (None, None)
         specular = zeros((n, 1 if grey else c))
         svbrdf = SVBRDF(ps.normal.clone(), ps.diffuse.clone(), specular, zeros((n, 2)), rotation, channels, *second)
@@ -166,8 +168,9 @@ class Choice:
             rotation = chosen.rotation if chosen.rotation is not None else torch.zeros_like(chosen.roughness[:, 0])
             mine.rotation[pick] = rotation
         if mine.specular2 is not None:
-            mine.specular2[pick] = chosen.specular2 if model.dual else 0.0
-            mine.roughness2[pick] = chosen.roughness2 if model.dual else 0.0
+            second = model.fills("specular2")
+            mine.specular2[pick] = chosen.specular2 if second else 0.0
+            mine.roughness2[pick] = chosen.roughness2 if second else 0.0
         self.status[pick], self.iterations[pick] = result.status[better], result.iterations[better]
         self.cost[pick], self.criterion[pick] = result.cost[better], bic[better]
         self.code[pick] = MODEL_CODES.index(fit.name)
@@ -283,7 +286,7 @@ def _climb(
         choice.take(assess(solve_pixels("diffuse", rejected, plain[rejected], data, config), data, sensor, config))
     index, init = fit.index[fit.unexplained], fit.svbrdf[fit.unexplained]
     for name in ladder[1:]:  # each from the previous one's solution, where it leaves a misfit
-        if get_model(name).dual:  # where one lobe leaves a misfit as large as a second lobe's
+        if get_model(name).fills("specular2"):  # where one lobe leaves a misfit as large as a second lobe's
             keep = data.relative_rms(choice.cost[index], index) > config.dual_rms
             index, init = index[keep], init[keep]
             if config.dual_gate is not None and index.numel():  # and a second lobe would predict better
@@ -328,7 +331,7 @@ def resolved(fit: ModelFit, bound: float) -> Tensor:
     whose shapes the samples do not resolve (a lobe sharper than the light's kernel, whose samples
     show only its integral) predict the frames the fit saw, and nothing else: a light of another
     size (a point light) would see them at any height."""
-    if not get_model(fit.name).dual or not fit.std:
+    if not get_model(fit.name).fills("specular2") or not fit.std:
         return torch.ones_like(fit.unexplained)
     first = fit.std["roughness"][:, 0] < bound * fit.svbrdf.roughness[:, 0]
     second = fit.std["roughness2"][:, 0] < bound * fit.svbrdf.roughness2[:, 0]
@@ -339,7 +342,7 @@ def supported(fit: ModelFit, data: TileSamples, least: float) -> Tensor:
     """``(m,)`` bool: with point lights, a fit's lobe reaches at least ``least`` of its peak at
     one of the frames (:func:`torchspec.layout.lobe_support`); True without a lobe, with an
     extended kernel (whose blur sees the peak from the frames about it) or ``least = 0``."""
-    if data.lights.kernel.kind != "point" or least <= 0 or not get_model(fit.name).lobe:
+    if data.lights.kernel.kind != "point" or least <= 0 or get_model(fit.name).lobe is None:
         return torch.ones_like(fit.unexplained)
     return lobe_support(fit.svbrdf, data.lights, data.view) >= least
 

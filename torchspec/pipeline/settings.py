@@ -14,7 +14,7 @@ from ..io.scale import Scale
 from ..layout import resolvable_roughness
 from ..lights import Lights
 from ..lm import LMConfig
-from ..models import ALPHA_BOUNDS, MODELS, get_model
+from ..models import ALPHA_BOUNDS, MODEL_CODES, MODELS
 from ..quadrature import QUADRATURES, Quadrature
 from ..residual_term import TERMS
 
@@ -35,12 +35,12 @@ FRI_KERNELS = ("pixel", "pooled")
 """The lobe spectra of ``FitConfig.fri_kernel``."""
 AUTO = "auto"
 """``FitConfig.model`` that picks each pixel's model."""
-LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
-"""The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained."""
+LADDER = tuple(name for name, model in MODELS.items() if model.ladder)
+"""The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained (the
+built-in models declared ``ladder``, :mod:`torchspec.models`; a model registered later joins
+``auto`` through ``FitConfig.ladder``)."""
 CALIBRATE = ("auto", "none", "gains", "positions", "dome")
 """The values of ``FitConfig.calibrate``."""
-MODEL_CODES = tuple(MODELS)
-"""``model.exr``'s codes: the index of each pixel's model in this tuple."""
 COMPILE_PIXELS = 1 << 17
 """``FitConfig.compile=None`` compiles the model for fits of at least this many pixels (the
 one-off compilation pays for itself on large fits only)."""
@@ -248,10 +248,10 @@ class FitConfig:
         unknown = [name for name in ladder if name not in MODELS]
         if unknown:
             raise ConfigError(f"FitConfig.ladder: each model must be one of {sorted(MODELS)}; got {unknown!r}.")
-        if not ladder or len(set(ladder)) != len(ladder) or not all(get_model(name).lobe for name in ladder):
+        if not ladder or len(set(ladder)) != len(ladder) or any(MODELS[name].lobe is None for name in ladder):
             raise ConfigError(
                 f"FitConfig.ladder must name one or more models with a lobe, each once "
-                f"(of {[name for name in MODELS if get_model(name).lobe]}); got {list(ladder)!r}."
+                f"(of {[name for name, model in MODELS.items() if model.lobe is not None]}); got {list(ladder)!r}."
             )
         if not (self.predict_z >= 0 and math.isfinite(self.predict_z)):
             raise ConfigError(f"FitConfig.predict_z must be >= 0 and finite; got {self.predict_z!r}.")

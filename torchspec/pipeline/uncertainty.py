@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
+from ..errors import TorchspecError
 from ..geometry import normal_derivative
 from ..least_squares import sandwich_terms
 from ..lights import Lights
@@ -112,6 +113,11 @@ def uncertainty(
         model: the fitted model; svbrdf: its solution ``(m,)``; observed: ``(m, K, C)``.
         quadrature: of the model's evaluation (:attr:`FitConfig.rule`), compiled when it says so.
     """
+    if model.lobe is not None and not model.lobe.analytic:
+        raise TorchspecError(
+            f"model {model.name!r}: the fit's deviations and peak checks need a lobe with closed forms "
+            f"(Ward's); its {model.lobe.name} lobe can be fitted (Model.residuals), not yet assessed."
+        )
     n, c = svbrdf.diffuse.shape
     select = model.selection(c, weight)
     if n == 0:
@@ -128,7 +134,7 @@ def uncertainty(
             fit_weight,
             select,
             quadrature=replace(quadrature, compile=fused),
-            diffuse_only=not model.lobe,
+            diffuse_only=model.lobe is None,
             samples=True,
         )
 
@@ -151,17 +157,8 @@ def _deviations(model: Model, svbrdf: SVBRDF, bread: Tensor, meat: Tensor, weigh
     block = inverse[:, :2, :2]
     cov_angles = torch.where((info == 0)[:, None, None], block, torch.full_like(block, math.inf))
     normal = torch.einsum("nij,njk,nik->n", dn, cov_angles, dn).clamp(min=0.0).sqrt()
-    nan = math.nan
-    out = {"normal": normal, "diffuse": std[:, 2 : 2 + c]}
-    if model.lobe:
-        at = 2 + c + (1 if model.grey else c)
-        out["specular"] = std[:, 2 + c : at]
-        out["roughness"] = std[:, at : at + 2] if model.anisotropic else std[:, at : at + 1].expand(-1, 2)
-    else:
-        out["specular"] = torch.full((n, 1), nan, **like)
-        out["roughness"] = torch.full((n, 2), nan, **like)
-    if model.dual:  # after the first lobe's alpha: k_s2, alpha2
-        out["specular2"], out["roughness2"] = std[:, at + 1 : at + 2], std[:, at + 2 : at + 3].expand(-1, 2)
-    else:
-        out["specular2"], out["roughness2"] = torch.full((n, 1), nan, **like), torch.full((n, 2), nan, **like)
+    fields = model.fields(std, c, normal=False)  # the deviations of the fields the model fills
+    out = {"normal": normal, "diffuse": fields["diffuse"]}
+    for name, width in (("specular", 1), ("roughness", 2), ("specular2", 1), ("roughness2", 2)):
+        out[name] = fields[name] if name in fields else torch.full((n, width), math.nan, **like)
     return out

@@ -39,7 +39,7 @@ from ..io.scale import capture_at
 from ..lights import Kernel
 from ..outputs import check_output
 from ..progress import bar
-from ..report import MODEL_COLOURS
+from ..report import MODEL_COLOURS, model_colours
 from ..residual_term import MAP_NAME, TermDomain
 from .cache import Stopped
 from .light import light_quadrature, near_lights
@@ -244,7 +244,7 @@ def open_site(
         "view": list(capture.view) if capture is not None else [0.0, 0.0, 1.0],
         "layers": layers,
         "model_codes": meta.get("model_codes", []),
-        "model_colours": list(MODEL_COLOURS),
+        "model_colours": list(model_colours(max(len(meta.get("model_codes", [])), len(MODEL_COLOURS)))),
         "flag_bits": meta.get("flag_bits", {}),
         "untrusted_flags": meta.get("untrusted_flags", []),
         "ranges": {
