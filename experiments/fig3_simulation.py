@@ -52,7 +52,7 @@ class Settings:
     noisy_snr_db: tuple[float, ...]  # extra runs with white Gaussian noise at these SNRs (peak / noise std)
     seed: int
     fit: FitConfig
-    compare_inits: tuple[str, ...]  # noise-free runs from these other starts (FitConfig.init), for comparison
+    compare_inits: tuple[str, ...]  # noise-free runs from these other starts (FitConfig.start.init), for comparison
 
 
 def _point_lights(l: torch.Tensor) -> Lights:

@@ -13,7 +13,7 @@ l-plane (errors in l units; near the zenith one l unit is ~28.6 degrees of the n
   :func:`torchspec.rendering.render` instead.
 - *pipeline*, :func:`torchspec.pipeline.fit` (``ward-iso``) on small simulated captures, a pixel per
   trial, an ``N x N`` grid of lights, with ``matte`` pixels from dark to light on which the fit
-  measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.init``); the peak is the
+  measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.start.init``); the peak is the
   mirror direction of the fitted normal, the error its 2D distance to the truth.
 
 Axes, each varied alone from the base setting: SNR; samples per axis; kernel width over lobe width;
@@ -118,7 +118,7 @@ class Location:
 
 @dataclass(frozen=True)
 class Run:
-    init: str  # FitConfig.init
+    init: str  # FitConfig.start.init
     axes: Axes
     trials: int = 0  # pixels per cell (0: the pipeline's)
     matte: int = 0  # matte pixels per capture (0: the pipeline's)
@@ -156,8 +156,8 @@ class FitRule:
     status: bool = True  # a solver status other than converged
     no_lobe: bool = True  # no peak detected (the pixel fitted diffuse)
     std_deg: float = math.inf  # Fit.std["normal"] above this many degrees
-    local: float = math.inf  # Fit.checks['peak_misfit'] above this (FitConfig.flag_peak_misfit)
-    astray: float = math.inf  # Fit.checks['astray'] above this (FitConfig.flag_astray)
+    local: float = math.inf  # Fit.checks['peak_misfit'] above this (FitConfig.flags.peak_misfit)
+    astray: float = math.inf  # Fit.checks['astray'] above this (FitConfig.flags.astray)
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,7 @@ class Settings:
     frames: str  # the frames fitted (select_frames); the others are predicted
     models: tuple[str, ...]  # "auto" (required) and the forced ones
     scipy_pixels: int  # dual-box pixels fitted one by one by scipy
-    smooth: float = 0.0  # > 0: one more auto run with its choice of a lobe smoothed (FitConfig.smooth)
+    smooth: float = 0.0  # > 0: one more auto run with its choice of a lobe smoothed (FitConfig.ladder.smooth)
     dual: DualConfig = field(default_factory=DualConfig)
 
 

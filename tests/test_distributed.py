@@ -231,7 +231,7 @@ def _without_timings(folder) -> str:
 
 
 def test_a_smoothed_choice_spans_the_tasks(capture, client, tmp_path):
-    """FitConfig.smooth decides over the whole image after the tiles: the same maps from two workers
+    """FitConfig.ladder.smooth decides over the whole image after the tiles: the same maps from two workers
     as in process, with tiles across the rows whose neighbours sit in other tiles and tasks. (This
     capture has almost no noise: its lobes lower the criterion by ~1e8, and so must the weight.)"""
     config = FitConfig(tile=7, smooth=1e8)

@@ -108,7 +108,7 @@ def test_left_out_residuals_match_a_refit_without_the_fold(name):
         expected[:, left] = ((predicted - data.observed) * inverse)[:, left]
     scale = expected.square().mean().sqrt()
     assert float((found - expected).square().mean().sqrt()) < 0.05 * float(scale)
-    # The solver's refits of every fold in one batch (FitConfig.refit) are those refits.
+    # The solver's refits of every fold in one batch (FitConfig.ladder.refit) are those refits.
     batched = held_out_refit(get_model(name), solved.svbrdf, index, data, inverse, folds, replace(config, refit=200))
     assert float((batched[:, 0] - expected).square().mean().sqrt()) < 1e-3 * float(scale)
 

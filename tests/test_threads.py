@@ -1,4 +1,4 @@
-"""The thread policy of a fit on a shared machine (torchspec.threads, FitConfig.threads)."""
+"""The thread policy of a fit on a shared machine (torchspec.threads, FitConfig.compute.threads)."""
 
 from __future__ import annotations
 
