@@ -151,8 +151,13 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, ca
     along their directions, block by block: :func:`torchspec.relight.render_near`): ``(linear
     (K, C, H, W) of the physical maps, the same with the fit's residual term (``None`` without
     one), seconds, fit)``."""
-    config = torchspec.FitConfig(
-        model=model, compile=settings.compile, residual_term=settings.residual_term, calibrate=calibrate
+    config = torchspec.FitConfig.from_dict(
+        {
+            "model": model,
+            "calibrate": calibrate,
+            "quadrature": {"compile": settings.compile},
+            "term": {"order": settings.residual_term},
+        }
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -708,7 +708,8 @@ def _fit_group(settings: Settings, folder: Path, group: dict, cells, init: str) 
     """One fit of a group's capture; per cell, the per-trial peaks and flag inputs."""
     with warnings.catch_warnings():  # additive noise leaves negative samples: kept, as the fit does
         warnings.filterwarnings("ignore", message=r".*pixel\(s\) with a negative value")
-        result = fit(folder, config=replace(settings.pipeline.fit, init=init))
+        config = settings.pipeline.fit
+        result = fit(folder, config=replace(config, start=replace(config.start, init=init)))
     local, astray = (result.checks[name].reshape(-1).double() for name in ("peak_misfit", "astray"))
     # The package's verdict on a peak: a flag of torchspec.flags.UNTRUSTED, or no lobe established.
     flags = result.flags.reshape(-1)

@@ -16,7 +16,7 @@ from capture_cases import write_small_painting
 
 from torchspec.cli import CHECKPOINT, main
 from torchspec.io import read_svbrdf
-from torchspec.pipeline import FitConfig, FitInterrupted, fit
+from torchspec.pipeline import ComputeConfig, FitConfig, FitInterrupted, StartConfig, fit
 
 TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")
@@ -28,7 +28,7 @@ def capture(tmp_path_factory):
     return write_small_painting(tmp_path_factory.mktemp("resume") / "capture")
 
 
-CONFIG = FitConfig(tile=36)
+CONFIG = FitConfig(compute=ComputeConfig(tile=36))
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +168,10 @@ def test_ctrl_c_after_the_tiles_says_what_is_saved(capture, tmp_path, monkeypatc
 
 @pytest.mark.parametrize(
     "change, differs",
-    [({"frames": "::2"}, "frames"), ({"config": FitConfig(tile=36, detect=4.0)}, "settings")],
+    [
+        ({"frames": "::2"}, "frames"),
+        ({"config": FitConfig(compute=ComputeConfig(tile=36), start=StartConfig(detect=4.0))}, "settings"),
+    ],
 )
 def test_resuming_another_job_is_refused(capture, tmp_path, monkeypatch, change, differs):
     folder = tmp_path / "tiles"

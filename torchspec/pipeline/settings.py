@@ -181,7 +181,7 @@ class LadderConfig:
         object.__setattr__(self, "models", ladder)
         unknown = [name for name in ladder if name not in MODELS]
         if unknown:
-            raise ConfigError(f"FitConfig.ladder.models: each must be one of {sorted(MODELS)}; got {unknown!r}.")
+            raise ConfigError(f"FitConfig.ladder.models: each model must be one of {sorted(MODELS)}; got {unknown!r}.")
         if not ladder or len(set(ladder)) != len(ladder) or not all(get_model(name).lobe for name in ladder):
             raise ConfigError(
                 f"FitConfig.ladder.models must name one or more models with a lobe, each once "
