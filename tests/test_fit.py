@@ -161,7 +161,7 @@ def test_config_is_checked():
 def test_write_fit_and_cli(painting, tmp_path):
     out = tmp_path / "maps"
     config = tmp_path / "fit.yaml"
-    config.write_text("init: fri\nlm: {max_iterations: 30}\n")
+    config.write_text("start: {init: fri}\nlm: {max_iterations: 30}\n")
     assert main(["fit", str(painting), "-o", str(out), "--config", str(config), "--frames", "::2"]) == 0
     maps = read_svbrdf(out)
     meta = json.loads((out / "svbrdf.json").read_text())
@@ -175,7 +175,7 @@ def test_write_fit_and_cli(painting, tmp_path):
     assert err < 1e-6, f"max difference {err:.3g}"
     assert main(["fit", str(painting), "-o", str(tmp_path / "x"), "--frames", "0,1"]) == 2  # too few frames
     bad = tmp_path / "bad.yaml"
-    bad.write_text("inti: fri\n")
+    bad.write_text("start: {inti: fri}\n")
     assert main(["fit", str(painting), "-o", str(tmp_path / "y"), "--config", str(bad)]) == 2
     assert not math.isnan(float(maps.extra["quality"].mean()))
 
