@@ -160,9 +160,9 @@ def busy_table(settings: Settings, capture: Path) -> list[dict]:
             for busy in (False, True) if repeat % 2 == 0 else (True, False):
                 if busy:
                     with Neighbour(settings.neighbours):
-                        run = timed_fit(capture, {"threads": variant.threads}, variant.env)
+                        run = timed_fit(capture, {"compute": {"threads": variant.threads}}, variant.env)
                 else:
-                    run = timed_fit(capture, {"threads": variant.threads}, variant.env)
+                    run = timed_fit(capture, {"compute": {"threads": variant.threads}}, variant.env)
                 runs[variant.name, busy].append(run)
                 print(
                     f"  {variant.name:38s} {'busy ' if busy else 'quiet'} {run['seconds']:7.1f} s  "
