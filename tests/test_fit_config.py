@@ -180,3 +180,31 @@ def test_a_checkpoint_of_the_flat_settings_resumes(tmp_path):
     del other["settings"]["compute"]["threads"]
     with pytest.raises(ValueError, match="its settings differ"):
         open_checkpoint(folder, other, resume=True)
+
+
+class _Stop(BaseException):
+    """Raised by the fit the command line calls: the settings it was given, and nothing run."""
+
+
+def test_the_cli_flags_set_their_groups(tmp_path, monkeypatch):
+    import torchspec.pipeline
+
+    given = {}
+
+    def fit(capture, *, config, **_):
+        given["config"] = config
+        raise _Stop
+
+    monkeypatch.setattr(torchspec.pipeline, "fit", fit)
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    flags = "--model ward-iso --calibrate none --residual-term 2 --device cpu --downsample 2 --crop 1,2,8,9 --threads 1"
+    with pytest.raises(_Stop):
+        main(["fit", str(capture), "-o", str(tmp_path / "maps"), *flags.split()])
+    config = given["config"]
+    assert (config.model, config.calibrate, config.term.order) == ("ward-iso", "none", 2)
+    assert (config.compute.device, config.compute.threads) == ("cpu", 1)
+    assert (config.masks.downsample, config.masks.crop) == (2, (1, 2, 8, 9))
+    others = replace(config, model="auto", calibrate="auto", term=TermConfig(), compute=ComputeConfig())
+    others = replace(others, masks=MasksConfig())
+    assert others == FitConfig()  # nothing else set
