@@ -215,10 +215,10 @@ def test_a_lobe_grown_on_clipped_samples_is_implausible(scene):
     ratio = _overshoot(grown, recorded, lights)
     expected = render(grown, lights, VIEW, quadrature=rule).amax((1, 2)) / clean.amax((1, 2)).clamp(max=clip)
     assert torch.allclose(ratio, expected, rtol=1e-12)
-    flagged = ratio > FitConfig().flag_overshoot
+    flagged = ratio > FitConfig().flags.overshoot
     assert float(flagged.double().mean()) > 0.9
     honest = _overshoot(truth, recorded, lights)  # the truth renders up to peak / clip: a few times at most
-    assert float(honest.max()) < FitConfig().flag_overshoot
+    assert float(honest.max()) < FitConfig().flags.overshoot
     assert torch.allclose(honest, clean.amax((1, 2)) / clean.amax((1, 2)).clamp(max=clip), rtol=1e-12)
 
 

@@ -216,7 +216,7 @@ def test_the_dual_gate_passes_two_lobes_and_few_single_ones():
     from torchspec.pipeline.selection import _second_lobe_gate
 
     config = FitConfig(lm=LMConfig(max_iterations=200), start=StartConfig(noise_floor=1e-9))
-    assert FitConfig().dual_gate == 0.0
+    assert FitConfig().ladder.dual_gate == 0.0
     folds = light_folds(_grid(7, 0.7), 5)
     for second in (0.03, 0.0):
         truth, data = _two_lobe_scene(second, n=200, seed=4)
