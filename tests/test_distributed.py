@@ -220,7 +220,7 @@ def test_an_unreachable_scheduler_is_named():
 
 def test_the_cli_fits_on_a_scheduler(capture, client, reference, tmp_path, capsys):
     config = tmp_path / "fit.yaml"
-    config.write_text("tile: 7\n")
+    config.write_text("compute: {tile: 7}\n")
     output = tmp_path / "maps"
     code = main(["fit", str(capture), "-o", str(output), "--config", str(config), "--quiet",
                  "--scheduler", client.scheduler.address])  # fmt: skip

@@ -148,7 +148,7 @@ def test_ctrl_c_before_any_tile_says_so_in_one_line(capture, tmp_path, monkeypat
 
 def _config(tmp_path: Path) -> Path:
     path = tmp_path / "fit.yaml"
-    path.write_text("tile: 36\n")
+    path.write_text("compute: {tile: 36}\n")
     return path
 
 
@@ -221,7 +221,7 @@ def _wait_for_tiles(process: subprocess.Popen, folder: Path, count: int) -> None
 def tiny_tiles(tmp_path_factory):
     """Tiles of 4 pixels: 36 of them, so that the child is caught mid-fit."""
     path = tmp_path_factory.mktemp("config") / "fit.yaml"
-    path.write_text("tile: 4\n")
+    path.write_text("compute: {tile: 4}\n")
     return path
 
 
