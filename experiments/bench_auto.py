@@ -22,7 +22,7 @@ import torch
 import torchspec as ts
 from torchspec.pipeline import FitConfig
 torch.set_num_threads(int(sys.argv[3]))
-config = FitConfig(**json.loads(sys.argv[2]))
+config = FitConfig.from_dict(json.loads(sys.argv[2]))
 wall, cpu = time.perf_counter(), time.process_time()
 fit = ts.fit(sys.argv[1], config=config)
 print(json.dumps({"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu, "models": fit.stats["models"]}))

@@ -6,7 +6,7 @@ and after each capture: the ratio is against the mean of those two).
 Every fit runs in a fresh process (``OMP_WAIT_POLICY`` and ``GOMP_SPINCOUNT`` are read as torch
 loads its OpenMP runtime). The neighbour is ``neighbours`` processes each spinning a Python loop
 (started a second before the fit, stopped after it). Each row of the busy table is a thread setting
-(``FitConfig.threads``) with its environment: the torch default before issue 21 (2 threads, libgomp's
+(``FitConfig.compute.threads``) with its environment: the torch default before issue 21 (2 threads, libgomp's
 default spin of ~3 ms at each barrier, which ``GOMP_SPINCOUNT=300000`` restores), 1 thread, and the
 new default (``auto`` with passive waits). Repeated ``repeats`` times, alternating; the median is
 reported, with the load average before each fit and the cores the other processes (the neighbour and
@@ -48,7 +48,7 @@ from torchspec.threads import CpuMeter
 @dataclass(frozen=True)
 class Variant:
     name: str
-    threads: int | str  # FitConfig.threads
+    threads: int | str  # FitConfig.compute.threads
     env: dict[str, str] = field(default_factory=dict)  # added to the fit's environment
 
 
@@ -160,9 +160,9 @@ def busy_table(settings: Settings, capture: Path) -> list[dict]:
             for busy in (False, True) if repeat % 2 == 0 else (True, False):
                 if busy:
                     with Neighbour(settings.neighbours):
-                        run = timed_fit(capture, {"threads": variant.threads}, variant.env)
+                        run = timed_fit(capture, {"compute": {"threads": variant.threads}}, variant.env)
                 else:
-                    run = timed_fit(capture, {"threads": variant.threads}, variant.env)
+                    run = timed_fit(capture, {"compute": {"threads": variant.threads}}, variant.env)
                 runs[variant.name, busy].append(run)
                 print(
                     f"  {variant.name:38s} {'busy ' if busy else 'quiet'} {run['seconds']:7.1f} s  "

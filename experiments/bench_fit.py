@@ -145,7 +145,7 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
     """Per-pixel scipy least_squares from the fit's own start: returns the maps, seconds, evaluations."""
     torch.set_num_threads(settings.threads)
     capture = read_capture(capture_dir)
-    dtype = getattr(torch, settings.fit.dtype)
+    dtype = getattr(torch, settings.fit.compute.dtype)
     lights = capture.lights(dtype=dtype)
     view = torch.tensor(capture.view, dtype=dtype)
     stack = capture.read_frames(dtype=dtype).flatten(2)  # (K, C, H W)
@@ -164,7 +164,7 @@ def _scipy(settings: Settings, capture_dir: Path, pick: torch.Tensor) -> tuple[S
         lights,
         view,
         channels,
-        path=settings.fit.path,
+        path=settings.fit.quadrature.path,
         quadrature=settings.fit.rule,
         repeats=settings.scipy_repeats,
     )
@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         },
     ]
     speedup = per_pixel * pixels / ours["seconds"]
-    print(f"{size_label(settings)}, {frames} frames, {settings.threads} threads, {settings.fit.dtype}")
+    print(f"{size_label(settings)}, {frames} frames, {settings.threads} threads, {settings.fit.compute.dtype}")
     print(
         f"{'method':44s} {'pixels':>8s} {'seconds':>9s} {'pixels/s':>9s} {'peak MB':>8s} "
         f"{'normal deg':>10s} {'k_d %':>6s} {'k_s %':>6s} {'alpha %':>7s}  (sampled lobed pixels)"

@@ -68,14 +68,14 @@ import json, os, resource, sys, time, torch
 from torchspec.pipeline import FitConfig, fit, write_fit
 settings = json.loads(sys.argv[1])
 torch.set_num_threads(settings.pop("threads"))
-config = FitConfig(**settings)
+config = FitConfig.from_dict(settings)
 start = time.perf_counter()
 result = fit(sys.argv[2], config=config)
-if config.device.startswith("cuda"):
+if config.compute.device.startswith("cuda"):
     torch.cuda.synchronize()
 seconds = time.perf_counter() - start
 write_fit(sys.argv[3], result)
-if config.device.startswith("cuda"):
+if config.compute.device.startswith("cuda"):
     peak = torch.cuda.max_memory_allocated() / 2**20
 else:
     with open("/proc/self/status") as status:
@@ -217,12 +217,13 @@ def main(argv: list[str] | None = None) -> dict:
         for label, model in (("default", "auto"), ("ward-iso", "ward-iso")):
             cache_dir = scratch / f"inductor-{label}"
             for run in ("cold", "warm"):
-                config = {"model": model, "device": settings.device}
+                config = {"model": model, "compute": {"device": settings.device}}
                 row = _fit(capture, scratch / f"maps-{label}-{run}", config, settings.cpu_threads, cache_dir, budget)
                 out["fits"][f"{label} {run}"] = row
                 _print(f"{label} {run}", row)
                 write_json(target, out)
-        cpu = _fit(capture, scratch / "maps-cpu", {"device": "cpu"}, settings.cpu_threads, scratch / "i-cpu", budget)
+        on_cpu = {"compute": {"device": "cpu"}}
+        cpu = _fit(capture, scratch / "maps-cpu", on_cpu, settings.cpu_threads, scratch / "i-cpu", budget)
         out["fits"]["default cpu"] = cpu
         _print("default cpu", cpu)
         if "seconds" in cpu and "seconds" in out["fits"]["default warm"]:

@@ -52,7 +52,7 @@ class Settings:
     noisy_snr_db: tuple[float, ...]  # extra runs with white Gaussian noise at these SNRs (peak / noise std)
     seed: int
     fit: FitConfig
-    compare_inits: tuple[str, ...]  # noise-free runs from these other starts (FitConfig.init), for comparison
+    compare_inits: tuple[str, ...]  # noise-free runs from these other starts (FitConfig.start.init), for comparison
 
 
 def _point_lights(l: torch.Tensor) -> Lights:
@@ -71,7 +71,7 @@ def _run(
         frames = frames + std * torch.randn(frames.shape, generator=g, dtype=frames.dtype)
     folder = workdir / f"{kind}-{snr_db}-{init}"
     write_simulation(folder, replace(sim, frames=frames))
-    result = fit(folder, config=replace(settings.fit, init=init))
+    result = fit(folder, config=replace(settings.fit, start=replace(settings.fit.start, init=init)))
     truth = sim.truth.flatten().to(torch.float64)
     fitted = result.svbrdf.flatten().to(torch.float64)
     l = torch.tensor([f.direction[:2] for f in sim.capture.frames], dtype=torch.float64)
@@ -191,13 +191,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     with tempfile.TemporaryDirectory() as tmp:
         for kind, config in configs.items():
-            trials = [(None, settings.fit.init)] + [(snr, settings.fit.init) for snr in settings.noisy_snr_db]
+            start = settings.fit.start.init
+            trials = [(None, start)] + [(snr, start) for snr in settings.noisy_snr_db]
             trials += [(None, init) for init in settings.compare_inits]
             for snr_db, init in trials:
                 out = _run(kind, config, settings, snr_db, Path(tmp), init)
                 row = out["row"]
                 rows.append(row)
-                if snr_db is None and init == settings.fit.init:
+                if snr_db is None and init == start:
                     clean[kind] = out
                 label = "none" if snr_db is None else f"{snr_db:.0f} dB"
                 print(

@@ -37,9 +37,41 @@ CASES = {
     "naive_nounc": ({"init": "naive", "model": "ward-iso", "uncertainty": False}, None),
     "f64_render": ({"dtype": "float64", "quadrature": "render", "tile": 1000}, "::2"),
 }
-"""Fit settings and frames of each saved case."""
+"""Fit settings and frames of each saved case, in the flat keys of the settings before their groups
+(:func:`fit_config` builds them in either layout: the old code's and the new's run the same cases)."""
 VARYING = ("second", "time", "per_s", "_ms", "peak_mb", "torch", "cache", "capture", "output", "command")
 """Keys of a result left out of the comparisons: timings, memory, versions and paths."""
+
+
+def fit_config(settings: dict):
+    """The ``FitConfig`` of a case's flat ``settings``: nested into their groups when this torchspec's
+    settings have groups (``FitConfig.from_dict``, ``torchspec.pipeline.settings.nested_settings``),
+    as they are otherwise (a checkout from before the groups)."""
+    from torchspec.pipeline import FitConfig
+
+    if hasattr(FitConfig, "from_dict"):
+        from torchspec.pipeline.settings import nested_settings
+
+        return FitConfig.from_dict(nested_settings(settings))
+    return FitConfig(**settings)
+
+
+def flat_settings(settings: dict) -> dict:
+    """``stats["settings"]`` (a fit's settings, as ``asdict`` gives them) in the flat keys of the
+    settings before their groups (``lm`` stays nested, as it was): the records of the two layouts
+    compare key by key. Flat settings are returned as they are."""
+    try:
+        from torchspec.pipeline.settings import MOVED
+    except ImportError:  # a checkout from before the groups: its settings are flat
+        return settings
+    flat_key = {place: key for key, place in MOVED.items()}
+    flat = {}
+    for key, value in settings.items():
+        if isinstance(value, dict) and key != "lm":
+            flat.update({flat_key[f"{key}.{name}"]: item for name, item in value.items()})
+        else:
+            flat[key] = value
+    return flat
 
 
 def outputs(result) -> dict:
@@ -67,7 +99,7 @@ def save(capture: str, folder: Path) -> None:
     torch.set_num_threads(1)
     folder.mkdir(parents=True, exist_ok=True)
     for name, (settings, frames) in CASES.items():
-        result = ts.fit(capture, config=ts.FitConfig(**settings), frames=frames)
+        result = ts.fit(capture, config=fit_config(settings), frames=frames)
         torch.save(outputs(result), folder / f"{name}.pt")
         print(f"{name}: {result.stats['models']}")
 
@@ -88,6 +120,9 @@ def compare(old: Path, new: Path) -> list[str]:
             differ.append(f"{path.stem}: missing in {new}")
             continue
         a, b = torch.load(path, weights_only=False), torch.load(new / path.name, weights_only=False)
+        for saved in (a, b):  # the settings of either layout, compared key by key
+            if isinstance(saved.get("stats"), dict) and isinstance(saved["stats"].get("settings"), dict):
+                saved["stats"]["settings"] = flat_settings(saved["stats"]["settings"])
         differ += [f"{path.stem} {key}" for key in sorted(set(a) | set(b)) if not _same(a.get(key), b.get(key))]
     return differ
 

@@ -67,9 +67,9 @@ class Settings:
     downsample: int = 1  # box-average factor of the frames (1: full size)
     models: tuple[str, ...] = ("auto",)  # torchspec fits: auto and/or forced models
     threads: int = 2  # torch threads
-    compile: bool = False  # FitConfig.compile
+    compile: bool = False  # FitConfig.quadrature.compile
     left_out: int = 2  # frames i % 5 == left_out are predicted
-    residual_term: int | str = "auto"  # FitConfig.residual_term: rows with and without the term, of one fit
+    residual_term: int | str = "auto"  # FitConfig.term.order: rows with and without the term, of one fit
     calibrations: tuple[str, ...] = ("auto",)  # FitConfig.calibrate of the torchspec rows (each model, each)
     transfer: str | None = None  # import's --transfer (None: its default, auto for these untagged 8-bit files)
     ridge: float = 0.1  # the RBF baseline's ridge
@@ -151,8 +151,13 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, ca
     along their directions, block by block: :func:`torchspec.relight.render_near`): ``(linear
     (K, C, H, W) of the physical maps, the same with the fit's residual term (``None`` without
     one), seconds, fit)``."""
-    config = torchspec.FitConfig(
-        model=model, compile=settings.compile, residual_term=settings.residual_term, calibrate=calibrate
+    config = torchspec.FitConfig.from_dict(
+        {
+            "model": model,
+            "calibrate": calibrate,
+            "quadrature": {"compile": settings.compile},
+            "term": {"order": settings.residual_term},
+        }
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -73,7 +73,7 @@ def _timed(repeats: int, run):
 
 def _start_row(folder: Path, config: FitConfig, repeats: int):
     capture = read_capture(folder)
-    dtype = getattr(torch, config.dtype)
+    dtype = getattr(torch, config.compute.dtype)
     lights, view = capture.lights(dtype=dtype), torch.tensor(capture.view, dtype=dtype)
     y = capture.read_frames(dtype=dtype).flatten(2).permute(2, 0, 1)  # (H W, K, C)
     valid = torch.isfinite(y).all(-1)

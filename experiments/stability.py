@@ -13,7 +13,7 @@ l-plane (errors in l units; near the zenith one l unit is ~28.6 degrees of the n
   :func:`torchspec.rendering.render` instead.
 - *pipeline*, :func:`torchspec.pipeline.fit` (``ward-iso``) on small simulated captures, a pixel per
   trial, an ``N x N`` grid of lights, with ``matte`` pixels from dark to light on which the fit
-  measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.init``); the peak is the
+  measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.start.init``); the peak is the
   mirror direction of the fitted normal, the error its 2D distance to the truth.
 
 Axes, each varied alone from the base setting: SNR; samples per axis; kernel width over lobe width;
@@ -118,7 +118,7 @@ class Location:
 
 @dataclass(frozen=True)
 class Run:
-    init: str  # FitConfig.init
+    init: str  # FitConfig.start.init
     axes: Axes
     trials: int = 0  # pixels per cell (0: the pipeline's)
     matte: int = 0  # matte pixels per capture (0: the pipeline's)
@@ -156,8 +156,8 @@ class FitRule:
     status: bool = True  # a solver status other than converged
     no_lobe: bool = True  # no peak detected (the pixel fitted diffuse)
     std_deg: float = math.inf  # Fit.std["normal"] above this many degrees
-    local: float = math.inf  # Fit.checks['peak_misfit'] above this (FitConfig.flag_peak_misfit)
-    astray: float = math.inf  # Fit.checks['astray'] above this (FitConfig.flag_astray)
+    local: float = math.inf  # Fit.checks['peak_misfit'] above this (FitConfig.flags.peak_misfit)
+    astray: float = math.inf  # Fit.checks['astray'] above this (FitConfig.flags.astray)
 
 
 @dataclass(frozen=True)
@@ -708,7 +708,8 @@ def _fit_group(settings: Settings, folder: Path, group: dict, cells, init: str) 
     """One fit of a group's capture; per cell, the per-trial peaks and flag inputs."""
     with warnings.catch_warnings():  # additive noise leaves negative samples: kept, as the fit does
         warnings.filterwarnings("ignore", message=r".*pixel\(s\) with a negative value")
-        result = fit(folder, config=replace(settings.pipeline.fit, init=init))
+        config = settings.pipeline.fit
+        result = fit(folder, config=replace(config, start=replace(config.start, init=init)))
     local, astray = (result.checks[name].reshape(-1).double() for name in ("peak_misfit", "astray"))
     # The package's verdict on a peak: a flag of torchspec.flags.UNTRUSTED, or no lobe established.
     flags = result.flags.reshape(-1)

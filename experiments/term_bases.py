@@ -72,7 +72,7 @@ def _spacing(d: torch.Tensor) -> float:
 def _maps_codes(capture, fitted: list[int], transfer) -> tuple[torch.Tensor, float]:
     """The codes ``(K, C, H, W)`` of the maps fitted on ``fitted`` frames without a term, rendered
     under every light of ``capture``; and the fit's seconds."""
-    config = torchspec.FitConfig(residual_term=0, compile=False)
+    config = torchspec.FitConfig.from_dict({"term": {"order": 0}, "quadrature": {"compile": False}})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fit = torchspec.fit(capture, config=config, frames=fitted)

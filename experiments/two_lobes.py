@@ -40,7 +40,7 @@ from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.lights import Lights
 from torchspec.models import get_model
-from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, starting_point
+from torchspec.pipeline import MODEL_CODES, FitConfig, LadderConfig, fit, select_frames, starting_point
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.solver import solve_pixels
 from torchspec.rendering import render
@@ -59,7 +59,7 @@ class Settings:
     frames: str  # the frames fitted (select_frames); the others are predicted
     models: tuple[str, ...]  # "auto" (required) and the forced ones
     scipy_pixels: int  # dual-box pixels fitted one by one by scipy
-    smooth: float = 0.0  # > 0: one more auto run with its choice of a lobe smoothed (FitConfig.smooth)
+    smooth: float = 0.0  # > 0: one more auto run with its choice of a lobe smoothed (FitConfig.ladder.smooth)
     dual: DualConfig = field(default_factory=DualConfig)
 
 
@@ -124,7 +124,7 @@ def _baseline(settings: Settings, folder: Path, frames: list[int], chosen: torch
     stereo and FRI peak), so the two differ in the solver only."""
     capture = read_capture(folder)
     config = FitConfig(model="ward-dual")
-    dtype = getattr(torch, config.dtype)
+    dtype = getattr(torch, config.compute.dtype)
     lights = capture.lights(dtype=dtype)[frames]
     view = torch.tensor(capture.view, dtype=dtype)
     y = capture.read_frames(dtype=dtype)[frames].flatten(2)[:, :, chosen].permute(2, 0, 1)  # (n, K, C)
@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> dict:
         results = {}
         runs = [(name, FitConfig(model=name)) for name in settings.models]
         if settings.smooth > 0:
-            runs.append((f"auto-smooth-{settings.smooth:g}", FitConfig(smooth=settings.smooth)))
+            runs.append((f"auto-smooth-{settings.smooth:g}", FitConfig(ladder=LadderConfig(smooth=settings.smooth))))
         for name, config in runs:
             t0 = time.perf_counter()
             result = fit(folder, config=config, frames=frames)

@@ -58,10 +58,10 @@ def test_a_value_the_settings_refuse_names_the_file_and_the_key(tmp_path):
     from torchspec import FitConfig
 
     path = tmp_path / "fit.yaml"
-    path.write_text("smooth: -1\n")
+    path.write_text("ladder: {smooth: -1}\n")
     with pytest.raises(ConfigError) as caught:
         load_config(path, FitConfig)
-    assert str(caught.value).startswith(f"{path}: smooth must be >= 0")
+    assert str(caught.value).startswith(f"{path}.ladder: smooth must be >= 0")
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from torchspec.jacobian import jacobian
 from torchspec.lights import Kernel
 from torchspec.lm import LMConfig, bounded, solve
 from torchspec.models import get_model
-from torchspec.pipeline import FitConfig, fit, write_fit
+from torchspec.pipeline import ComputeConfig, FitConfig, QuadratureConfig, fit, write_fit
 from torchspec.pipeline.plan import device_of
 from torchspec.relight import render_capture
 from torchspec.rendering import render
@@ -86,14 +86,16 @@ def painting(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cpu_fit(painting):
-    return fit(painting, frames="::2", config=FitConfig(device="cpu", compile=False))
+    config = FitConfig(compute=ComputeConfig(device="cpu"), quadrature=QuadratureConfig(compile=False))
+    return fit(painting, frames="::2", config=config)
 
 
 def test_a_fit_and_its_render_run_on_the_chosen_device(painting, cpu_fit, device, tmp_path):
     """The default fit (start, solver, selection by left-out frames, uncertainty) on ``device``:
     the device is recorded, and the maps agree with the CPU's (issue 36: the same model on 99.9 %
     of pixels, normals within 0.01 deg and k_d, k_s, alpha within 1e-3 relative on 99 %)."""
-    result = fit(painting, frames="::2", config=FitConfig(device=str(device), compile=False))
+    config = FitConfig(compute=ComputeConfig(device=str(device)), quadrature=QuadratureConfig(compile=False))
+    result = fit(painting, frames="::2", config=config)
     assert result.stats["device"] == str(device)
     same_model = (result.model.cpu() == cpu_fit.model).double().mean()
     normals = torch.rad2deg(angle(result.svbrdf.normal.cpu().double(), cpu_fit.svbrdf.normal.double()))
@@ -157,4 +159,4 @@ def test_tiles_fill_a_gpu_and_cut_the_image_on_the_cpu(monkeypatch):
     stack = 144 * 3 * 4 * 512 * 512
     assert 256 <= small < 512 * 512 and stack < GPU_SHARE * free["bytes"]
     assert plan(FitConfig(), *shape)[1] <= 512 * 512 // TILES  # the CPU: progress, resumption, threads
-    assert plan(FitConfig(tile=4096), *shape, cuda)[1] == 4096  # a tile asked for is kept
+    assert plan(FitConfig(compute=ComputeConfig(tile=4096)), *shape, cuda)[1] == 4096  # a tile asked for is kept

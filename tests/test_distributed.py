@@ -23,12 +23,22 @@ from capture_cases import write_small_painting  # noqa: E402
 from torchspec.cli import CHECKPOINT, main  # noqa: E402
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
 from torchspec.io.exr import ExrError, read_exr, write_exr  # noqa: E402
-from torchspec.pipeline import ClusterError, FitConfig, FitInterrupted, connect, fit, write_fit  # noqa: E402
+from torchspec.pipeline import (  # noqa: E402
+    ClusterError,
+    ComputeConfig,
+    FitConfig,
+    FitInterrupted,
+    LadderConfig,
+    MasksConfig,
+    connect,
+    fit,
+    write_fit,
+)
 from torchspec.pipeline import fit_on_cluster as fit_on  # noqa: E402
 
 TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")
-CONFIG = FitConfig(tile=7)  # 21 tiles of a 12 x 12 image, most across two rows
+CONFIG = FitConfig(compute=ComputeConfig(tile=7))  # 21 tiles of a 12 x 12 image, most across two rows
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # _fail_on_workers runs on the workers
 
 
@@ -89,7 +99,7 @@ def test_a_two_worker_fit_equals_the_in_process_fit(capture, client, reference, 
 def test_clipped_samples_are_grown_across_task_boundaries(capture, client, tmp_path):
     # A clipping level that some samples reach: the masks of a task's rows need the rows around them.
     level = float(read_capture(capture).read_frames().quantile(0.995))
-    config = FitConfig(tile=7, saturation=level, grow=1)
+    config = FitConfig(compute=ComputeConfig(tile=7), masks=MasksConfig(saturation=level, grow=1))
     local = fit(capture, config=config)
     assert local.stats["masked_samples"]["saturated"] > 0
     _same(fit_on(capture, client, checkpoint=tmp_path / "tiles", config=config, tiles_per_task=2), local)
@@ -192,7 +202,8 @@ def test_a_failing_tile_is_named(capture, client, tmp_path):
         with pytest.raises(
             ClusterError, match=r"tile 7 \(pixels 140\.\.143, rows 11\.\.11\).*FloatingPointError.*--resume"
         ):
-            fit_on(capture, client, checkpoint=tmp_path / "tiles", config=FitConfig(tile=20), retries=0)
+            config = FitConfig(compute=ComputeConfig(tile=20))
+            fit_on(capture, client, checkpoint=tmp_path / "tiles", config=config, retries=0)
     finally:
         client.run(_heal_workers)
     assert not (tmp_path / "tiles" / "tile-000000000140.pt").exists()
@@ -209,7 +220,7 @@ def test_an_unreachable_scheduler_is_named():
 
 def test_the_cli_fits_on_a_scheduler(capture, client, reference, tmp_path, capsys):
     config = tmp_path / "fit.yaml"
-    config.write_text("tile: 7\n")
+    config.write_text("compute: {tile: 7}\n")
     output = tmp_path / "maps"
     code = main(["fit", str(capture), "-o", str(output), "--config", str(config), "--quiet",
                  "--scheduler", client.scheduler.address])  # fmt: skip
@@ -231,10 +242,10 @@ def _without_timings(folder) -> str:
 
 
 def test_a_smoothed_choice_spans_the_tasks(capture, client, tmp_path):
-    """FitConfig.smooth decides over the whole image after the tiles: the same maps from two workers
+    """FitConfig.ladder.smooth decides over the whole image after the tiles: the same maps from two workers
     as in process, with tiles across the rows whose neighbours sit in other tiles and tasks. (This
     capture has almost no noise: its lobes lower the criterion by ~1e8, and so must the weight.)"""
-    config = FitConfig(tile=7, smooth=1e8)
+    config = FitConfig(compute=ComputeConfig(tile=7), ladder=LadderConfig(smooth=1e8))
     ours = fit(capture, config=config)
     _same(fit_on(capture, client, checkpoint=tmp_path / "tiles", config=config), ours)
     assert ours.stats["smoothed"] > 0

@@ -17,7 +17,7 @@ from torchspec.io.rti import import_rti
 from torchspec.io.scale import Scale, ScaledCapture, ScaleError, reduce_image, scaled
 from torchspec.near_lights import image_points, near_light
 from torchspec.photometric import sample_masks
-from torchspec.pipeline import FitConfig, fit, write_fit
+from torchspec.pipeline import FitConfig, MasksConfig, fit, write_fit
 from torchspec.pipeline.plan import setup
 from torchspec.relight import render_capture
 
@@ -130,10 +130,10 @@ def test_a_box_holding_a_clipped_sample_is_clipped(tmp_path):
     """The fit's saturation level, found at full size (no level recorded), masks every box holding
     a clipped sample in some channel: the max-pool of the full frames' clipped samples."""
     capture, frames = _clipped_capture(tmp_path / "c")
-    job = setup(capture.root, FitConfig(model="diffuse", downsample=2, grow=0), None)
-    assert job.config.saturation == 1.0 and job.capture.level == 1.0
+    job = setup(capture.root, FitConfig(model="diffuse", masks=MasksConfig(downsample=2, grow=0)), None)
+    assert job.config.masks.saturation == 1.0 and job.capture.level == 1.0
     reduced = job.capture.read_frames()
-    masks = sample_masks(reduced, saturation=job.config.saturation, grow=0)
+    masks = sample_masks(reduced, saturation=job.config.masks.saturation, grow=0)
     clipped = (frames >= 1.0).any(1).float()
     expected = torch.nn.functional.max_pool2d(clipped[:, None], 2)[:, 0] > 0
     assert torch.equal(masks.saturated, expected) and int(expected.sum()) == 6  # frame 0: 2 boxes; others 1
@@ -147,7 +147,7 @@ def test_a_fit_at_a_downsample_is_the_fit_of_the_reduced_frames(tmp_path):
     written with those frames; svbrdf.json records the scale, and render --capture compares the
     maps with the capture read at it."""
     painting = write_painting(tmp_path / "p", size=16, seed=5, grid=5, extent=0.8, radius=0.8)
-    config = FitConfig(downsample=2, crop=(2, 1, 13, 12))
+    config = FitConfig(masks=MasksConfig(downsample=2, crop=(2, 1, 13, 12)))
     result = fit(painting, config=config)
     full = read_capture(painting)
     small = scaled(full, Scale(2, (2, 1, 13, 12)))
@@ -160,7 +160,8 @@ def test_a_fit_at_a_downsample_is_the_fit_of_the_reduced_frames(tmp_path):
     assert torch.equal(result.model, direct.model)
     record = {"downsample": 2, "crop": [2, 1, 12, 12], "full_size": [16, 16], "photographs": None}
     assert result.stats["scale"] == record
-    assert result.stats["settings"]["downsample"] == 2 and result.stats["settings"]["crop"] == (2, 1, 13, 12)
+    masks = result.stats["settings"]["masks"]
+    assert masks["downsample"] == 2 and masks["crop"] == (2, 1, 13, 12)
     write_fit(tmp_path / "maps", result)
     meta = read_svbrdf(tmp_path / "maps").meta
     assert meta["fit"]["scale"]["crop"] == [2, 1, 12, 12]

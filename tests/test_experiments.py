@@ -87,7 +87,7 @@ def test_fig3_runs(tmp_path):
     rows = _main(
         "fig3_simulation",
         tmp_path,
-        f"one_d: {one}\ntwo_d: {two}\ndense: 50\nnoisy_snr_db: [40.0]\nseed: 0\nfit: {{dtype: float64}}\n"
+        f"one_d: {one}\ntwo_d: {two}\ndense: 50\nnoisy_snr_db: [40.0]\nseed: 0\nfit: {{compute: {{dtype: float64}}}}\n"
         "compare_inits: [naive]\n",
     )
     clean = {r["experiment"]: r for r in rows if r["sample_snr_db"] is None and r["init"] == "fri"}
@@ -100,7 +100,7 @@ def test_fit_painting_runs(tmp_path, shared):
         "fit_painting",
         tmp_path,
         f"capture: {shared('painting-dev')}\nmatte_ks: 0.001\n"
-        "runs: [{label: fri, frames: '::2', fit: {init: fri, model: ward-aniso}}]\n",
+        "runs: [{label: fri, frames: '::2', fit: {start: {init: fri}, model: ward-aniso}}]\n",
     )
     bound, row = rows
     assert bound["held_out_psnr_db"] > row["held_out_psnr_db"] > 40.0

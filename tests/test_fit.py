@@ -1,6 +1,7 @@
 import json
 import math
 from collections import Counter
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,7 +14,18 @@ from torchspec.cli import main
 from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
-from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames, smooth_choice, write_fit
+from torchspec.pipeline import (
+    MODEL_CODES,
+    ComputeConfig,
+    FitConfig,
+    LadderConfig,
+    QuadratureConfig,
+    StartConfig,
+    fit,
+    select_frames,
+    smooth_choice,
+    write_fit,
+)
 
 
 @pytest.fixture(scope="module")
@@ -57,8 +69,8 @@ def test_tiles_are_independent(painting):
     # A batch's size changes the rounding of its matrix products, so a pixel's solver path differs
     # by rounding and stops elsewhere within its tolerance (ftol = 1e-8 on the cost: ~1e-4 on a
     # parameter in a flat direction). float64 keeps that far below the float32 steps (~1e-3).
-    whole = fit(painting, frames="::2", config=FitConfig(dtype="float64"))
-    tiled = fit(painting, frames="::2", config=FitConfig(dtype="float64", tile=37))
+    whole = fit(painting, frames="::2", config=FitConfig(compute=ComputeConfig(dtype="float64")))
+    tiled = fit(painting, frames="::2", config=FitConfig(compute=ComputeConfig(dtype="float64", tile=37)))
     assert tiled.stats["tile_pixels"] == 37
     for name in ("normal", "diffuse", "specular", "roughness"):
         a, b = getattr(whole.svbrdf, name), getattr(tiled.svbrdf, name)
@@ -69,7 +81,7 @@ def test_tiles_are_independent(painting):
 @pytest.mark.parametrize("start", [dict(init="naive"), dict(init="grid"), dict(fri_kernel="pooled")])
 def test_other_starts_reach_the_same_fit(painting, start):
     truth = read_svbrdf(painting / "truth")
-    result = fit(painting, frames="::2", config=FitConfig(**start))
+    result = fit(painting, frames="::2", config=FitConfig(start=StartConfig(**start)))
     e = _errors(result, truth.svbrdf, truth.extra["regions"])
     assert e["normal"].median() < 0.1, f"median normal error {e['normal'].median():.3g} deg"
     assert e["alpha"].median() < 0.05, f"median alpha error {e['alpha'].median():.3g}"
@@ -128,28 +140,28 @@ def test_select_frames():
 
 def test_config_is_checked():
     with pytest.raises(ValueError, match="init must be one of"):
-        FitConfig(init="magic")
+        FitConfig(start=StartConfig(init="magic"))
     with pytest.raises(ValueError, match="fri_kernel must be one of"):
-        FitConfig(fri_kernel="true")
+        FitConfig(start=StartConfig(fri_kernel="true"))
     with pytest.raises(ValueError, match="fri_kernel 'pooled' weighs the 'coherent' method"):
-        FitConfig(fri_kernel="pooled", fri_method="ls")
+        FitConfig(start=StartConfig(fri_kernel="pooled", fri_method="ls"))
     with pytest.raises(ValueError, match="select_z must be >= 0"):
-        FitConfig(model="auto", select_z=-1.0)
+        FitConfig(model="auto", ladder=LadderConfig(select_z=-1.0))
     with pytest.raises(ValueError, match="model must be one of"):
         FitConfig(model="phong")
-    with pytest.raises(ValueError, match="quadrature must be one of"):
-        FitConfig(quadrature="rough")
+    with pytest.raises(ValueError, match="quadrature.preset must be one of"):
+        FitConfig(quadrature=QuadratureConfig(preset="rough"))
     for ladder in ((), ("ward-iso", "diffuse"), ("ward-iso", "ward-iso")):
-        with pytest.raises(ValueError, match="ladder must name one or more models with a lobe"):
-            FitConfig(ladder=ladder)
+        with pytest.raises(ValueError, match="ladder.models must name one or more models with a lobe"):
+            FitConfig(ladder=LadderConfig(models=ladder))
     with pytest.raises(ValueError, match="model must be one of"):
-        FitConfig(ladder=("ward-iso", "phong"))
+        FitConfig(ladder=LadderConfig(models=("ward-iso", "phong")))
 
 
 def test_write_fit_and_cli(painting, tmp_path):
     out = tmp_path / "maps"
     config = tmp_path / "fit.yaml"
-    config.write_text("init: fri\nlm: {max_iterations: 30}\n")
+    config.write_text("start: {init: fri}\nlm: {max_iterations: 30}\n")
     assert main(["fit", str(painting), "-o", str(out), "--config", str(config), "--frames", "::2"]) == 0
     maps = read_svbrdf(out)
     meta = json.loads((out / "svbrdf.json").read_text())
@@ -163,7 +175,7 @@ def test_write_fit_and_cli(painting, tmp_path):
     assert err < 1e-6, f"max difference {err:.3g}"
     assert main(["fit", str(painting), "-o", str(tmp_path / "x"), "--frames", "0,1"]) == 2  # too few frames
     bad = tmp_path / "bad.yaml"
-    bad.write_text("inti: fri\n")
+    bad.write_text("start: {inti: fri}\n")
     assert main(["fit", str(painting), "-o", str(tmp_path / "y"), "--config", str(bad)]) == 2
     assert not math.isnan(float(maps.extra["quality"].mean()))
 
@@ -179,8 +191,9 @@ def test_configs_fit_yaml_spells_out_the_defaults():
 def test_the_fits_quadrature_changes_little(painting):
     """The fit's fewer nodes (``quadrature: fit``) against the renderer's rules: the same maps to
     well within their errors against the truth (test_fit_recovers_a_simulated_painting)."""
-    fast = fit(painting, frames="::2", config=FitConfig(dtype="float64"))
-    exact = fit(painting, frames="::2", config=FitConfig(dtype="float64", quadrature="render"))
+    fast = fit(painting, frames="::2", config=FitConfig(compute=ComputeConfig(dtype="float64")))
+    config = FitConfig(compute=ComputeConfig(dtype="float64"), quadrature=QuadratureConfig(preset="render"))
+    exact = fit(painting, frames="::2", config=config)
     normal = torch.rad2deg(angle(fast.svbrdf.normal, exact.svbrdf.normal)).max()
     assert normal < 0.01, f"normals differ by {normal:.3g} deg"
     for name in ("diffuse", "specular", "roughness"):
@@ -204,9 +217,9 @@ def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
     monkeypatch.setattr(__import__("importlib").import_module("torchspec.fusion"), "compiled", broken)
     monkeypatch.setattr(module, "_COMPILE_FAILED", [])
     with pytest.warns(UserWarning, match="torch.compile failed .*no C\\+\\+ compiler here.*fitting without it"):
-        result = fit(painting, frames="::3", config=FitConfig(compile=True))
+        result = fit(painting, frames="::3", config=FitConfig(quadrature=QuadratureConfig(compile=True)))
     assert len(module._COMPILE_FAILED) == 1  # not tried again in this process
-    plain = fit(painting, frames="::3", config=FitConfig(compile=False))
+    plain = fit(painting, frames="::3", config=FitConfig(quadrature=QuadratureConfig(compile=False)))
     torch.testing.assert_close(result.svbrdf.normal, plain.svbrdf.normal)
     torch.testing.assert_close(result.svbrdf.roughness, plain.svbrdf.roughness)
 
@@ -319,7 +332,7 @@ def test_auto_gives_two_lobes_only_where_the_gloss_has_two(dual, tmp_path):
     for name in ("ward-aniso", "ward-dual"):
         assert auto.stats["criterion"] < fit(dual, config=FitConfig(model=name)).stats["criterion"], name
     # A ladder without it: one lobe everywhere, no second lobe's maps.
-    single = fit(dual, config=FitConfig(ladder=("ward-iso", "ward-iso-colour", "ward-aniso")))
+    single = fit(dual, config=FitConfig(ladder=LadderConfig(models=("ward-iso", "ward-iso-colour", "ward-aniso"))))
     assert single.svbrdf.specular2 is None and "specular2" not in single.std
     assert single.stats["models"]["ward-dual"] == 0 and auto.stats["criterion"] < single.stats["criterion"]
     # Written and read back: the second lobe's maps and deviations.
@@ -381,14 +394,15 @@ def test_smooth_choice_lowers_the_total_to_a_local_minimum(h, w, weight, seed):
 
 def test_smoothing_takes_lobes_only_where_the_neighbours_outweigh_them(dual, tmp_path):
     with pytest.raises(ValueError, match="smooth must be >= 0"):
-        FitConfig(smooth=-1.0)
+        FitConfig(ladder=LadderConfig(smooth=-1.0))
     with pytest.raises(ValueError, match="smooth regularises auto's choice"):
-        FitConfig(model="ward-iso", smooth=1.0)
+        FitConfig(model="ward-iso", ladder=LadderConfig(smooth=1.0))
     regions = read_svbrdf(dual / "truth").extra["regions"].round().long()
     # predict_z = 0: each pixel's choice alone keeps any lobe that predicts better at all, so the
     # peaks detected in the matte region's noise keep lobes for smoothing to take away.
-    plain = fit(dual, config=FitConfig(predict_z=0.0, tile=150), frames="::2")
-    smooth = fit(dual, config=FitConfig(predict_z=0.0, smooth=20.0, tile=150), frames="::2")  # the image's choice
+    config = FitConfig(ladder=LadderConfig(predict_z=0.0), compute=ComputeConfig(tile=150))
+    plain = fit(dual, config=config, frames="::2")
+    smooth = fit(dual, config=replace(config, ladder=LadderConfig(predict_z=0.0, smooth=20.0)), frames="::2")
     assert plain.stats["smoothed"] is None
     dropped = (plain.model > 0) & (smooth.model == 0)
     assert smooth.stats["smoothed"] == int(dropped.sum()) and not bool(((plain.model == 0) & (smooth.model > 0)).any())

@@ -23,7 +23,7 @@ from torchspec.geometry import from_plane, normalize
 from torchspec.io.exr import read_exr
 from torchspec.layout import mirror_point
 from torchspec.lights import Kernel, Lights
-from torchspec.pipeline import FitConfig, fit, write_fit
+from torchspec.pipeline import FitConfig, FlagsConfig, fit, write_fit
 from torchspec.pipeline.checks import overshoot
 from torchspec.pipeline.samples import TileSamples
 from torchspec.rendering import render
@@ -173,10 +173,10 @@ def test_without_a_noise_estimate_only_the_solver_flags(painting):
     assert int((result.flags.to(torch.int32) & ~allowed).abs().sum()) == 0
 
 
-@pytest.mark.parametrize("name", ["flag_peak_misfit", "flag_astray", "flag_reach", "flag_overshoot"])
+@pytest.mark.parametrize("name", ["trust_rms", "peak_misfit", "astray", "reach", "overshoot"])
 def test_thresholds_are_checked(name):
-    with pytest.raises(ValueError, match=f"FitConfig.{name} must be > 0"):
-        FitConfig(**{name: 0.0})
+    with pytest.raises(ValueError, match=f"FitConfig.flags.{name} must be > 0"):
+        FitConfig(flags=FlagsConfig(**{name: 0.0}))
 
 
 def test_a_lobe_lost_in_the_noise_is_weak(scene):
@@ -215,10 +215,10 @@ def test_a_lobe_grown_on_clipped_samples_is_implausible(scene):
     ratio = _overshoot(grown, recorded, lights)
     expected = render(grown, lights, VIEW, quadrature=rule).amax((1, 2)) / clean.amax((1, 2)).clamp(max=clip)
     assert torch.allclose(ratio, expected, rtol=1e-12)
-    flagged = ratio > FitConfig().flag_overshoot
+    flagged = ratio > FitConfig().flags.overshoot
     assert float(flagged.double().mean()) > 0.9
     honest = _overshoot(truth, recorded, lights)  # the truth renders up to peak / clip: a few times at most
-    assert float(honest.max()) < FitConfig().flag_overshoot
+    assert float(honest.max()) < FitConfig().flags.overshoot
     assert torch.allclose(honest, clean.amax((1, 2)) / clean.amax((1, 2)).clamp(max=clip), rtol=1e-12)
 
 

@@ -16,7 +16,7 @@ from torchspec.errors import TorchspecError
 from torchspec.lights import Kernel
 from torchspec.lm import LMConfig
 from torchspec.models import BUILT_IN, MODEL_CODES, MODELS, get_model, register, registered, unregister
-from torchspec.pipeline import FitConfig
+from torchspec.pipeline import FitConfig, LadderConfig, QuadratureConfig
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.settings import LADDER
 from torchspec.pipeline.solver import solve_pixels
@@ -69,7 +69,7 @@ def test_the_config_and_the_command_line_take_a_registered_model(phong, tmp_path
     from torchspec.cli import build_parser
 
     assert FitConfig(model="phong").model == "phong"
-    assert FitConfig(ladder=("ward-iso", "phong")).ladder == ("ward-iso", "phong")
+    assert FitConfig(ladder=LadderConfig(models=("ward-iso", "phong"))).ladder.models == ("ward-iso", "phong")
     args = build_parser().parse_args(["fit", str(tmp_path), "-o", str(tmp_path / "maps"), "--model", "phong"])
     assert args.model == "phong"
 
@@ -126,7 +126,7 @@ def test_a_registered_model_is_fitted_by_the_pipelines_solver(phong):
         None,
         CHANNELS,
     )
-    config = FitConfig(model="phong", compile=False, lm=LMConfig(max_iterations=60))
+    config = FitConfig(model="phong", quadrature=QuadratureConfig(compile=False), lm=LMConfig(max_iterations=60))
     solved = solve_pixels("phong", torch.arange(n), start, data, config)
     torch.testing.assert_close(solved.svbrdf.normal, truth.normal, rtol=0, atol=1e-5)
     torch.testing.assert_close(solved.svbrdf.diffuse, truth.diffuse, rtol=1e-4, atol=1e-6)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 
 import pytest
 import torch
@@ -16,11 +17,13 @@ from torchspec.geometry import angle
 from torchspec.io import Capture, Frame, LightSpec, read_capture, write_capture
 from torchspec.io.capture import CaptureError
 from torchspec.near_lights import block_order, image_points, near_light
-from torchspec.pipeline import FitConfig, fit
+from torchspec.pipeline import FitConfig, QuadratureConfig, TermConfig, fit
 from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block, tiling_of
 from torchspec.rendering import TILE_PIXELS
 
 D = torch.float64
+DIFFUSE = FitConfig(model="diffuse", quadrature=QuadratureConfig(compile=False))
+"""The fits of this file: diffuse, uncompiled (small captures)."""
 
 
 def test_image_points_follow_the_format():
@@ -128,7 +131,7 @@ def _lambertian_near_capture(root, radius: float, size: int = 32) -> tuple[Captu
 def test_a_fit_under_near_lights_recovers_the_normals_that_distant_lights_bend(tmp_path):
     capture, truth = _lambertian_near_capture(tmp_path / "near", radius=3.0)
     assert read_capture(capture.root).positions() is not None
-    near = fit(capture, config=FitConfig(model="diffuse", compile=False))
+    near = fit(capture, config=DIFFUSE)
     distant_capture = write_capture(
         tmp_path / "distant",
         Capture(
@@ -140,7 +143,7 @@ def test_a_fit_under_near_lights_recovers_the_normals_that_distant_lights_bend(t
         ),
         capture.read_frames(),
     )
-    distant = fit(distant_capture, config=FitConfig(model="diffuse", compile=False))
+    distant = fit(distant_capture, config=DIFFUSE)
     error_near = torch.rad2deg(angle(near.svbrdf.normal.double(), truth)).median()
     error_distant = torch.rad2deg(angle(distant.svbrdf.normal.double(), truth)).median()
     # Within a block (4 pixels of 32: tiling's LEAST_BLOCK) the lights' directions vary by up to
@@ -190,8 +193,8 @@ def test_unknown_irradiance_is_calibrated_from_the_photographs(tmp_path):
     gains = 1 + 0.3 * (2 * torch.rand(25, generator=torch.Generator().manual_seed(2), dtype=D) - 1)
     capture, truth = _lambertian_with_gains(tmp_path, gains)
     assert read_capture(capture.root).unknown == ("irradiance",)
-    calibrated = fit(capture, config=FitConfig(model="diffuse", compile=False))
-    nominal = fit(capture, config=FitConfig(model="diffuse", compile=False, calibrate="none"))
+    calibrated = fit(capture, config=DIFFUSE)
+    nominal = fit(capture, config=replace(DIFFUSE, calibrate="none"))
     record = calibrated.stats["lights"]
     assert record["calibrated"] == ["irradiance"] and nominal.stats["lights"] is None
     assert record["judged_pixels"] == capture.width * capture.height and record["explained_share"] > 0.8
@@ -207,7 +210,7 @@ def test_lights_the_photographs_do_not_determine_are_kept_with_a_warning(tmp_pat
 
     capture, _ = _lambertian_with_gains(tmp_path, torch.ones(25, dtype=D), scramble=0.8)
     with pytest.warns(FitWarning, match="not calibrated from the photographs") as caught:
-        result = fit(capture, config=FitConfig(model="diffuse", compile=False))
+        result = fit(capture, config=DIFFUSE)
     assert result.stats["lights"]["calibrated"] == []
     # The warning keeps its figures and says what they mean and what the user can do.
     message = str(next(w.message for w in caught if "not calibrated" in str(w.message)))
@@ -226,10 +229,10 @@ def test_auto_keeps_a_dome_radius_the_photographs_show_where_it_refuses_their_ga
 
     capture, truth = _lambertian_with_gains(tmp_path, torch.ones(25, dtype=D), scramble=0.3, radius=3.0)
     with pytest.warns(FitWarning, match="taken at the dome radius 3"):
-        auto = fit(capture, config=FitConfig(model="diffuse", compile=False))
+        auto = fit(capture, config=DIFFUSE)
     record = auto.stats["lights"]
     assert record["calibrated"] == ["radius"] and record["radius"] == 3.0 and "refused" in record
-    written = fit(capture, config=FitConfig(model="diffuse", compile=False, calibrate="none"))
+    written = fit(capture, config=replace(DIFFUSE, calibrate="none"))
     error = torch.rad2deg(angle(auto.svbrdf.normal.double(), truth)).median()
     assert 3 * float(error) < float(torch.rad2deg(angle(written.svbrdf.normal.double(), truth)).median())
 
@@ -247,7 +250,7 @@ def test_auto_keeps_no_dome_radius_that_only_refitted_gains_show(tmp_path):
     found = calibrate_lights(frames, read_capture(capture.root).directions(), dome=True)
     assert found.radius is not None and found.radius_as_written is None
     with pytest.warns(FitWarning, match="taken as written"):
-        auto = fit(capture, config=FitConfig(model="diffuse", compile=False))
+        auto = fit(capture, config=DIFFUSE)
     assert auto.stats["lights"]["calibrated"] == [] and auto.stats["lights"].get("radius") is None
 
 
@@ -296,6 +299,6 @@ def test_render_of_a_near_light_capture_follows_each_block_lights(tmp_path):
 def test_a_near_light_fit_carries_its_residual_term_across_blocks(tmp_path):
     """The residual term of each block joins into one image-wide term (its weight too)."""
     capture, _ = _lambertian_near_capture(tmp_path / "near", radius=3.0, size=16)
-    result = fit(capture, config=FitConfig(model="diffuse", residual_term=2, compile=False))
+    result = fit(capture, config=replace(DIFFUSE, term=TermConfig(order=2)))
     assert result.term.coefficients.shape == (16, 16, 4, 1) and result.term.weight.shape == (16, 16)
     assert bool(((result.term.weight >= 0) & (result.term.weight <= 1)).all())

@@ -16,7 +16,7 @@ from torchspec.geometry import from_plane, normalize
 from torchspec.lights import Kernel, Lights
 from torchspec.lm import LMConfig
 from torchspec.models import get_model
-from torchspec.pipeline import FitConfig
+from torchspec.pipeline import FitConfig, StartConfig
 from torchspec.pipeline.prediction import (
     DAMPING,
     held_out,
@@ -108,8 +108,9 @@ def test_left_out_residuals_match_a_refit_without_the_fold(name):
         expected[:, left] = ((predicted - data.observed) * inverse)[:, left]
     scale = expected.square().mean().sqrt()
     assert float((found - expected).square().mean().sqrt()) < 0.05 * float(scale)
-    # The solver's refits of every fold in one batch (FitConfig.refit) are those refits.
-    batched = held_out_refit(get_model(name), solved.svbrdf, index, data, inverse, folds, replace(config, refit=200))
+    # The solver's refits of every fold in one batch (FitConfig.ladder.refit) are those refits.
+    refitted = replace(config, ladder=replace(config.ladder, refit=200))
+    batched = held_out_refit(get_model(name), solved.svbrdf, index, data, inverse, folds, refitted)
     assert float((batched[:, 0] - expected).square().mean().sqrt()) < 1e-3 * float(scale)
 
 
@@ -214,8 +215,8 @@ def test_the_dual_gate_passes_two_lobes_and_few_single_ones():
     prediction at one of the roughnesses; measured 25 %), and a subset of those at 2."""
     from torchspec.pipeline.selection import _second_lobe_gate
 
-    config = FitConfig(lm=LMConfig(max_iterations=200), noise_floor=1e-9)
-    assert FitConfig().dual_gate == 0.0
+    config = FitConfig(lm=LMConfig(max_iterations=200), start=StartConfig(noise_floor=1e-9))
+    assert FitConfig().ladder.dual_gate == 0.0
     folds = light_folds(_grid(7, 0.7), 5)
     for second in (0.03, 0.0):
         truth, data = _two_lobe_scene(second, n=200, seed=4)
@@ -223,11 +224,11 @@ def test_the_dual_gate_passes_two_lobes_and_few_single_ones():
         one = SVBRDF(truth.normal, truth.diffuse, truth.specular, truth.roughness, None, ("Y",))
         solved = solve_pixels("ward-iso", index, one, data, config)
         sensor = torch.tensor([0.0, (0.002 * float(data.observed.mean())) ** 2], dtype=F64)
-        inverse = data.inverse_noise(sensor, index, config.noise_floor)
+        inverse = data.inverse_noise(sensor, index, config.start.noise_floor)
         current = held_out(get_model("ward-iso"), solved.svbrdf, index, data, inverse, folds, config)
         passed = [
-            _second_lobe_gate(solved.svbrdf, index, data, sensor, folds, current, replace(config, dual_gate=z))
-            for z in (0.0, 2.0)
+            _second_lobe_gate(solved.svbrdf, index, data, sensor, folds, current, gated)
+            for gated in (replace(config, ladder=replace(config.ladder, dual_gate=z)) for z in (0.0, 2.0))
         ]
         if second:
             assert bool(passed[0].all() and passed[1].all()), passed

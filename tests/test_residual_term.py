@@ -195,7 +195,7 @@ def test_a_fit_with_the_term_keeps_its_maps_and_relights_a_cast_shadow(tmp_path)
     from capture_cases import write_painting
 
     from torchspec.io import read_capture, write_capture
-    from torchspec.pipeline import FitConfig, fit, write_fit
+    from torchspec.pipeline import FitConfig, QuadratureConfig, TermConfig, fit, write_fit
     from torchspec.relight import render_capture
 
     source = read_capture(write_painting(tmp_path / "painting", size=12, seed=4, grid=7, extent=0.7))
@@ -208,8 +208,9 @@ def test_a_fit_with_the_term_keeps_its_maps_and_relights_a_cast_shadow(tmp_path)
     left_out = torch.arange(frames.shape[0]) % 5 == 2
     fitted = (~left_out).nonzero()[:, 0].tolist()
 
-    plain = fit(capture, config=FitConfig(residual_term=0, compile=False), frames=fitted)
-    termed = fit(capture, config=FitConfig(residual_term=3, compile=False), frames=fitted)
+    uncompiled = QuadratureConfig(compile=False)
+    plain = fit(capture, config=FitConfig(term=TermConfig(order=0), quadrature=uncompiled), frames=fitted)
+    termed = fit(capture, config=FitConfig(term=TermConfig(order=3), quadrature=uncompiled), frames=fitted)
     assert plain.term is None and termed.term is not None
     assert torch.equal(plain.svbrdf.normal, termed.svbrdf.normal)
     assert torch.equal(plain.svbrdf.diffuse, termed.svbrdf.diffuse)

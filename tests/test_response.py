@@ -235,12 +235,12 @@ def test_the_residual_term_is_on_by_default_for_photographs_only(tmp_path):
     linear, d = lambertian(256, seed=6)
     _write_stack(tmp_path / "rti", _codes(linear, ENCODINGS["srgb"]), d)
     imported = import_rti(tmp_path / "rti", tmp_path / "capture")
-    assert setup(imported.capture, None, None).config.residual_term == TERM_FOR_PHOTOGRAPHS
+    assert setup(imported.capture, None, None).config.term.order == TERM_FOR_PHOTOGRAPHS
     plain = imported.capture
     from dataclasses import replace
 
     simulated = replace(plain, extra={key: value for key, value in plain.extra.items() if key != "source"})
-    assert setup(simulated, None, None).config.residual_term == 0
+    assert setup(simulated, None, None).config.term.order == 0
 
 
 def test_the_fit_judges_the_true_curve_best():
@@ -269,7 +269,9 @@ def test_the_term_of_a_fit_of_photographs_is_in_their_estimated_encoding(tmp_pat
     imported = import_rti(tmp_path / "rti", tmp_path / "capture")
     job = setup(imported.capture, None, None)
     assert job.domain == TermDomain(imported.transfer.curve)
-    config = torchspec.FitConfig(model="diffuse", residual_term=2, calibrate="none", compile=False)
+    config = torchspec.FitConfig.from_dict(
+        {"model": "diffuse", "calibrate": "none", "term": {"order": 2}, "quadrature": {"compile": False}}
+    )
     fit = torchspec.fit(imported.capture, config=config)
     assert fit.term is not None and fit.term.domain == job.domain
     torchspec.write_fit(tmp_path / "maps", fit)

@@ -16,7 +16,7 @@ from capture_cases import write_small_painting
 
 from torchspec.cli import CHECKPOINT, main
 from torchspec.io import read_svbrdf
-from torchspec.pipeline import FitConfig, FitInterrupted, fit
+from torchspec.pipeline import ComputeConfig, FitConfig, FitInterrupted, StartConfig, fit
 
 TILE = importlib.import_module("torchspec.pipeline.tile")  # the per-tile engine
 MAPS = ("normal", "diffuse", "specular", "roughness")
@@ -28,7 +28,7 @@ def capture(tmp_path_factory):
     return write_small_painting(tmp_path_factory.mktemp("resume") / "capture")
 
 
-CONFIG = FitConfig(tile=36)
+CONFIG = FitConfig(compute=ComputeConfig(tile=36))
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +148,7 @@ def test_ctrl_c_before_any_tile_says_so_in_one_line(capture, tmp_path, monkeypat
 
 def _config(tmp_path: Path) -> Path:
     path = tmp_path / "fit.yaml"
-    path.write_text("tile: 36\n")
+    path.write_text("compute: {tile: 36}\n")
     return path
 
 
@@ -168,7 +168,10 @@ def test_ctrl_c_after_the_tiles_says_what_is_saved(capture, tmp_path, monkeypatc
 
 @pytest.mark.parametrize(
     "change, differs",
-    [({"frames": "::2"}, "frames"), ({"config": FitConfig(tile=36, detect=4.0)}, "settings")],
+    [
+        ({"frames": "::2"}, "frames"),
+        ({"config": FitConfig(compute=ComputeConfig(tile=36), start=StartConfig(detect=4.0))}, "settings"),
+    ],
 )
 def test_resuming_another_job_is_refused(capture, tmp_path, monkeypatch, change, differs):
     folder = tmp_path / "tiles"
@@ -218,7 +221,7 @@ def _wait_for_tiles(process: subprocess.Popen, folder: Path, count: int) -> None
 def tiny_tiles(tmp_path_factory):
     """Tiles of 4 pixels: 36 of them, so that the child is caught mid-fit."""
     path = tmp_path_factory.mktemp("config") / "fit.yaml"
-    path.write_text("tile: 4\n")
+    path.write_text("compute: {tile: 4}\n")
     return path
 
 

@@ -1,4 +1,4 @@
-"""The thread policy of a fit on a shared machine (torchspec.threads, FitConfig.threads)."""
+"""The thread policy of a fit on a shared machine (torchspec.threads, FitConfig.compute.threads)."""
 
 from __future__ import annotations
 
@@ -104,12 +104,12 @@ def test_fit_threads_sets_and_restores(monkeypatch, setting, policy, others, exp
 
 
 def test_fit_config_threads():
-    assert FitConfig().threads == "auto"
-    assert from_mapping({"threads": 3}, FitConfig).threads == 3
-    assert from_mapping({"threads": "auto"}, FitConfig).threads == "auto"
+    assert FitConfig().compute.threads == "auto"
+    assert from_mapping({"compute": {"threads": 3}}, FitConfig).compute.threads == 3
+    assert from_mapping({"compute": {"threads": "auto"}}, FitConfig).compute.threads == "auto"
     for bad in (0, -1, "four", 2.5, True):
-        with pytest.raises(ConfigError, match="threads"):
-            from_mapping({"threads": bad}, FitConfig)
+        with pytest.raises(ConfigError, match="compute: threads must be 'auto' or a number"):
+            from_mapping({"compute": {"threads": bad}}, FitConfig)
 
 
 def test_cli_refuses_a_bad_thread_count(tmp_path, capsys):

@@ -55,14 +55,16 @@ def from_mapping(data, cls, where: str = "config"):
 
     Args:
         data: the mapping of keys (the fields of ``cls``) to values.
-        cls: a dataclass; a field whose type is a dataclass reads a nested mapping.
+        cls: a dataclass; a field whose type is a dataclass reads a nested mapping. A class attribute
+            ``MOVED`` (a key of an older layout: its place now, ``group.key``) has such a key refused
+            with a message naming its place (unless the key is now a group's, given as a mapping).
         where: what ``data`` is (a file, or a file and a key), named by every error.
 
     Returns:
         ``cls(**data)``, each value converted to its field's type.
 
     Raises:
-        ConfigError: ``data`` is not a mapping, a key is unknown or missing, a value has the wrong type,
+        ConfigError: ``data`` is not a mapping, a key is unknown, moved or missing, a value has the wrong type,
             or ``cls`` refuses a value (a ``ValueError`` of its ``__post_init__``); the message names
             ``where`` and the key.
 
@@ -83,6 +85,11 @@ def from_mapping(data, cls, where: str = "config"):
         raise ConfigError(f"{where} must be a mapping of keys to values; got {type(data).__name__}.")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key, value in data.items():
+        place = getattr(cls, "MOVED", {}).get(key)
+        if place is not None and (key not in fields or not isinstance(value, dict)):
+            group, name = place.split(".", 1)
+            raise ConfigError(f"{where}: key {key!r} has moved: write it as {group}: {{{name}: ...}}.")
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(f"{where} has unknown key(s) {unknown}; known keys are {sorted(fields)}.")
@@ -99,12 +106,14 @@ def from_mapping(data, cls, where: str = "config"):
 
 
 def _name_key(message: str, cls, fields, where: str) -> str:
-    """``message`` of a refused value, said of ``where``: ``Cls.key must ...`` becomes ``where: key must ...``."""
-    prefix = f"{cls.__name__}."
-    if message.startswith(prefix):
-        key = message[len(prefix):].split(" ", 1)[0]
-        if key in fields:
-            return f"{where}: {message[len(prefix):]}"
+    """``message`` of a refused value, said of ``where``: ``Cls.key must ...`` (or a longer path,
+    ``Outer.group.key must ...``, whose first key after the class is one of ``fields``) becomes
+    ``where: key must ...``."""
+    head, _, rest = message.partition(" ")
+    parts = head.split(".")
+    for k in range(1, len(parts)):
+        if parts[k] in fields:
+            return f"{where}: {'.'.join(parts[k:])} {rest}"
     return f"{where}: {message}"
 
 

@@ -23,7 +23,7 @@ import torch
 from .atomic import save_figure, write_json
 from .io import read_capture
 from .outputs import check_output
-from .pipeline import FitConfig, fit, select_frames, write_fit
+from .pipeline import ComputeConfig, FitConfig, fit, select_frames, write_fit
 from .report import display, heldout_psnr, relit_strip, relit_title, score, write_previews, write_report
 from .simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from .synth import PaintingConfig, SensorConfig
@@ -54,7 +54,7 @@ def run(
     device: str = "auto",
 ) -> dict:
     """Run the demo into ``output`` (default ``./torchspec-demo``); returns ``report.json``'s content.
-    The fit computes on ``device`` (``FitConfig.device``: ``auto``, ``cpu``, ``cuda[:N]``).
+    The fit computes on ``device`` (``FitConfig.compute.device``: ``auto``, ``cpu``, ``cuda[:N]``).
 
     ``output`` is checked before any work: a folder that holds files (an earlier demo's too) is
     refused unless ``overwrite`` (:func:`torchspec.outputs.check_output`).
@@ -75,7 +75,7 @@ def run(
     # Every second frame is fitted, the others held out to test the maps' predictions.
     fitted_frames = select_frames("::2", len(capture.frames))
     held = [k for k in range(len(capture.frames)) if k not in set(fitted_frames)]
-    fit_config = FitConfig(model="auto", device=device)
+    fit_config = FitConfig(model="auto", compute=ComputeConfig(device=device))
     result = fit(capture, config=fit_config, frames=fitted_frames, progress=progress)
     write_fit(output / "maps", result, overwrite=overwrite)
     fit_seconds = result.stats["seconds"]["total"]

@@ -58,7 +58,7 @@ FLAGS = (
     "misfit",  # the chosen model leaves a residual above the noise (chi^2 test)
     "weak_lobe",  # the lobe's part of the values is below WEAK_LOBE_SNR noise units: no lobe established
     "poor_fit",  # the chosen model leaves a misfit far above the noise: no model of the ladder explains the pixel
-    "implausible",  # the maps render far above anything the pixel's photographs recorded (FitConfig.flag_overshoot)
+    "implausible",  # the maps render far above anything the pixel's photographs recorded (FitConfig.flags.overshoot)
 )
 """The bits of ``flags``: bit ``i`` is ``1 << i`` for ``FLAGS[i]``."""
 

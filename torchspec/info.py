@@ -51,7 +51,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
 
     Args:
         path: the capture directory, or its ``capture.json``.
-        saturation: the sensor's clipping level, as :attr:`torchspec.FitConfig.saturation`;
+        saturation: the sensor's clipping level, as ``FitConfig.masks.saturation``;
             ``None``: the level the capture records (:attr:`torchspec.io.Capture.saturation`), else
             a clipped plateau detected over all the frames, as the fit does.
         progress: show a tqdm bar over the frames.

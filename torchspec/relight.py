@@ -133,7 +133,7 @@ def fit_positions(capture: Capture, meta: dict) -> tuple[torch.Tensor | None, st
 
 
 def residual_term_of(maps: Maps, svbrdf_dir: Path | str, device: torch.device) -> ResidualTerm | None:
-    """The fit's residual term (``residual_term.exr``, ``FitConfig.residual_term``) of ``maps``
+    """The fit's residual term (``residual_term.exr``, ``FitConfig.term.order``) of ``maps``
     read from ``svbrdf_dir``, on ``device``; ``None`` when the maps have none."""
     if MAP_NAME not in maps.extra:
         return None

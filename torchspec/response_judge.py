@@ -43,7 +43,7 @@ def judge_curves(
     """Each candidate transfer's PSNR (dB, codes in ``[0, 1]``, peak 1) of the left-out frames of
     ``codes (K, C, H, W)`` (encoded values) under distant lights ``directions (K, 3)``, predicted
     by the default fit of the other frames decoded by it (module docstring). Needs ``K >= 10``."""
-    from .pipeline import FitConfig, fit  # the stage that fits: imported where it judges
+    from .pipeline import FitConfig, QuadratureConfig, TermConfig, fit  # the stage that fits: imported where it judges
     from .rendering import render_image
 
     crop = _crop(codes, size).to(torch.float64)
@@ -58,6 +58,7 @@ def judge_curves(
         for i in range(k)
     )
     scores = {}
+    plain = FitConfig(calibrate="none", term=TermConfig(order=0), quadrature=QuadratureConfig(compile=False))
     with tempfile.TemporaryDirectory(prefix="torchspec-judge-") as scratch:
         for name, transfer in candidates.items():
             linear = transfer.decode(crop.movedim(1, -1)).movedim(-1, 1)
@@ -75,7 +76,7 @@ def judge_curves(
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 capture = write_capture(root, capture, linear.float())
-                result = fit(capture, config=FitConfig(calibrate="none", residual_term=0, compile=False), frames=fitted)
+                result = fit(capture, config=plain, frames=fitted)
             lights = capture.lights(dtype=torch.float64)[predicted].to(device=crop.device)
             maps = result.svbrdf.to(dtype=torch.float64, device=crop.device)  # where the codes are
             values = render_image(maps, lights, view).permute(2, 3, 0, 1)  # (K', C, H, W)

@@ -1,4 +1,4 @@
-"""How many torch threads a fit runs on, on a machine other processes share (``FitConfig.threads``).
+"""How many torch threads a fit runs on, on a machine other processes share (``FitConfig.compute.threads``).
 
 Torch's CPU kernels run on an OpenMP pool (GNU libgomp in the Linux wheels). A thread that reaches
 the end of a parallel region first spins (busy-waits) for the others, by default about 3 ms per
@@ -32,7 +32,7 @@ import time
 __all__ = ["AUTO", "CpuMeter", "affinity_cores", "choose_threads", "fit_threads", "quiet_waits", "waits_spin"]
 
 AUTO = "auto"
-"""``FitConfig.threads`` that adapts to the machine (:func:`fit_threads`)."""
+"""``FitConfig.compute.threads`` that adapts to the machine (:func:`fit_threads`)."""
 SAMPLE_SECONDS = 0.1
 """A fresh measurement of the other processes' use of the cores spans this long ..."""
 STALE_SECONDS = 5.0
@@ -131,7 +131,7 @@ _METER: list[CpuMeter] = []
 
 @contextlib.contextmanager
 def fit_threads(setting: int | str, *, meter: CpuMeter | None = None):
-    """Run the block (a tile of a fit whose ``FitConfig.threads`` is ``setting``) on a number of
+    """Run the block (a tile of a fit whose ``FitConfig.compute.threads`` is ``setting``) on a number of
     torch intra-op threads, and restore torch's own count after it: ``setting`` when a number; ``auto``:
     torch's count (what ``torch.set_num_threads``, ``OMP_NUM_THREADS`` or a cluster's worker chose)
     where the waits are passive, else (:func:`waits_spin`) :func:`choose_threads` of

@@ -149,18 +149,20 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         config = replace(config, calibrate=args.calibrate)
     if args.residual_term is not None:
         term = args.residual_term
-        config = replace(config, residual_term=term if term == "auto" else int(term))
+        config = replace(config, term=replace(config.term, order=term if term == "auto" else int(term)))
     if args.device is not None:
-        config = replace(config, device=str(device_option(parser, args)))
+        config = replace(config, compute=replace(config.compute, device=str(device_option(parser, args))))
     if args.downsample is not None or args.crop is not None:
         from ..io.scale import Scale
 
-        given = Scale.parse(config.downsample if args.downsample is None else args.downsample, args.crop)
-        config = replace(config, downsample=given.downsample, crop=given.crop if args.crop else config.crop)
+        given = Scale.parse(config.masks.downsample if args.downsample is None else args.downsample, args.crop)
+        crop = given.crop if args.crop else config.masks.crop
+        config = replace(config, masks=replace(config.masks, downsample=given.downsample, crop=crop))
     if args.threads is not None:
         if args.threads != "auto" and not args.threads.isdigit():
             parser.error(f"--threads must be 'auto' or a number; got {args.threads!r}")
-        config = replace(config, threads=args.threads if args.threads == "auto" else int(args.threads))
+        threads = args.threads if args.threads == "auto" else int(args.threads)
+        config = replace(config, compute=replace(config.compute, threads=threads))
     checkpoint = args.output / CHECKPOINT
     if args.workers is not None and args.workers < 1:
         parser.error(f"--workers must be >= 1; got {args.workers}")

@@ -113,7 +113,7 @@ class Capture:
     def saturation(self) -> float | None:
         """The clipping level the capture records, ``None`` when it records none: an imported
         capture's ``source.saturation`` (``torchspec import``: 1, an integer photograph's largest
-        code). A fit whose ``FitConfig.saturation`` is ``None`` masks at it instead of detecting a
+        code). A fit whose ``FitConfig.masks.saturation`` is ``None`` masks at it instead of detecting a
         plateau (a flat region repeats a frame's largest value without clipping)."""
         source = self.extra.get("source")
         level = source.get("saturation") if isinstance(source, dict) else None

@@ -20,7 +20,7 @@ estimated from the stack itself (:func:`torchspec.response.estimate_response`, o
 as ``source.response``. Each frame is written as a float32 EXR: point lights (the
 light file's directions), irradiance 1, exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to
 the median frame's where it differs between frames. A clipped sample (an integer image's largest
-code) reads as exactly 1, the clipping level the fit detects (``FitConfig.saturation``); the
+code) reads as exactly 1, the clipping level the fit detects (``FitConfig.masks.saturation``); the
 manifest's ``source`` records the light file, the images, the transfer, that level and what was
 assumed.
 

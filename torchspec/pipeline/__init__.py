@@ -10,19 +10,20 @@ Per tile of pixels (all frames of a tile at once, so memory is bounded by the ti
 3. :mod:`~torchspec.pipeline.uncertainty`: the sensor's noise, each fit's chi-square and
    standard deviations;
 4. :mod:`~torchspec.pipeline.selection`: each pixel's model by the information criterion,
-   climbing ``FitConfig.ladder`` only where the smaller model leaves a residual above the noise;
+   climbing ``FitConfig.ladder.models`` only where the smaller model leaves a residual above the noise;
 5. :mod:`~torchspec.pipeline.checks`: flags (:mod:`torchspec.flags`) and quality;
 
 run by :mod:`~torchspec.pipeline.tile` (a :class:`~torchspec.pipeline.tile.TileResult`). Over
 the whole image, :mod:`~torchspec.pipeline.assembly` joins the tiles into a :class:`Fit`
 (:mod:`~torchspec.pipeline.result`), after :mod:`~torchspec.pipeline.smoothing` with
-``FitConfig.smooth``. Two drivers run the tiles: :func:`fit` in this process
+``FitConfig.ladder.smooth``. Two drivers run the tiles: :func:`fit` in this process
 (:mod:`~torchspec.pipeline.in_process`) and :func:`fit_on_cluster` on a Dask cluster
 (:mod:`~torchspec.pipeline.cluster`); both plan the fit alike (:mod:`~torchspec.pipeline.plan`),
 decide by one policy whether its lights are calibrated from the photographs
 (:mod:`~torchspec.pipeline.calibration`: in this process; a cluster refuses such a fit) and share
 the checkpoint format (:mod:`~torchspec.pipeline.checkpoint`). The settings:
-:mod:`~torchspec.pipeline.settings`.
+:mod:`~torchspec.pipeline.settings` (:class:`FitConfig`, grouped by stage: ``masks``, ``start``,
+``ladder``, ``term``, ``flags``, ``quadrature``, ``compute``, ``lm``).
 """
 
 from .checkpoint import FitInterrupted
@@ -32,7 +33,22 @@ from .in_process import fit
 from .plan import FitWarning
 from .result import Fit, write_fit
 from .selection import ModelFit
-from .settings import AUTO, COMPILE_PIXELS, INITS, LADDER, MODEL_CODES, FitConfig, select_frames
+from .settings import (
+    AUTO,
+    COMPILE_PIXELS,
+    INITS,
+    LADDER,
+    MODEL_CODES,
+    ComputeConfig,
+    FitConfig,
+    FlagsConfig,
+    LadderConfig,
+    MasksConfig,
+    QuadratureConfig,
+    StartConfig,
+    TermConfig,
+    select_frames,
+)
 from .smoothing import smooth_choice
 from .start import StartingPoint, starting_point
 from .tile import TileResult
@@ -45,12 +61,19 @@ __all__ = [
     "MODEL_CODES",
     "Checks",
     "ClusterError",
+    "ComputeConfig",
     "Fit",
     "FitConfig",
     "FitInterrupted",
     "FitWarning",
+    "FlagsConfig",
+    "LadderConfig",
+    "MasksConfig",
     "ModelFit",
+    "QuadratureConfig",
+    "StartConfig",
     "StartingPoint",
+    "TermConfig",
     "TileResult",
     "connect",
     "fit",

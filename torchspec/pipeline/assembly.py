@@ -119,7 +119,7 @@ def assemble(
     parts: list[TileResult], *, height: int, width: int, channels: tuple[str, ...], stats: dict, started: float
 ) -> Fit:
     """The :class:`~torchspec.pipeline.result.Fit` of an image from its tiles' results (in pixel
-    order), smoothed with ``stats["settings"]["smooth"]`` when the tiles hold the fits without a
+    order), smoothed with ``stats["settings"]["ladder"]["smooth"]`` when the tiles hold the fits without a
     lobe, ``stats`` (:func:`run_stats`) completed with the tiles' statistics and the time since
     ``started`` (``time.perf_counter``)."""
     h, w = height, width
@@ -142,10 +142,10 @@ def assemble(
         )
         joined = replace(joined, term=term)
     smoothed = None
-    if parts[0].plain is not None:  # FitConfig.smooth: the choice of a lobe over the whole image
+    if parts[0].plain is not None:  # FitConfig.ladder.smooth: the choice of a lobe over the whole image
         plain = PlainFit(**{f.name: _join([getattr(p.plain, f.name) for p in parts], h, w) for f in fields(PlainFit)})
         before = joined.model
-        joined, smoothed = smooth(joined, plain, stats["settings"]["smooth"])
+        joined, smoothed = smooth(joined, plain, stats["settings"]["ladder"]["smooth"])
         if joined.term is not None:  # a term fitted on top of a lobe that smoothing took away: none
             kept = joined.term.chosen & (joined.model == before)
             coefficients = torch.where(kept[..., None, None], joined.term.coefficients, 0.0)
@@ -212,8 +212,8 @@ def _tile_stats(fit: Fit, parts: list[TileResult], stats: dict, smoothed: int | 
         "flags": describe(fit.flags),
         "untrusted": int(untrusted(fit.flags).sum()),
         "low_quality": int((fit.quality < LOW_QUALITY).sum()),
-        # FitConfig.smooth: the pixels whose lobe the neighbours' term took away (None: not smoothed).
+        # FitConfig.ladder.smooth: the pixels whose lobe the neighbours' term took away (None: not smoothed).
         "smoothed": smoothed,
-        # FitConfig.residual_term: the pixels that carry one (None: not fitted).
+        # FitConfig.term.order: the pixels that carry one (None: not fitted).
         "residual_term_pixels": None if fit.term is None else int(fit.term.chosen.sum()),
     }

@@ -18,7 +18,7 @@ from ..atomic import atomic_path, read_json, write_json
 from ..errors import TorchspecError
 from ..io import Capture
 from .records import TileResult
-from .settings import FitConfig
+from .settings import FitConfig, nested_settings
 
 __all__ = [
     "CHECKPOINT",
@@ -62,11 +62,18 @@ def job_record(capture: Capture, picked: list[int], config: FitConfig, tile: int
         "manifest": _stamp(capture.manifest) if capture.manifest.is_file() else None,
         "files": [_stamp(f) if f.is_file() else None for f in files],
         "frames": picked,
-        "settings": {k: v for k, v in asdict(config).items() if k != "threads"},  # tiles of any count resume
+        "settings": _settings_record(config),
         "tile_pixels": tile,
         "pixels": pixels,
     }
     return json.loads(json.dumps(job))
+
+
+def _settings_record(config: FitConfig) -> dict:
+    """``config`` as a job's record: without ``compute.threads`` (tiles of any thread count resume)."""
+    settings = asdict(config)
+    settings["compute"].pop("threads")
+    return settings
 
 
 def _stamp(path: Path) -> list:
@@ -132,6 +139,8 @@ def open_checkpoint(folder: Path, job: dict, resume: bool) -> dict[int, TileResu
         return {}
     refuse_unfinished(folder, resume)
     saved = read_json(state, TorchspecError, "")
+    if isinstance(saved.get("settings"), dict):  # a record of the flat settings (before their groups): alike
+        saved["settings"] = nested_settings(saved["settings"])
     finished = sorted(folder.glob("tile-*.pt"))
     differ = [key for key in job if saved.get(key) != job[key]]
     if differ:

@@ -78,15 +78,15 @@ def check_choice(choice: Choice, data: TileSamples, few: Tensor, config: FitConf
             data.valid[index],
             data.lights,
             data.view,
-            reach=config.flag_reach,
+            reach=config.flags.reach,
         )
     flags = with_flags(
         flags,
         ("undetermined", ~choice.deviation["normal"].isfinite() & ~few & ~weak),
-        ("peak_misfit", peak_misfit > config.flag_peak_misfit),
-        ("astray", astray > config.flag_astray),
+        ("peak_misfit", peak_misfit > config.flags.peak_misfit),
+        ("astray", astray > config.flags.astray),
         ("misfit", choice.misfit),
-        ("poor_fit", ~lobed & choice.misfit & (data.relative_rms(choice.cost) > config.trust_rms)),
+        ("poor_fit", ~lobed & choice.misfit & (data.relative_rms(choice.cost) > config.flags.trust_rms)),
     )
     return flags, Checks(peak_misfit, astray)
 
@@ -98,7 +98,7 @@ def overshoot(svbrdf: SVBRDF, y: Tensor, data: TileSamples, config: FitConfig) -
     clipping level), floored at 1 % of a white Lambertian surface's value under the brightest light
     (a dark pixel's ratio means nothing).
 
-    Near 1 where the model explains the photographs. Far above (``FitConfig.flag_overshoot``: the
+    Near 1 where the model explains the photographs. Far above (``FitConfig.flags.overshoot``: the
     ``implausible`` flag) where a lobe grew without bound on samples the fit did not use: a clipped
     highlight (censored, so any height above the clipping level fits it), a masked frame."""
     rule = replace(config.rule, compile=False)  # one forward render: not worth compiling

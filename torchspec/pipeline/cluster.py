@@ -262,7 +262,8 @@ def fit_on_cluster(
     done = open_checkpoint(folder, job_record(capture, picked, config, tile, pixels), resume)
     _refuse_stale_tiles(folder, done)
     # Each task on the one thread its worker pins (workers, not threads, share the cores).
-    job = _Job(capture, picked, replace(config, threads=1), tile, lights, view, light_context(lights), folder)
+    one = replace(config, compute=replace(config.compute, threads=1))
+    job = _Job(capture, picked, one, tile, lights, view, light_context(lights), folder)
     firsts = list(range(0, pixels, tile))
     todo = [first for first in firsts if first not in done]
     seconds: dict[str, float] = {}
@@ -313,11 +314,11 @@ def _refuse_stale_tiles(folder: Path, done: dict) -> None:
 
 def _warn_small_tiles(config: FitConfig, tile: int, stack_bytes: int) -> None:
     """Warn when the frame stack leaves no room in ``memory_gib`` for the tiles it sizes."""
-    if not config.tile and stack_bytes + RUNTIME_BYTES > config.memory_gib * 2**30:
+    if not config.compute.tile and stack_bytes + RUNTIME_BYTES > config.compute.memory_gib * 2**30:
         warnings.warn(
-            f"the frame stack ({stack_bytes / 2**30:.1f} GiB) leaves no room in memory_gib ({config.memory_gib}), "
-            f"so tiles fall to {tile} pixels (the in-process fit's rule, kept so that both fit alike); set the "
-            "config's tile (e.g. 16384 pixels; docs/scale.md).",
+            f"the frame stack ({stack_bytes / 2**30:.1f} GiB) leaves no room in compute.memory_gib "
+            f"({config.compute.memory_gib}), so tiles fall to {tile} pixels (the in-process fit's rule, kept so "
+            "that both fit alike); set the config's compute.tile (e.g. 16384 pixels; docs/scale.md).",
             stacklevel=3,
         )
 
@@ -428,8 +429,8 @@ def _identity(job: _Job) -> _Job:
 def _with_level(client, job: _Job, report: dict, progress: bool, retries: int) -> _Job:
     """``job`` with the clipping level its masks use and the rows read around a task's own."""
     config = job.config
-    if config.saturation is not None:
-        level = float(config.saturation)
+    if config.masks.saturation is not None:
+        level = float(config.masks.saturation)
     elif (job.folder / LEVEL).is_file():
         saved = read_json(job.folder / LEVEL, TorchspecError, f"Remove {job.folder} to start over.")["level"]
         level = math.inf if saved is None else float(saved)
@@ -448,7 +449,7 @@ def _with_level(client, job: _Job, report: dict, progress: bool, retries: int) -
         write_json(job.folder / LEVEL, {"level": level if math.isfinite(level) else None})
         report["tasks"] += len(bands)
     # Nothing clips (an infinite level): no saturated region to grow, no rows around a task's own.
-    halo = config.grow if config.grow > 0 and math.isfinite(level) else 0
+    halo = config.masks.grow if config.masks.grow > 0 and math.isfinite(level) else 0
     return replace(job, level=level, halo=halo)
 
 
@@ -485,7 +486,7 @@ def _fit_tiles(job: _Job, firsts: list[int]) -> tuple[list[int], dict]:
     summary["read"] = time.perf_counter() - clock
     clock = time.perf_counter()
     config = job.config
-    masks = sample_masks(band, saturation=job.level, grow=config.grow, shadow=config.shadow)
+    masks = sample_masks(band, saturation=job.level, grow=config.masks.grow, shadow=config.masks.shadow)
     flat_masks = masks.flat()  # each (K, rows W)
     flat = band.flatten(2)  # (K, C, rows W)
     summary["masks"] = time.perf_counter() - clock

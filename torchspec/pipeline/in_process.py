@@ -74,7 +74,7 @@ def fit(
 
     clock = time.perf_counter()
     config = job.config
-    masks = sample_masks(stack, saturation=config.saturation, grow=config.grow, shadow=config.shadow)
+    masks = sample_masks(stack, saturation=config.masks.saturation, grow=config.masks.grow, shadow=config.masks.shadow)
     job, calibration = calibrated(job, stack, ~(masks.nonfinite | masks.saturated))
     lights, ctx = job.lights, light_context(job.lights)
     mask_seconds = time.perf_counter() - clock

@@ -59,7 +59,7 @@ __all__ = [
 ]
 
 TERM_FOR_PHOTOGRAPHS = 3
-"""``FitConfig.residual_term = auto``'s order for a capture imported from photographs (its manifest's
+"""``FitConfig.term.order = auto``'s order for a capture imported from photographs (its manifest's
 ``source``): on the RTI captures of ``../shared/data/rti`` the order-3 term relit left-out
 photographs at or above HSH, where the physical model alone was below it
 (``experiments/results/rti_relight.json``)."""
@@ -86,7 +86,7 @@ def frame_warnings(capture: Capture, picked: list[int]) -> list[str]:
 
 
 def device_of(name: str | torch.device) -> torch.device:
-    """The device of ``FitConfig.device`` (or ``--device``): ``auto`` is CUDA when present, else the
+    """The device of ``FitConfig.compute.device`` (or ``--device``): ``auto`` is CUDA when present, else the
     CPU; ``cpu``, ``cuda`` or ``cuda:N``.
 
     Raises:
@@ -111,17 +111,17 @@ def device_of(name: str | torch.device) -> torch.device:
 def tile_size(
     config: FitConfig, frames: int, channels: int, itemsize: int, reserved: int, budget: float | None = None
 ) -> int:
-    """Pixels per tile: ``config.tile``, or what fits in ``budget`` bytes (default ``memory_gib``)
+    """Pixels per tile: ``config.compute.tile``, or what fits in ``budget`` bytes (default ``memory_gib``)
     after ``reserved`` bytes (the stack and its masks) and :data:`RUNTIME_BYTES` (at least 256, at
     most 131072 within ``memory_gib``; a larger ``budget``, a GPU's, lifts that cap)."""
-    if config.tile:
-        return config.tile
-    p = max(get_model(name).size(channels) for name in (config.ladder if config.model == AUTO else (config.model,)))
+    if config.compute.tile:
+        return config.compute.tile
+    p = max(get_model(name).size(channels) for name in (config.ladder_climbed or (config.model,)))  # diffuse: its own
     # Per pixel: observations, weights, values, residuals and the Jacobian twice (the full columns and
     # the model's), J^T J, plus the photometric and specular stages' (N, K) work arrays; twice that
     # for transients (a conservative bound: the solver takes normal equations from Jacobian chunks).
     per_pixel = itemsize * frames * (channels * (2 * p + 8) + 16) + itemsize * 4 * p * p
-    given = config.memory_gib * 2**30 if budget is None else budget
+    given = config.compute.memory_gib * 2**30 if budget is None else budget
     available = given - reserved - RUNTIME_BYTES
     fits = available / (2 * per_pixel)
     return int(max(256, fits if budget is not None else min(1 << 17, fits)))
@@ -131,18 +131,18 @@ def plan(
     config: FitConfig, k: int, c: int, h: int, w: int, itemsize: int, device: torch.device | None = None
 ) -> tuple[FitConfig, int]:
     """The settings with ``compile`` decided and the pixels per tile of a fit of a ``(K, C, H, W)``
-    stack of ``itemsize``-byte values on ``device`` (default the CPU): ``FitConfig.tile``, or what
+    stack of ``itemsize``-byte values on ``device`` (default the CPU): ``FitConfig.compute.tile``, or what
     the memory allows (:func:`tile_size`). On the CPU the budget is ``memory_gib`` and the image is
     also cut into at least :data:`TILES` tiles (of at least :data:`MIN_TILE` pixels: progress,
     resumption, threads). On a GPU the budget is :data:`GPU_SHARE` of its free memory (the stack
     lives there too), and a tile may hold the whole image: a GPU is fed best by large batches."""
-    if config.compile is None:
-        config = replace(config, compile=h * w >= COMPILE_PIXELS)
+    if config.quadrature.compile is None:
+        config = replace(config, quadrature=replace(config.quadrature, compile=h * w >= COMPILE_PIXELS))
     reserved = (k * c * itemsize + 3 * k) * h * w  # the stack, three bool masks
     gpu = device is not None and device.type == "cuda"
-    budget = GPU_SHARE * torch.cuda.mem_get_info(device)[0] if gpu and not config.tile else None
+    budget = GPU_SHARE * torch.cuda.mem_get_info(device)[0] if gpu and not config.compute.tile else None
     tile = tile_size(config, k, c, itemsize, reserved, budget)
-    if not config.tile and not gpu:  # sized by memory: also cut into TILES tiles of at least MIN_TILE pixels
+    if not config.compute.tile and not gpu:  # sized by memory: also cut into TILES tiles of at least MIN_TILE pixels
         tile = min(tile, max(MIN_TILE, -(-h * w // TILES)))
     return config, min(tile, h * w) if gpu else tile
 
@@ -160,10 +160,11 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     """
     config = config or FitConfig()
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
-    if config.saturation is None and capture.saturation is not None:  # the level an imported capture records
-        config = replace(config, saturation=capture.saturation)
-    if config.residual_term == AUTO:  # photographs: the term carries what the physics misses, where it predicts
-        config = replace(config, residual_term=TERM_FOR_PHOTOGRAPHS if capture.extra.get("source") else 0)
+    if config.masks.saturation is None and capture.saturation is not None:  # the level an imported capture records
+        config = replace(config, masks=replace(config.masks, saturation=capture.saturation))
+    if config.term.order == AUTO:  # photographs: the term carries what the physics misses, where it predicts
+        order = TERM_FOR_PHOTOGRAPHS if capture.extra.get("source") else 0
+        config = replace(config, term=replace(config.term, order=order))
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
     config, capture = _reduced(config, capture, picked)
     l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]  # on the CPU: the manifest, checked once
@@ -172,8 +173,8 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
         raise TorchspecError(f"{capture.root}: the frames cannot be fitted: {problem}")
     for message in frame_warnings(capture, picked):
         warnings.warn(message, FitWarning, stacklevel=3)
-    dtype = getattr(torch, config.dtype)
-    device = device_of(config.device)
+    dtype = getattr(torch, config.compute.dtype)
+    device = device_of(config.compute.device)
     everything = capture.lights(dtype=dtype)
     index = torch.tensor(picked)  # on the CPU, as the capture's lights: picked there, then moved to the device
     lights = Lights(
@@ -195,14 +196,14 @@ def _reduced(config: FitConfig, capture: Capture, picked: list[int]) -> tuple[Fi
     give one, the level is found on the picked frames at full size first
     (:func:`torchspec.photometric.saturation_level`, as :func:`~torchspec.photometric.sample_masks`
     finds it; the frames are read twice) and becomes the settings' ``saturation``."""
-    scale = Scale(config.downsample, config.crop)
+    scale = Scale(config.masks.downsample, config.masks.crop)
     if scale.identity:
         return config, capture
     scale.region(capture.width, capture.height, f"the frames of {capture.manifest}")  # checked before any reading
-    level = config.saturation
+    level = config.masks.saturation
     if level is None:
         peaks = [peak_of(capture.read_frames([k], nonfinite="ignore")) for k in picked]
         found = float(saturation_level(peaks))
         level = found if math.isfinite(found) else None
-        config = replace(config, saturation=level)
+        config = replace(config, masks=replace(config.masks, saturation=level))
     return config, scaled(capture, scale, level)

@@ -149,7 +149,7 @@ def held_out_refit(
     config: FitConfig,
 ) -> Tensor:
     """:func:`held_out`'s residuals ``(m, S, K, C)`` from refits by the solver: each fold's frames
-    left out, ``config.refit`` Levenberg-Marquardt steps from the solution on all frames, all folds
+    left out, ``config.ladder.refit`` Levenberg-Marquardt steps from the solution on all frames, all folds
     of all pixels in one batch (``S x folds`` times the pixels), then the left-out frames rendered."""
     from .solver import solve_pixels  # the solver stage imports this one's settings
 
@@ -173,7 +173,7 @@ def held_out_refit(
         samples=data.samples[at],
     )
     start = svbrdf[torch.arange(m, device=index.device).repeat(copies)]
-    settings = replace(config, lm=replace(config.lm, max_iterations=config.refit))
+    settings = replace(config, lm=replace(config.lm, max_iterations=config.ladder.refit))
     solved = solve_pixels(model.name, rows, start, folded, settings)
     predicted = render(solved.svbrdf, data.lights, data.view, quadrature=replace(config.rule, compile=False))
     residual = ((predicted - folded.observed) * inverse_noise.repeat(copies, 1, 1)).reshape(schemes, count, m, k, c)
@@ -201,7 +201,7 @@ def second_lobe_held_out(
     parameters on the frames of the other folds, as in :func:`held_out`, without the bound
     ``k_s2 >= 0``. What ``ward-dual`` could predict, to first order in its second lobe, at the cost
     of one Jacobian and ``G`` renders per pixel instead of a fit (``auto`` tries ``ward-dual``
-    only where this predicts better: :attr:`FitConfig.dual_gate`).
+    only where this predicts better: ``FitConfig.ladder.dual_gate``).
     """
     model = get_model("ward-iso")
     m, k, c = index.shape[0], data.observed.shape[1], data.observed.shape[2]
@@ -248,7 +248,7 @@ def _linearised(model: Model, bounds, maps: SVBRDF, at: Tensor, data: TileSample
         fn = model.residuals(data.observed[at], weight, data.lights, data.view, data.channels, quadrature=quadrature)
         return bounded(fn, bounds)(free, torch.arange(free.shape[0], device=free.device))
 
-    r, jac = compiled_or_eager(run, config.compile)
+    r, jac = compiled_or_eager(run, config.quadrature.compile)
     n, k, c = at.shape[0], data.observed.shape[1], data.observed.shape[2]
     return r.view(n, k, c), jac.view(n, k, c, -1)
 

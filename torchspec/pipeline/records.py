@@ -88,10 +88,10 @@ class TileResult:
         tried: pixels fitted per model.
         noise: ``(2,)`` the sensor's ``(a, b)`` (zeros when not estimated).
         times: seconds per stage.
-        plain: every pixel's fit without a lobe (``FitConfig.smooth`` only; else ``None``).
+        plain: every pixel's fit without a lobe (``FitConfig.ladder.smooth`` only; else ``None``).
         masked: the count of masked samples per kind of :data:`~torchspec.pipeline.tile.MASK_KINDS`
             (:func:`~torchspec.pipeline.tile.fit_tile`).
-        term: the residual term (``FitConfig.residual_term``; else ``None``).
+        term: the residual term (``FitConfig.term.order``; else ``None``).
     """
 
     svbrdf: SVBRDF

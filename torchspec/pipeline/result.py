@@ -46,7 +46,7 @@ class Fit:
             second lobe; NaN for a parameter the pixel's model does not have, ``inf`` where the data
             leave it undetermined.
         stats: settings, timings and per-stage statistics (JSON-ready); ``smoothed``: the lobes
-            that ``FitConfig.smooth`` took away (``None`` without it).
+            that ``FitConfig.ladder.smooth`` took away (``None`` without it).
         flags: ``(H, W)`` int16 bits of :data:`torchspec.flags.FLAGS`: why not to trust a pixel
             (the :data:`torchspec.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
             of it (its solver stopped early, its model leaves a residual above the noise, its
@@ -55,7 +55,7 @@ class Fit:
             (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or
             no noise estimate with a forced model and ``uncertainty`` off).
         term: the residual term, ``coefficients (H, W, J, C)`` and ``chosen (H, W)``
-            (:class:`torchspec.residual_term.ResidualTerm`; ``FitConfig.residual_term``, else ``None``).
+            (:class:`torchspec.residual_term.ResidualTerm`; ``FitConfig.term.order``, else ``None``).
     """
 
     svbrdf: SVBRDF
@@ -78,7 +78,7 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
     ``status.exr``, ``iterations.exr``, ``model.exr`` (codes of ``model_codes``),
     ``criterion.exr``, ``flags.exr`` (bits of ``flag_bits``), ``check_peak_misfit.exr``,
     ``check_astray.exr``, ``residual_term.exr`` and ``residual_term_base.exr`` (with
-    ``FitConfig.residual_term``: its coefficients and bases, described under ``residual_term`` in
+    ``FitConfig.term.order``: its coefficients and bases, described under ``residual_term`` in
     ``svbrdf.json``), the standard deviations ``std_normal_deg.exr``, ``std_diffuse.exr``,
     ``std_specular.exr``, ``std_roughness.exr`` (and ``std_specular2.exr``, ``std_roughness2.exr``
     with a second lobe, whose maps are ``specular2.exr`` and ``roughness2.exr``) and ``svbrdf.json``
@@ -116,7 +116,7 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
     }
     if "specular2" in result.std:  # ward-dual's second lobe
         extra.update(std_specular2=result.std["specular2"].float(), std_roughness2=result.std["roughness2"].float())
-    if result.term is not None:  # FitConfig.residual_term: its own maps, the physical ones unchanged
+    if result.term is not None:  # FitConfig.term.order: its own maps, the physical ones unchanged
         extra[MAP_NAME] = result.term.to_map().float()
         extra[WEIGHT_MAP] = result.term.weight.float()
         meta[MAP_NAME] = result.term.description()

@@ -32,7 +32,7 @@ from .uncertainty import PeakSamples, sensor_noise, uncertainty
 __all__ = ["GATE_ROUGHNESS", "ModelFit", "Choice", "assess", "resolved", "supported", "select_models"]
 
 GATE_ROUGHNESS = 6
-"""Second lobes' roughnesses ``auto``'s gate of ``ward-dual`` tries (:attr:`FitConfig.dual_gate`)."""
+"""Second lobes' roughnesses ``auto``'s gate of ``ward-dual`` tries (``FitConfig.ladder.dual_gate``)."""
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class ModelFit:
         std: the parameters' deviations (:class:`~torchspec.pipeline.uncertainty.Uncertainty`).
         peak: what the peak checks take (``None`` without a noise estimate).
         criterion: ``(m,)`` ``chi^2 + P ln(n)`` (``inf`` where the solver diverged).
-        unexplained: ``(m,)`` bool, the residual is above the noise (``FitConfig.select_z``).
+        unexplained: ``(m,)`` bool, the residual is above the noise (``FitConfig.ladder.select_z``).
     """
 
     name: str
@@ -70,7 +70,7 @@ def assess(solved: Solved, data: TileSamples, sensor: Tensor, config: FitConfig)
             model,
             solved.svbrdf,
             data.observed[index],
-            data.inverse_noise(sensor, index, config.noise_floor),
+            data.inverse_noise(sensor, index, config.start.noise_floor),
             data.weight[index, :, None].expand(-1, -1, c),
             data.lights,
             data.view,
@@ -83,7 +83,7 @@ def assess(solved: Solved, data: TileSamples, sensor: Tensor, config: FitConfig)
     dof = (samples - model.size(c)).clamp(min=1.0)
     bic = chi2 + model.size(c) * torch.log(samples.clamp(min=1.0))
     bic = torch.where(result.status == DIVERGED, torch.full_like(bic, math.inf), bic)
-    unexplained = chi2 > dof + config.select_z * (2.0 * dof).sqrt()
+    unexplained = chi2 > dof + config.ladder.select_z * (2.0 * dof).sqrt()
     return ModelFit(solved.name, index, solved.svbrdf, result, chi2, std, peak, bic, unexplained)
 
 
@@ -241,9 +241,9 @@ def _climb(
     better than the one kept so far (:func:`~torchspec.statistics.predicts_better`),
     the first lobe than the pixel's fit without one (for a detected peak, one step from the
     photometric-stereo fit; where the lobe is not kept, that fit is then made)."""
-    ladder, channels = config.ladder, data.channels
+    ladder, channels = config.ladder.models, data.channels
     if folds is None:
-        folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
+        folds = light_folds(data.lights.directions, config.ladder.folds, config.ladder.fold_regions)
     fits = {solved.name: solved for solved in first}
     plain = plain_start(start, channels)  # each pixel's fit without a lobe, where made
     misfit = lobe.new_zeros(0, dtype=torch.long)
@@ -261,19 +261,19 @@ def _climb(
     diffuse = get_model("diffuse")
 
     def predicted(model, svbrdf: SVBRDF, index: Tensor) -> Tensor:
-        inverse = data.inverse_noise(sensor, index, config.noise_floor)
-        predict = held_out_refit if config.refit else held_out
+        inverse = data.inverse_noise(sensor, index, config.start.noise_floor)
+        predict = held_out_refit if config.ladder.refit else held_out
         return predict(model, svbrdf, index, data, inverse, folds, config)
 
     def compare(fit: ModelFit) -> Tensor:
         # the left-out frames are predicted only where the fit could be kept at all
-        eligible = resolved(fit, config.resolve) & supported(fit, data, config.lobe_support)
+        eligible = resolved(fit, config.ladder.resolve) & supported(fit, data, config.ladder.lobe_support)
         eligible &= fit.criterion < math.inf
         at = eligible.nonzero()[:, 0]
         index = fit.index[at]
         mine = predicted(get_model(fit.name), fit.svbrdf[at], index)
         better = torch.zeros_like(eligible)
-        better[at] = predicts_better(mine, heldout[index], config.predict_z)
+        better[at] = predicts_better(mine, heldout[index], config.ladder.predict_z)
         choice.take(fit, better)
         heldout[fit.index[better]] = mine[better[at]]
         return better
@@ -287,9 +287,9 @@ def _climb(
     index, init = fit.index[fit.unexplained], fit.svbrdf[fit.unexplained]
     for name in ladder[1:]:  # each from the previous one's solution, where it leaves a misfit
         if get_model(name).fills("specular2"):  # where one lobe leaves a misfit as large as a second lobe's
-            keep = data.relative_rms(choice.cost[index], index) > config.dual_rms
+            keep = data.relative_rms(choice.cost[index], index) > config.ladder.dual_rms
             index, init = index[keep], init[keep]
-            if config.dual_gate is not None and index.numel():  # and a second lobe would predict better
+            if config.ladder.dual_gate is not None and index.numel():  # and a second lobe would predict better
                 keep = _second_lobe_gate(init, index, data, sensor, folds, heldout[index], config)
                 index, init = index[keep], init[keep]
         if index.numel() == 0:
@@ -306,15 +306,15 @@ def _second_lobe_gate(
     (:func:`~torchspec.pipeline.prediction.second_lobe_held_out`, at :data:`GATE_ROUGHNESS`
     roughnesses from twice the least the lights resolve to half the largest), predicts the left-out
     frames better than the model kept so far (``current``, its held-out residuals) by more than
-    ``FitConfig.dual_gate`` noise deviations at one of them at least."""
+    ``FitConfig.ladder.dual_gate`` noise deviations at one of them at least."""
     low, high = ALPHA_BOUNDS
     least = max(config.least_roughness(data.lights), low)
     roughness = torch.logspace(
         math.log10(2 * least), math.log10(high / 2), GATE_ROUGHNESS, dtype=data.observed.dtype, device=index.device
     )
-    inverse = data.inverse_noise(sensor, index, config.noise_floor)
+    inverse = data.inverse_noise(sensor, index, config.start.noise_floor)
     linear = second_lobe_held_out(init, index, data, inverse, folds, config, roughness)  # (m, G, S, K, C)
-    better = [predicts_better(linear[:, j], current, config.dual_gate) for j in range(roughness.shape[0])]
+    better = [predicts_better(linear[:, j], current, config.ladder.dual_gate) for j in range(roughness.shape[0])]
     return torch.stack(better, -1).any(-1)
 
 
@@ -349,13 +349,13 @@ def supported(fit: ModelFit, data: TileSamples, least: float) -> Tensor:
 
 def _broad_fit(start: StartingPoint, index: Tensor, data: TileSamples, config: FitConfig) -> Solved:
     """The ladder's first model on pixels ``index`` without a detected peak, from two starts: the
-    specular start (:attr:`FitConfig.init`) and a broad lobe (``alpha = FitConfig.broad_alpha``)
+    specular start (``FitConfig.start.init``) and a broad lobe (``alpha = FitConfig.start.broad_alpha``)
     about the photometric-stereo normal, each pixel keeping the solution of lower cost."""
-    name, channels = config.ladder[0], data.channels
+    name, channels = config.ladder.models[0], data.channels
     peak = solve_pixels(name, index, start.svbrdf(channels)[index], data, config)
     ps = start.diffuse
     level = start.level[index, None]
-    alpha = level.new_full((index.shape[0], 2), config.broad_alpha)
+    alpha = level.new_full((index.shape[0], 2), config.start.broad_alpha)
     broad_start = SVBRDF(ps.normal[index], 0.5 * ps.diffuse[index], level, alpha, None, channels)
     broad = solve_pixels(name, index, broad_start, data, config)
     lower = broad.result.cost < peak.result.cost

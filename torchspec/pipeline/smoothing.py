@@ -1,4 +1,4 @@
-"""Smoothing: the choice between a lobe and none, regularised over the image (``FitConfig.smooth``).
+"""Smoothing: the choice between a lobe and none, regularised over the image (``FitConfig.ladder.smooth``).
 
 Each tile fits its lobed pixels without a lobe too (:func:`plain_alternative`, a
 :class:`PlainFit`); over the whole image :func:`smooth_choice` picks each pixel's side and

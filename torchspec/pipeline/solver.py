@@ -67,7 +67,7 @@ def solve_pixels(name: str, index: Tensor, start: SVBRDF, data: TileSamples, con
         )
         return solve(bounded(fn, bounds), params, config=config.lm)
 
-    result = compiled_or_eager(run, config.compile)
+    result = compiled_or_eager(run, config.quadrature.compile)
     return Solved(name, index, model.unpack(bounds.from_free(result.params)[0], channels, order=True), result)
 
 

@@ -1,6 +1,6 @@
 """The stages before the solver, per batch of ``n`` pixels: robust photometric stereo (normal and
 ``k_d``), the lobe test (a residual peak above the noise) and the specular start of
-``FitConfig.init`` (:mod:`torchspec.specular`).
+``FitConfig.start.init`` (:mod:`torchspec.specular`).
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def starting_point(
     y: Tensor, valid: Tensor, lights: Lights, view: Tensor, *, config: FitConfig, context: LightContext | None = None
 ) -> StartingPoint:
     """The fit's stages before the solver, for ``n`` pixels: photometric stereo, the lobe test and
-    the specular start of ``config.init`` (``naive`` for ``model: diffuse``, whose pixels get no lobe).
+    the specular start of ``config.start.init`` (``naive`` for ``model: diffuse``, whose pixels get no lobe).
 
     Args:
         y: ``(n, K, C)`` recorded values.
@@ -91,7 +91,7 @@ def starting_point(
     samples = y / lights.scale.to(y.dtype)
     times = {}
     t0 = time.perf_counter()
-    ps = photometric_stereo(samples, ctx.directions, valid=valid, cut=config.cut, trim=config.trim)
+    ps = photometric_stereo(samples, ctx.directions, valid=valid, cut=config.start.cut, trim=config.start.trim)
     times["photometric"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -100,24 +100,24 @@ def starting_point(
     level = clean.mean(-1).sum(-1) / count  # mean value per pixel
     residual = specular_residual(clean, ps.normal, ps.diffuse, ctx.directions)
     residual = torch.where(valid, residual, torch.zeros_like(residual))
-    noise = torch.maximum(ps.noise, config.noise_floor * level)
-    lobe = residual.amax(-1) > config.detect * noise
+    noise = torch.maximum(ps.noise, config.start.noise_floor * level)
+    lobe = residual.amax(-1) > config.start.detect * noise
     prior = dict(prior_normal=ps.normal, kernel_variance=ctx.kernel_variance)
     # A fit without lobes uses no specular start: the cheapest, which needs no layout for a peak.
-    init = "naive" if config.model == "diffuse" else config.init
+    init = "naive" if config.model == "diffuse" else config.start.init
     if init == "fri":
         found = locate_peak(
             residual,
             ctx.layout,
             view,
-            method=config.fri_method,
-            num_coefficients=config.fri_coefficients,
-            kernel="pooled" if config.fri_kernel == "pooled" else None,
+            method=config.start.fri_method,
+            num_coefficients=config.start.fri_coefficients,
+            kernel="pooled" if config.start.fri_kernel == "pooled" else None,
             **prior,
         )
     elif init == "grid":
         found = grid_search(residual, ctx.layout, view, **prior)
     else:
-        found = naive_start(residual, ctx.layout, view, prior_normal=ps.normal, alpha=config.naive_alpha)
+        found = naive_start(residual, ctx.layout, view, prior_normal=ps.normal, alpha=config.start.naive_alpha)
     times["specular_start"] = time.perf_counter() - t0
     return StartingPoint(diffuse=ps, specular=found, lobe=lobe, level=level, times=times)

@@ -55,12 +55,12 @@ def fit_pixels(
     """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
     ``gains (K, C)``: the lights' calibrated gains (in ``lights``), which the residual term leaves
     out (:func:`residual_term`), fitted in ``domain`` (the photographs' encoding). The residual
-    term (``FitConfig.residual_term``) is fitted on the samples ``kept (n, K)`` (default
+    term (``FitConfig.term.order``) is fitted on the samples ``kept (n, K)`` (default
     ``valid``): the fit's masks leave out shadowed samples, which the term is to carry.
 
     The stages: :func:`~torchspec.pipeline.start.starting_point`, then
     :func:`~torchspec.pipeline.selection.select_models`, then
-    :func:`~torchspec.pipeline.checks.check_choice`, and with ``FitConfig.smooth`` the fits without a
+    :func:`~torchspec.pipeline.checks.check_choice`, and with ``FitConfig.ladder.smooth`` the fits without a
     lobe (:func:`~torchspec.pipeline.smoothing.plain_alternative`)."""
     begun = starting_point(y, valid, lights, view, config=config, context=ctx)
     times = dict(begun.times)
@@ -73,18 +73,18 @@ def fit_pixels(
     t0 = time.perf_counter()
     few = valid.sum(-1) < 3
     flags, checks = check_choice(choice, data, few, config)
-    flags = with_flags(flags, ("implausible", overshoot(choice.svbrdf, y, data, config) > config.flag_overshoot))
+    flags = with_flags(flags, ("implausible", overshoot(choice.svbrdf, y, data, config) > config.flags.overshoot))
     times["checks"] = time.perf_counter() - t0
 
     term = None
-    if config.residual_term:
+    if config.term.order:
         t0 = time.perf_counter()
         term = residual_term(choice, sensor, y, valid if kept is None else kept, data, config, gains, domain)
         times["residual_term"] = time.perf_counter() - t0
     rms = data.relative_rms(choice.cost)
     quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
     plain = None
-    if config.smooth > 0:  # the alternative of each lobed pixel, for the image's choice (smoothing)
+    if config.ladder.smooth > 0:  # the alternative of each lobed pixel, for the image's choice (smoothing)
         chosen = PlainFit(
             normal=choice.svbrdf.normal.clone(),
             diffuse=choice.svbrdf.diffuse.clone(),
@@ -145,7 +145,7 @@ def residual_term(
     (:class:`torchspec.residual_term.TermDomain`; default sRGB)."""
     kept = kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
-    folds = light_folds(data.lights.directions, config.folds, config.fold_regions)
+    folds = light_folds(data.lights.directions, config.ladder.folds, config.ladder.fold_regions)
     model = render(choice.svbrdf, data.lights, data.view, quadrature=config.rule)
     predicted = held_out_values(choice, model, sensor, folds, data, config)
     lights = data.lights
@@ -153,8 +153,8 @@ def residual_term(
         gains = gains.to(model)
         model, predicted = model / gains, predicted / gains[None]
         lights = Lights(lights.directions, lights.kernel, lights.irradiance / gains, lights.exposure)
-    order = config.residual_term
-    z = config.term_z
+    order = config.term.order
+    z = config.term.z
     with_model = fit_term(values, kept, model, lights, folds, order=order, z=z, held_out=predicted, domain=domain)
     alone = fit_term(values, kept, torch.zeros_like(model), lights, folds, order=order, z=z, domain=domain)
     blended = blend(with_model, alone, z)
@@ -167,7 +167,7 @@ def held_out_values(
     choice, model: Tensor, sensor: Tensor, folds: Tensor, data: TileSamples, config: FitConfig
 ) -> Tensor:
     """``(n, S, K, C)`` each pixel's chosen model's prediction of each valid sample from a fit
-    without its fold, refitted by :data:`TERM_REFIT` (or ``FitConfig.refit``) solver steps
+    without its fold, refitted by :data:`TERM_REFIT` (or ``FitConfig.ladder.refit``) solver steps
     (:func:`~torchspec.pipeline.prediction.held_out_refit`: the one-step linear prediction of
     :func:`~torchspec.pipeline.prediction.held_out`, good enough to rank models, can be far off
     where a fold holds a lobe's peak, and the term would then give up a model that predicts well);
@@ -178,9 +178,9 @@ def held_out_values(
         index = (choice.code == code).nonzero().squeeze(1)
         if index.numel() == 0:
             continue
-        inverse = data.inverse_noise(sensor, index, config.noise_floor)  # (m, K, C)
+        inverse = data.inverse_noise(sensor, index, config.start.noise_floor)  # (m, K, C)
         # held_out_refit's residuals: (render - observed) in noise units
-        refit = replace(config, refit=config.refit or TERM_REFIT)
+        refit = replace(config, ladder=replace(config.ladder, refit=config.ladder.refit or TERM_REFIT))
         residual = held_out_refit(get_model(name), choice.svbrdf[index], index, data, inverse, folds, refit)
         valid = inverse[:, None] > 0
         fitted = data.observed[index, None] + residual / torch.where(valid, inverse[:, None], torch.ones_like(residual))
@@ -233,13 +233,13 @@ class TileInputs:
 def fit_tile(tile: TileInputs, shared: FitInputs) -> TileResult:
     """One tile, as every driver fits it: :func:`fit_pixels` on ``tile``'s pixels, its samples of
     every kind of :data:`MASK_KINDS` left out (the non-finite ones also from the residual term's);
-    saved in the checkpoint ``shared.folder`` when given; on ``config.threads`` torch threads
+    saved in the checkpoint ``shared.folder`` when given; on ``config.compute.threads`` torch threads
     (:func:`torchspec.threads.fit_threads`). Returns :func:`fit_pixels`'s result with the count of
     masked samples of each kind (``TileResult.masked``)."""
     y = tile.values.permute(2, 0, 1)  # (n, K, C)
     masks, config = tile.masks, shared.config
     valid, kept = ~masks.invalid.T, ~masks.nonfinite.T
-    with fit_threads(config.threads):  # auto: the cores free now (other processes share them)
+    with fit_threads(config.compute.threads):  # auto: the cores free now (other processes share them)
         out = fit_pixels(
             y, valid, tile.lights, shared.view, shared.channels, config, tile.ctx,
             kept=kept, gains=shared.gains, domain=shared.domain,
