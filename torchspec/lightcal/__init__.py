@@ -372,8 +372,7 @@ def calibrate_lights(
     points = image_points(height, width, dtype=work, device=device)[index]
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     gains = torch.ones(k, c, dtype=work, device=device)
-    positions, chosen = None, DomeRadius(None, None)
-    written = chosen
+    positions, chosen, written = None, DomeRadius(None, None), DomeRadius(None, None)  # no dome radius tried
     whole = PixelSample(values, ok, points, index)
     few = _sample(values.shape[0], RADIUS_SAMPLE, device)  # the start's pixels
     start = whole.at(few)
