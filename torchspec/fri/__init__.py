@@ -196,9 +196,9 @@ def locate(
     scale = torch.tensor(call.periods, dtype=y.real.dtype, device=y.device) / (2.0 * math.pi)
     if num_pulses == 1:
         size = call.samples.shape[-1] if call.positions is None and dims == 1 else None
-        theta, variance, snr = locate_single(y, dc, call.bands, call.method, size, call.kernel)
-        std = variance.sqrt() * scale
-        quality = _quality(snr, condition, finite)
+        pulse = locate_single(y, dc, call.bands, call.method, size, call.kernel)
+        theta, std = pulse.theta, pulse.variance.sqrt() * scale
+        quality = _quality(pulse.snr, condition, finite)
     else:
         theta, gap = locate_multi(y, num_pulses, call.method)
         std = torch.full_like(theta, math.nan)
@@ -271,9 +271,9 @@ def estimate_kernel(
         return kernel_layout(like.new_zeros(len(frequency_list(call.bands))), call.bands)
     found = _coefficients_of(call)
     size = like.shape[-1] if call.positions is None and len(call.bands) == 1 else None
-    theta, _, snr = locate_single(found.y, found.dc, call.bands, "coherent", size)
-    weight = _quality(snr, found.condition, found.finite)
-    theta = torch.where(found.finite[:, None], theta, torch.zeros_like(theta))
+    pulse = locate_single(found.y, found.dc, call.bands, "coherent", size)
+    weight = _quality(pulse.snr, found.condition, found.finite)
+    theta = torch.where(found.finite[:, None], pulse.theta, torch.zeros_like(pulse.theta))
     return kernel_layout(pool_kernel(found.y, theta, call.bands, weight), call.bands)
 
 
