@@ -183,10 +183,10 @@ def _fail_on_workers(pixels: int) -> None:
     real = getattr(module, "_real_tile", module.fit_pixels)
     module._real_tile = real
 
-    def tile(y, *args, **kwargs):
-        if y.shape[0] == pixels:
+    def tile(tile_pixels, *args, **kwargs):
+        if tile_pixels.y.shape[0] == pixels:
             raise FloatingPointError("injected")
-        return real(y, *args, **kwargs)
+        return real(tile_pixels, *args, **kwargs)
 
     module.fit_pixels = tile
 

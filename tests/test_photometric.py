@@ -55,7 +55,7 @@ def test_grid_layout_finds_clipped_grid_and_rejects_scattered():
     l = _grid()[:, :2]
     found = grid_layout(l)
     assert found is not None
-    row, col, dy, dx = found
+    row, col, dy, dx = found.row, found.col, found.spacing_y, found.spacing_x
     assert int(row.max()) + 1 == 10 and int(col.max()) + 1 == 10  # the disk clips the outer ring
     assert dx == pytest.approx(1.6 / 11) and dy == pytest.approx(1.6 / 11)
     assert grid_layout(torch.rand(20, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64)) is None
@@ -82,8 +82,8 @@ def test_lowpass_keeps_constants_fills_gaps_and_matches_kernel_smoothing(scatter
     weights = torch.exp(-0.5 * d2 / 0.01)
     if not scattered:  # kornia's kernel stops at ceil(3 sigma) cells per axis: a square window
         cells = grid_layout(l)
-        index = torch.stack([cells[0], cells[1]], -1)
-        half = math.ceil(3 * 0.1 / cells[2])
+        index = torch.stack([cells.row, cells.col], -1)
+        half = math.ceil(3 * 0.1 / cells.spacing_y)
         weights = weights * ((index[:, None] - index[None]).abs() <= half).all(-1)
     brute = (weights @ ramp[0, :, 0]) / weights.sum(-1)
     err = (smooth[0, :, 0] - brute).abs().max()

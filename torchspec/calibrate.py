@@ -283,6 +283,17 @@ def _usable(r: _Responses, reflection: Tensor, layout, radial: bool, along_line:
     return used, cells
 
 
+@dataclass(frozen=True)
+class _KernelFit:
+    """What :func:`_fit` found: the ``table (S, S)`` (unit integral), its ``extent``, the relative
+    RMS ``residual`` and the number of ``samples`` fitted."""
+
+    table: Tensor
+    extent: float
+    residual: float
+    samples: int
+
+
 def _fit(
     r: _Responses,
     used: Tensor,
@@ -294,9 +305,8 @@ def _fit(
     extent: float | None,
     blur: float,
     smoothing: float,
-) -> tuple[Tensor, float, float, int]:
-    """The table ``(S, S)`` (unit integral), its extent, the relative RMS residual and the number
-    of samples fitted, from the used pixels' samples at ``offsets (P, K, 2)``."""
+) -> _KernelFit:
+    """The :class:`_KernelFit` of the used pixels' samples at ``offsets (P, K, 2)``."""
     spacing, area = layout.spacing, layout.area
     s, peak = r.s[used], r.peak[used]
     tiny = torch.finfo(s.dtype).tiny
@@ -334,7 +344,7 @@ def _fit(
         target, weight = target / gain[:, None], weight * gain[:, None] ** 2
     w = weight * keep
     residual = float(torch.sqrt((w * (target - predicted) ** 2).sum() / (w * target**2).sum()))
-    return table / (table.sum() * step * step), float(extent), residual, int(keep.sum())
+    return _KernelFit(table / (table.sum() * step * step), float(extent), residual, int(keep.sum()))
 
 
 def _reflection(responses: _Responses, normal: Tensor | None, view: Tensor, layout) -> tuple[Tensor, str]:
@@ -418,9 +428,10 @@ def recover_kernel(
     if along_line:
         offsets = (offsets @ layout.axis)[..., None] * layout.axis
     blur = math.sqrt(2.0) * mirror_alpha
-    table, extent, residual, samples = _fit(
+    fitted = _fit(
         responses, used, offsets, layout, radial=radial, size=size, extent=extent, blur=blur, smoothing=smoothing
     )
+    table, extent = fitted.table, fitted.extent
 
     centroid, covariance = table_moments(table, extent)
     if radial:
@@ -432,7 +443,7 @@ def recover_kernel(
         "pixels_lit": int(responses.lit.sum()),
         "pixels_used": int(used.sum()),
         "frames": values.shape[1],
-        "samples": samples,
+        "samples": fitted.samples,
         "layout": "line" if layout.dims == 1 else "plane",
         "spacing": layout.spacing,
         "core_offsets": cells,
@@ -441,7 +452,7 @@ def recover_kernel(
         "mirror_alpha": mirror_alpha,
         "smoothing": smoothing,
         **_shape_stats(table, extent, centroid, covariance),
-        "residual": residual,
+        "residual": fitted.residual,
         "notes": _notes(radial, mirror_alpha, blur),
     }
     out = torch.full_like(values[:, :2], math.nan)

@@ -356,7 +356,7 @@ def _layout(directions: torch.Tensor, extra: dict | None = None) -> dict[str, An
     layout = layout_of(l)
     out: dict[str, Any] = {"kind": "grid" if layout.grid is not None else "line" if layout.dims == 1 else "scattered"}
     if layout.grid is not None:
-        out.update(rows=layout.grid[2], columns=layout.grid[3], positions=layout.grid[2] * layout.grid[3])
+        out.update(rows=layout.grid.rows, columns=layout.grid.columns, positions=layout.grid.rows * layout.grid.columns)
         planned = _planned_grid((extra or {}).get("generator"))
         if planned is not None:
             out["planned"] = planned

@@ -17,7 +17,7 @@ from torch import Tensor
 from .errors import TorchspecError
 from .geometry import tangent_frame
 from .lights import Lights
-from .photometric import grid_layout
+from .photometric import GridCells, grid_layout
 
 __all__ = [
     "MIN_FRAMES",
@@ -52,8 +52,8 @@ class Layout:
         area: ``(K,)`` the l-plane area (1D: length) each sample stands for.
         period: the FRI period per dimension: the span plus one spacing.
         start: ``(dims,)`` the coordinate mapped to 0.
-        grid: for lights on a grid clipped to a disk (or not at all), ``(row, col, ny, nx)``: the
-            cell of each frame ``(K,)`` and the lattice's size; ``None`` otherwise.
+        grid: for lights on a grid clipped to a disk (or not at all), the cell of each frame and
+            the lattice's size (:class:`torchspec.photometric.GridCells`); ``None`` otherwise.
         spacing: the median distance between neighbouring samples.
     """
 
@@ -64,7 +64,7 @@ class Layout:
     area: Tensor
     period: tuple[float, ...]
     start: Tensor
-    grid: tuple[Tensor, Tensor, int, int] | None = None
+    grid: GridCells | None = None
     spacing: float = 0.0
 
     def coordinates(self) -> Tensor:
@@ -84,7 +84,7 @@ def layout_of(l: Tensor) -> Layout:
         >>> ticks = torch.linspace(-0.2, 0.2, 5, dtype=torch.float64)
         >>> grid = torch.stack(torch.meshgrid(ticks, ticks, indexing="xy"), -1).reshape(-1, 2)
         >>> found = layout_of(grid)
-        >>> found.dims, found.grid[2:], round(found.spacing, 3)
+        >>> found.dims, (found.grid.rows, found.grid.columns), round(found.spacing, 3)
         (2, (5, 5), 0.1)
         >>> layout_of(torch.stack([ticks, 0.5 * ticks], -1)).dims
         1
@@ -107,8 +107,8 @@ def layout_of(l: Tensor) -> Layout:
     cells = grid_layout(l)
     low, high = l.min(0).values, l.max(0).values
     if cells is not None:
-        row, col, dy, dx = cells
-        ny, nx = int(row.max()) + 1, int(col.max()) + 1
+        row, col, dy, dx = cells.row, cells.col, cells.spacing_y, cells.spacing_x
+        ny, nx = cells.rows, cells.columns
         # Empty cells may be filled with zeros only where the lobe is not: outside the lit disk
         # (a grid clipped to a radius), not between the frames (every second frame of a grid).
         filled = torch.zeros(ny, nx, dtype=torch.bool, device=l.device)
@@ -122,7 +122,7 @@ def layout_of(l: Tensor) -> Layout:
         step = torch.tensor([dx, dy], dtype=l.dtype, device=l.device)
         area = torch.full_like(l[:, 0], dx * dy)
         period = (nx * dx, ny * dy)
-        return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low, (row, col, ny, nx), float(min(dx, dy)))
+        return Layout(l, 2, torch.zeros_like(centre), centre, area, period, low, cells, float(min(dx, dy)))
     step = light_spacing(l)
     period = tuple(float(v) for v in (high - low + step))
     # Each sample stands for its share of the layout's convex area: a disk or a square here.
@@ -189,7 +189,7 @@ def _describe(layout: Layout) -> str:
     if layout.dims == 1:
         return "on a line"
     if layout.grid is not None:
-        return f"on a {layout.grid[2]} x {layout.grid[3]} grid (rows x columns)"
+        return f"on a {layout.grid.rows} x {layout.grid.columns} grid (rows x columns)"
     return "scattered over the plane"
 
 
@@ -223,7 +223,7 @@ def fit_problem(l: Tensor, *, lobe: bool = True) -> str | None:
     if layout.dims == 1:
         short = count < MIN_PEAK_SAMPLES
     elif layout.grid is not None:
-        short = min(layout.grid[2], layout.grid[3]) < MIN_PEAK_SAMPLES
+        short = min(layout.grid.rows, layout.grid.columns) < MIN_PEAK_SAMPLES
     else:
         short = count < MIN_PEAK_SAMPLES**2
     if not short:

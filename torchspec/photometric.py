@@ -37,6 +37,7 @@ __all__ = [
     "sample_masks",
     "peak_of",
     "saturation_level",
+    "GridCells",
     "grid_layout",
     "lowpass",
     "photometric_stereo",
@@ -172,15 +173,33 @@ def saturation_level(peaks: list[tuple[Tensor, Tensor]]) -> Tensor:
     return torch.where(at_top >= CLIP_REPEATS, top, torch.full_like(top, math.inf))
 
 
-def grid_layout(l: Tensor, *, tolerance: float = 1e-6) -> tuple[Tensor, Tensor, float, float] | None:
+@dataclass(frozen=True)
+class GridCells:
+    """The cells of ``K`` light positions on an evenly spaced lattice (:func:`grid_layout`); cells
+    may be empty (a grid clipped to a disk).
+
+    Attributes:
+        row, col: ``(K,)`` long, each position's row (along y) and column (along x).
+        rows, columns: the lattice's size (its last row and column hold a position).
+        spacing_y, spacing_x: the lattice's spacings (l-plane units).
+    """
+
+    row: Tensor
+    col: Tensor
+    rows: int
+    columns: int
+    spacing_y: float
+    spacing_x: float
+
+
+def grid_layout(l: Tensor, *, tolerance: float = 1e-6) -> GridCells | None:
     """The cells of a grid layout of light positions, or ``None`` when they do not lie on one.
 
     Args:
         l: ``(K, 2)`` light positions in the l-plane.
 
     Returns:
-        ``(row, col, spacing_y, spacing_x)``: ``(K,)`` long indices of each position in an evenly
-        spaced lattice (cells may be empty: a grid clipped to a disk), and the spacings.
+        The :class:`GridCells` of the positions, or ``None``.
     """
     if l.dim() != 2 or l.shape[-1] != 2 or l.shape[0] < 2:
         return None
@@ -197,12 +216,13 @@ def grid_layout(l: Tensor, *, tolerance: float = 1e-6) -> tuple[Tensor, Tensor, 
             return None
         cells.append((index.long(), float(step)))
     (row, dy), (col, dx) = cells
-    key = row * (int(col.max()) + 1) + col
+    rows, columns = int(row.max()) + 1, int(col.max()) + 1
+    key = row * columns + col
     if torch.unique(key).numel() != key.numel():  # two frames in one cell
         return None
-    if (int(row.max()) + 1) * (int(col.max()) + 1) > 4 * l.shape[0]:  # mostly empty: not a grid
+    if rows * columns > 4 * l.shape[0]:  # mostly empty: not a grid
         return None
-    return row, col, dy, dx
+    return GridCells(row=row, col=col, rows=rows, columns=columns, spacing_y=dy, spacing_x=dx)
 
 
 def lowpass(samples: Tensor, l: Tensor, *, sigma: float, valid: Tensor | None = None) -> Tensor:
@@ -230,8 +250,8 @@ def lowpass(samples: Tensor, l: Tensor, *, sigma: float, valid: Tensor | None = 
         return torch.where(valid[..., None], samples, nan)
     grid = grid_layout(l)
     if grid is not None:
-        row, col, dy, dx = grid
-        ny, nx = int(row.max()) + 1, int(col.max()) + 1
+        row, col, dy, dx = grid.row, grid.col, grid.spacing_y, grid.spacing_x
+        ny, nx = grid.rows, grid.columns
         image = samples.new_zeros((n, c + 1, ny, nx))
         image[:, :c, row, col] = values.transpose(1, 2)
         image[:, c, row, col] = weight[..., 0]

@@ -130,7 +130,7 @@ def locate_peak(
         # died out, so they are zeros, and the samples are uniform: the periodised peak stays
         # symmetric about its centre however much of it aliases. Scattered least squares on the
         # disk alone would alias it asymmetrically.
-        row, col, ny, nx = layout.grid
+        row, col, ny, nx = layout.grid.row, layout.grid.col, layout.grid.rows, layout.grid.columns
         image = residual.new_zeros((residual.shape[0], ny, nx))
         image[:, row, col] = residual
         found = fri.locate(

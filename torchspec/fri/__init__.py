@@ -190,14 +190,15 @@ def locate(
     if math.prod(call.batch) == 0:
         empty = samples.new_zeros((*call.batch, *out_tail))
         return Location(position=empty, quality=samples.new_zeros(tuple(call.batch)), std=empty.clone())
-    y, dc, finite, condition = _coefficients_of(call)
+    found = _coefficients_of(call)
+    y, dc, finite, condition = found.y, found.dc, found.finite, found.condition
 
     scale = torch.tensor(call.periods, dtype=y.real.dtype, device=y.device) / (2.0 * math.pi)
     if num_pulses == 1:
         size = call.samples.shape[-1] if call.positions is None and dims == 1 else None
-        theta, variance, snr = locate_single(y, dc, call.bands, call.method, size, call.kernel)
-        std = variance.sqrt() * scale
-        quality = _quality(snr, condition, finite)
+        pulse = locate_single(y, dc, call.bands, call.method, size, call.kernel)
+        theta, std = pulse.theta, pulse.variance.sqrt() * scale
+        quality = _quality(pulse.snr, condition, finite)
     else:
         theta, gap = locate_multi(y, num_pulses, call.method)
         std = torch.full_like(theta, math.nan)
@@ -268,12 +269,12 @@ def estimate_kernel(
     like = call.samples
     if math.prod(call.batch) == 0:
         return kernel_layout(like.new_zeros(len(frequency_list(call.bands))), call.bands)
-    y, dc, finite, condition = _coefficients_of(call)
+    found = _coefficients_of(call)
     size = like.shape[-1] if call.positions is None and len(call.bands) == 1 else None
-    theta, _, snr = locate_single(y, dc, call.bands, "coherent", size)
-    weight = _quality(snr, condition, finite)
-    theta = torch.where(finite[:, None], theta, torch.zeros_like(theta))
-    return kernel_layout(pool_kernel(y, theta, call.bands, weight), call.bands)
+    pulse = locate_single(found.y, found.dc, call.bands, "coherent", size)
+    weight = _quality(pulse.snr, found.condition, found.finite)
+    theta = torch.where(found.finite[:, None], pulse.theta, torch.zeros_like(pulse.theta))
+    return kernel_layout(pool_kernel(found.y, theta, call.bands, weight), call.bands)
 
 
 def kernel_layout(vector: Tensor, bands: tuple[int, ...]) -> Tensor:
@@ -408,9 +409,26 @@ def _parse(samples, period, method, num_coefficients, positions, num_pulses, ker
     return _Call(samples, periods, method, bands, batch, positions, vector)
 
 
-def _coefficients_of(call: _Call) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``(Y (B, P), dc (B,), finite (B,), condition (B,))`` of the flattened problems, with the
-    coefficients of non-finite problems (and of rank-deficient per-problem layouts) zeroed."""
+@dataclass(frozen=True)
+class _Coefficients:
+    """The Fourier coefficients of a call's ``B`` flattened problems (:func:`_coefficients_of`).
+
+    Attributes:
+        y: ``(B, P)`` complex, in the order of ``frequency_list(bands)`` (0 where not ``finite``).
+        dc: ``(B,)`` the DC term (0 where not ``finite``).
+        finite: ``(B,)`` bool, the problems with finite samples (and a resolvable layout).
+        condition: ``(B,)`` the condition number of each problem's layout (1 for uniform samples).
+    """
+
+    y: Tensor
+    dc: Tensor
+    finite: Tensor
+    condition: Tensor
+
+
+def _coefficients_of(call: _Call) -> _Coefficients:
+    """The :class:`_Coefficients` of the flattened problems, with the coefficients of non-finite
+    problems (and of rank-deficient per-problem layouts) zeroed."""
     dims = len(call.periods)
     if call.positions is None:
         shape = call.samples.shape[call.samples.dim() - dims :]
@@ -438,4 +456,4 @@ def _coefficients_of(call: _Call) -> tuple[Tensor, Tensor, Tensor, Tensor]:
             finite = finite & resolvable
     y = torch.where(finite[:, None], y, torch.zeros_like(y))
     dc = torch.where(finite, dc, torch.zeros_like(dc))
-    return y, dc, finite, condition
+    return _Coefficients(y=y, dc=dc, finite=finite, condition=condition)

@@ -34,6 +34,7 @@ References:
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -42,7 +43,7 @@ from torch import Tensor
 from ._coefficients import axis_rows, frequencies
 from ._hankel import cadzow, hankel, rows_for, signal_subspace
 
-__all__ = ["locate_single", "pool_kernel"]
+__all__ = ["SinglePulse", "locate_single", "pool_kernel"]
 
 ITERATIONS = 3  # Newton steps of coherent / ml; convergence is quadratic from the grid start
 CADZOW_ITERATIONS = 10
@@ -306,7 +307,22 @@ def _aliasing(r: Tensor, i: Tensor, b: Tensor, w: Tensor, noise: Tensor, size: i
     return (s * s * gain * gain)[:, None], beyond * (b * b * m * m).sum(-1)  # variance x information
 
 
-def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None, kernel=None) -> tuple[Tensor, Tensor, Tensor]:
+@dataclass(frozen=True)
+class SinglePulse:
+    """One pulse located in each of ``B`` problems (:func:`locate_single`).
+
+    Attributes:
+        theta: ``(B, D)`` its position in radians (not wrapped).
+        variance: ``(B, D)`` the variance of ``theta`` predicted from the data.
+        snr: ``(B,)`` the energy of the estimated spectrum over the noise variance.
+    """
+
+    theta: Tensor
+    variance: Tensor
+    snr: Tensor
+
+
+def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None, kernel=None) -> SinglePulse:
     yr, yi = y.real, y.imag
     dims = len(bands)
     start = _start(yr, yi, bands, kernel) if method in ("coherent", "ml") else None
@@ -339,13 +355,13 @@ def _locate_chunk(y, dc, freq, bands, dictionary, method, size=None, kernel=None
         excess, alias = _aliasing(r, i, b, b, noise, size)
         variance = variance + excess
     snr = (b * b).sum(-1) / (noise[:, 0] + alias)  # inf without residual degrees of freedom
-    return theta, variance, snr
+    return SinglePulse(theta=theta, variance=variance, snr=snr)
 
 
 def locate_single(
     y: Tensor, dc: Tensor, bands: tuple[int, ...], method: str, size: int | None = None, kernel: Tensor | None = None
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Locate one pulse.
+) -> SinglePulse:
+    """Locate one pulse (:class:`SinglePulse`).
 
     Args:
         y: ``(B, P)`` complex coefficients in the order of ``frequency_list(bands)``.
@@ -360,7 +376,7 @@ def locate_single(
             known-kernel maximum likelihood) instead of by an envelope fitted per problem.
 
     Returns:
-        ``theta (B, D)`` in radians (not wrapped); its variance ``(B, D)`` predicted from the
+        ``theta (B, D)`` in radians (not wrapped); its ``variance (B, D)`` predicted from the
         data, the noise measured in the imaginary residual (``P - D`` degrees of freedom) over
         the Fisher information of the estimated spectrum, ``inf`` where that information is
         zero and 0 with no residual degrees of freedom (one coefficient in 1D); and ``snr (B,)``,
@@ -372,11 +388,15 @@ def locate_single(
     dictionary = _dictionary(freq, bands)
     if y.shape[0] == 0:
         empty = y.real.new_zeros(0, len(bands))
-        return empty, empty, empty[:, 0]
+        return SinglePulse(theta=empty, variance=empty, snr=empty[:, 0])
     # Chunks keep the per-problem intermediates (P x atoms) in cache and bound memory.
     chunks = zip(y.split(CHUNK), dc.split(CHUNK), strict=True)
     parts = [_locate_chunk(yc, dcc, freq, bands, dictionary, method, size, kernel) for yc, dcc in chunks]
-    return tuple(torch.cat(column) for column in zip(*parts, strict=True))
+    return SinglePulse(
+        theta=torch.cat([p.theta for p in parts]),
+        variance=torch.cat([p.variance for p in parts]),
+        snr=torch.cat([p.snr for p in parts]),
+    )
 
 
 def pool_kernel(y: Tensor, theta: Tensor, bands: tuple[int, ...], weight: Tensor) -> Tensor:

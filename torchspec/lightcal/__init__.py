@@ -64,9 +64,11 @@ from ._solve import (
 )
 
 __all__ = [
+    "DomeRadius",
     "LightCalibration",
     "LightCalibrationError",
     "LambertFit",
+    "PixelSample",
     "calibrate_lights",
     "lambert_fit",
     "dome_radius",
@@ -144,7 +146,7 @@ class LambertFit:
 
 
 @dataclass(frozen=True)
-class _Sample:
+class PixelSample:
     """Pixels the lights are estimated from (:func:`calibrate_lights`'s ``sample``), ``n`` of them.
 
     Attributes:
@@ -159,9 +161,9 @@ class _Sample:
     points: Tensor
     index: Tensor
 
-    def at(self, rows: Tensor) -> _Sample:
+    def at(self, rows: Tensor) -> PixelSample:
         """The pixels ``rows`` of the sample (an index into its ``n``)."""
-        return _Sample(self.values[rows], self.ok[rows], self.points[rows], self.index[rows])
+        return PixelSample(self.values[rows], self.ok[rows], self.points[rows], self.index[rows])
 
 
 @dataclass(frozen=True)
@@ -205,7 +207,7 @@ class _Alternation:
     level: Tensor | None
     iterations: int
     stopped: bool
-    sample: _Sample
+    sample: PixelSample
 
 
 def _check(frames: Tensor, directions: Tensor, valid: Tensor | None) -> None:
@@ -227,13 +229,48 @@ def _check(frames: Tensor, directions: Tensor, valid: Tensor | None) -> None:
         )
 
 
-def _ratio_gains(
-    values, ok, points, directions, positions, gains, options, rounds: int
-) -> tuple[Tensor, Tensor, Tensor]:
+@dataclass(frozen=True)
+class _RatioGains:
+    """The outcome of :func:`_ratio_gains`.
+
+    Attributes:
+        gains: ``(K, C)`` the gains of the last round.
+        level: the median pixel relative RMS of the last round (0-dim; ``inf`` without a round).
+        first: the same of the first round: under the gains given.
+    """
+
+    gains: Tensor
+    level: Tensor
+    first: Tensor
+
+
+@dataclass(frozen=True)
+class DomeRadius:
+    """:func:`dome_radius`'s choice under one set of gains.
+
+    Attributes:
+        radius: the radius of :data:`RADII` (image widths) chosen, or ``None`` (distant lights, or
+            no radius tried).
+        misfit: the median pixel misfit of ``"distant"`` and of each of :data:`RADII` (keyed by
+            ``str(radius)``), or ``None`` (none tried).
+    """
+
+    radius: float | None
+    misfit: dict[str, float] | None
+
+    @classmethod
+    def least(cls, misfit: dict[str, float]) -> DomeRadius:
+        """The radius of least ``misfit``, or ``None`` unless that misfit is below
+        ``1 - DOME_MARGIN`` of the distant lights'."""
+        best = min(RADII, key=lambda r: misfit[str(r)])
+        return cls(best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None, misfit)
+
+
+def _ratio_gains(sample: PixelSample, directions, positions, gains, options, rounds: int) -> _RatioGains:
     """Gains from the median over explained pixels of each frame's ``value / prediction`` (robust to
     a frame's gain being far off, which a per-pixel cut would take for an outlier in every pixel),
-    repeated ``rounds`` times or until they change by less than 1e-4: ``(gains, median pixel rms of
-    the last round, of the first: under the gains given)``."""
+    repeated ``rounds`` times or until they change by less than 1e-4, on the ``sample``'s pixels."""
+    values, ok, points = sample.values, sample.ok, sample.points
     rms_level = first = values.new_tensor(math.inf)
     for round_ in range(rounds):
         found = _explained_pass(values, ok, points, directions, positions, gains, **options, shift=True)
@@ -247,29 +284,27 @@ def _ratio_gains(
         gains = _normalised(gains * ratio)
         if float((ratio - 1).abs().max()) < 1e-4:
             break
-    return gains, rms_level, first
+    return _RatioGains(gains=gains, level=rms_level, first=first)
 
 
-def _dome_misfit(values, ok, points, directions, radius, gains, options) -> tuple[float, float]:
-    """The median pixel misfit of lights at ``radius`` along ``directions`` (``None``: distant):
-    ``(gains refitted, under the gains given)``."""
+def _dome_misfit(sample: PixelSample, directions, radius, gains, options) -> _RatioGains:
+    """:func:`_ratio_gains` (3 rounds) of lights at ``radius`` along ``directions`` (``None``:
+    distant): its ``level`` the median pixel misfit with the gains refitted, its ``first`` under
+    the gains given."""
     positions = None if radius is None else radius * directions
-    _, refitted, given = _ratio_gains(values, ok, points, directions, positions, gains, options, 3)
-    return float(refitted), float(given)
+    return _ratio_gains(sample, directions, positions, gains, options, 3)
 
 
-def dome_radius(values, ok, points, directions, gains, options) -> tuple[tuple[float | None, dict], ...]:
+def dome_radius(sample: PixelSample, directions, gains, options) -> tuple[DomeRadius, DomeRadius]:
     """The dome radius of :data:`RADII` (all lights at it along their ``directions``) whose median
-    pixel misfit (:func:`_dome_misfit`) is the least, or ``None`` (distant lights) unless that
-    misfit is below ``1 - DOME_MARGIN`` of the distant lights': ``((radius, misfit of each
-    candidate) with the gains refitted, the same under the gains given)``, from one pass."""
-    both = [_dome_misfit(values, ok, points, directions, r, gains, options) for r in (None, *RADII)]
-    out = []
-    for way in (0, 1):
-        misfit = {"distant": both[0][way], **{str(r): m[way] for r, m in zip(RADII, both[1:], strict=True)}}
-        best = min(RADII, key=lambda r: misfit[str(r)])
-        out.append((best if misfit[str(best)] < (1 - DOME_MARGIN) * misfit["distant"] else None, misfit))
-    return tuple(out)
+    pixel misfit (:func:`_dome_misfit`) on the ``sample`` is the least, or ``None`` (distant lights)
+    unless that misfit is below ``1 - DOME_MARGIN`` of the distant lights' (:meth:`DomeRadius.least`):
+    ``(with the gains refitted, under the gains given)``, from one pass."""
+    tried = [_dome_misfit(sample, directions, r, gains, options) for r in (None, *RADII)]
+    refitted, given = ({"distant": float(getattr(tried[0], way))} for way in ("level", "first"))
+    for r, found in zip(RADII, tried[1:], strict=True):
+        refitted[str(r)], given[str(r)] = float(found.level), float(found.first)
+    return DomeRadius.least(refitted), DomeRadius.least(given)
 
 
 def calibrate_lights(
@@ -337,20 +372,21 @@ def calibrate_lights(
     points = image_points(height, width, dtype=work, device=device)[index]
     options = {"shadow": shadow, "cut": cut, "explain": explain}
     gains = torch.ones(k, c, dtype=work, device=device)
-    positions, chosen, misfit, written = None, None, None, (None, None)
+    positions, chosen, written = None, DomeRadius(None, None), DomeRadius(None, None)  # no dome radius tried
+    whole = PixelSample(values, ok, points, index)
     few = _sample(values.shape[0], RADIUS_SAMPLE, device)  # the start's pixels
-    start = (values[few], ok[few], points[few], dirs)
+    start = whole.at(few)
     if near:
         if radius is None:  # the start: the radius of RADII whose lights leave the least misfit
-            radius = min(RADII, key=lambda r: _dome_misfit(*start, r, gains, options)[0])
+            radius = min(RADII, key=lambda r: float(_dome_misfit(start, dirs, r, gains, options).level))
         positions = radius * dirs
     elif dome:
-        (chosen, misfit), written = dome_radius(*start, gains, options)
-        positions = None if chosen is None else chosen * dirs
-    gains = _ratio_gains(*start, positions, gains, options, 8)[0]
+        chosen, written = dome_radius(start, dirs, gains, options)
+        positions = None if chosen.radius is None else chosen.radius * dirs
+    gains = _ratio_gains(start, dirs, positions, gains, options, 8).gains
     steps = _Steps(positions=positions, gains=gains, options=options, near=near, iterations=iterations,
                    damping=damping, tolerance=tolerance, give_up=give_up)  # fmt: skip
-    found = _alternate_sample(_Sample(values, ok, points, index), few, dirs, steps)
+    found = _alternate_sample(whole, few, dirs, steps)
     gains, positions = found.gains, found.positions
     std = _deviations(found.covariance, gains, c + 3 if near else c)
     final = _final_pass(frames, valid, dirs, found, options)
@@ -365,10 +401,10 @@ def calibrate_lights(
         explained=final.explained,
         rms=final.rms.to(**out),
         iterations=found.iterations,
-        radius=chosen,
-        radius_misfit=misfit,
-        radius_as_written=written[0],
-        radius_misfit_as_written=written[1],
+        radius=chosen.radius,
+        radius_misfit=chosen.misfit,
+        radius_as_written=written.radius,
+        radius_misfit_as_written=written.misfit,
         judged=_judged(found.sample.index if found.stopped else None, height, width, device),
     )
 
@@ -390,7 +426,7 @@ def _judged(index: Tensor | None, height: int, width: int, device) -> Tensor:
     )
 
 
-def _alternate_sample(sample: _Sample, few: Tensor, dirs: Tensor, steps: _Steps) -> _Alternation:
+def _alternate_sample(sample: PixelSample, few: Tensor, dirs: Tensor, steps: _Steps) -> _Alternation:
     """:func:`_alternate` on the sample: with a give-up and a ``sample`` larger than the start's
     pixels ``few`` (:data:`RADIUS_SAMPLE`), its tests on those first; where they stop the
     calibration, the outcome on ``few`` (judged on them); else (or without a give-up) the alternation
@@ -402,7 +438,7 @@ def _alternate_sample(sample: _Sample, few: Tensor, dirs: Tensor, steps: _Steps)
     return _alternate(sample, dirs, steps)
 
 
-def _alternate(sample: _Sample, dirs: Tensor, steps: _Steps, trial: bool = False) -> _Alternation:
+def _alternate(sample: PixelSample, dirs: Tensor, steps: _Steps, trial: bool = False) -> _Alternation:
     """:func:`calibrate_lights`'s alternation of maps and lights on the ``sample``; ``trial``: only
     up to give_up's last test (what is returned is then of use only where it stopped)."""
     values, ok, points = sample.values, sample.ok, sample.points
@@ -421,14 +457,13 @@ def _alternate(sample: _Sample, dirs: Tensor, steps: _Steps, trial: bool = False
             break
         if trial and done >= max(bounds):
             break
-        gains, positions, covariance, change, damping = _update(
-            values[sel], found.weight[sel], b[sel], points[sel], dirs, positions, gains, steps.near, damping
-        )
+        step = _update(values[sel], found.weight[sel], b[sel], points[sel], dirs, positions, gains, steps.near, damping)
+        gains, positions, covariance, damping = step.gains, step.positions, step.covariance, step.damping
         run = done
-        if strict and change < steps.tolerance:
+        if strict and step.change < steps.tolerance:
             break
         # the first half with frame shifts (gains far off), the rest strict (highlights out)
-        strict = strict or change < 1e-3 or 2 * done >= steps.iterations
+        strict = strict or step.change < 1e-3 or 2 * done >= steps.iterations
     return _Alternation(
         gains=gains, positions=positions, covariance=covariance, level=level, iterations=run, stopped=stopped,
         sample=sample,

@@ -82,7 +82,22 @@ def _ridged(m: Tensor) -> Tensor:
     return m + ridge[..., None, None] * torch.eye(3, dtype=m.dtype, device=m.device)
 
 
-def _stereo(values, valid, unit, design, *, shadow: float, cut: float, shift: bool, rounds: int = 5):
+@dataclass(frozen=True)
+class StereoFit:
+    """Robust photometric stereo of ``n`` pixels (:func:`_stereo`).
+
+    Attributes:
+        b: ``(n, C, 3)`` each pixel's solution per channel (albedo times normal), solved on ``weight``.
+        weight: ``(n, K, C)`` bool, the inliers.
+        lit: ``(n, K, C)`` bool, the valid samples in front of ``b``'s normal.
+    """
+
+    b: Tensor
+    weight: Tensor
+    lit: Tensor
+
+
+def _stereo(values, valid, unit, design, *, shadow: float, cut: float, shift: bool, rounds: int = 5) -> StereoFit:
     """Robust photometric stereo of ``n`` pixels: ``values, valid (n, K, C)``.
 
     Reweighted least squares: each round, a sample is an inlier when it is lit and its residual
@@ -92,8 +107,8 @@ def _stereo(values, valid, unit, design, *, shadow: float, cut: float, shift: bo
     relative residual over the pixels is removed: a frame whose gain is off is then not an outlier in
     every pixel (but a highlight that covers most of a frame is then taken in).
 
-    Returns ``(b (n, C, 3), weight (n, K, C) bool, lit (n, K, C) bool)`` with ``b`` solved on
-    ``weight`` (the inliers) and ``lit`` the valid samples in front of ``b``'s normal.
+    Returns the :class:`StereoFit`: ``b`` solved on ``weight`` (the inliers), ``lit`` the valid
+    samples in front of ``b``'s normal.
     """
     typical = torch.where(valid, values, torch.nan).nanmedian(1, keepdim=True).values.nan_to_num(0.0)
     weight = valid & (values > DARK * typical)
@@ -114,7 +129,7 @@ def _stereo(values, valid, unit, design, *, shadow: float, cut: float, shift: bo
         bound = (cut * torch.maximum(scale.nan_to_num(0.0), FLOOR * level))[:, None, :]
         weight = lit & (residual <= 0.5 * bound) & (residual >= -bound)
     b, _ = _solve(design, values, weight.to(values.dtype))
-    return b, weight, lit
+    return StereoFit(b=b, weight=weight, lit=lit)
 
 
 def _pixel_quality(values, weight, lit, design, b):
@@ -176,9 +191,9 @@ def _explained_pass(
         unit, vector = _lighting(points[s : s + SOLVE_CHUNK], directions, positions)
         design = _Design.of(vector, gains)
         chunk = values[s : s + SOLVE_CHUNK]
-        b, weight, lit = _stereo(chunk, ok[s : s + SOLVE_CHUNK], unit, design, shadow=shadow, cut=cut, shift=shift)
-        rms, enough = _pixel_quality(chunk, weight, lit, design, b)
-        parts.append((b, weight, lit, rms, enough))
+        fit = _stereo(chunk, ok[s : s + SOLVE_CHUNK], unit, design, shadow=shadow, cut=cut, shift=shift)
+        rms, enough = _pixel_quality(chunk, fit.weight, fit.lit, design, fit.b)
+        parts.append((fit.b, fit.weight, fit.lit, rms, enough))
     b, weight, lit, rms, enough = (torch.cat(t) for t in zip(*parts, strict=True))
     if not bool(enough.any()):
         raise LightCalibrationError(
@@ -213,9 +228,26 @@ def _derivatives(values, b, points, directions, positions, gains, near: bool):
     return a, pred, torch.cat([dgain, dpos], dim=-1)
 
 
-def _normal_equations(values, weight, b, points, directions, positions, gains, near: bool):
-    """Variable-projection normal equations of the lights' parameters: ``(JtJ (KP, KP), Jtr (KP,),
-    chi2, samples)``, the maps eliminated per pixel (Kaufman's approximation)."""
+@dataclass(frozen=True)
+class _NormalEquations:
+    """Variable-projection normal equations of the lights' ``K P`` parameters (:func:`_normal_equations`).
+
+    Attributes:
+        jtj: ``(K P, K P)`` ``J^T W J``, the maps eliminated per pixel.
+        jtr: ``(K P,)`` ``J^T W r``.
+        chi2: the weighted sum of squared residuals (0-dim).
+        samples: the weighted count of samples (0-dim).
+    """
+
+    jtj: Tensor
+    jtr: Tensor
+    chi2: Tensor
+    samples: Tensor
+
+
+def _normal_equations(values, weight, b, points, directions, positions, gains, near: bool) -> _NormalEquations:
+    """Variable-projection normal equations of the lights' parameters (:class:`_NormalEquations`),
+    the maps eliminated per pixel (Kaufman's approximation)."""
     k, c = gains.shape
     p = c + 3 if near else c
     jtj = values.new_zeros(k * p, k * p)
@@ -235,7 +267,7 @@ def _normal_equations(values, weight, b, points, directions, positions, gains, n
         jtj -= dwa.reshape(-1, k * p).T @ g.reshape(-1, k * p)
         chi2 += (r * r).sum()
         samples += w.sum()
-    return jtj, jtr, chi2, samples
+    return _NormalEquations(jtj=jtj, jtr=jtr, chi2=chi2, samples=samples)
 
 
 def _gauge(gains: Tensor, positions: Tensor | None) -> Tensor:
@@ -280,14 +312,33 @@ def _objective(values, weight, points, directions, positions, gains) -> Tensor:
     return total
 
 
-def _update(values, weight, b, points, directions, positions, gains, near: bool, damping: float):
+@dataclass(frozen=True)
+class LightStep:
+    """The outcome of a Levenberg-Marquardt step of the lights (:func:`_update`).
+
+    Attributes:
+        gains: ``(K, C)`` the gains after the step (as before where no step lowered the sum of squares).
+        positions: ``(K, 3)`` the positions after it, or ``None`` (distant lights).
+        covariance: ``(K P, K P)`` of the gauge-fixed parameters (:func:`_step`).
+        change: the largest relative change of a parameter (0 where no step was taken).
+        damping: the damping for the next step.
+    """
+
+    gains: Tensor
+    positions: Tensor | None
+    covariance: Tensor
+    change: float
+    damping: float
+
+
+def _update(values, weight, b, points, directions, positions, gains, near: bool, damping: float) -> LightStep:
     """A Levenberg-Marquardt step of the lights on fixed inliers (a step is taken only when it lowers
-    the sum of squares; the damping grows tenfold until it does): ``(gains, positions, covariance,
-    change, damping)``. A frame with fewer than :data:`MIN_SAMPLES` inliers in a channel keeps its
-    gain (and its position)."""
+    the sum of squares; the damping grows tenfold until it does): :class:`LightStep`. A frame with
+    fewer than :data:`MIN_SAMPLES` inliers in a channel keeps its gain (and its position)."""
     k, c = gains.shape
-    jtj, jtr, chi2, n = _normal_equations(values, weight, b, points, directions, positions, gains, near)
-    sigma2 = chi2 / (n - 3 * c * values.shape[0] - jtj.shape[0]).clamp_min(1)
+    equations = _normal_equations(values, weight, b, points, directions, positions, gains, near)
+    jtj, jtr, chi2 = equations.jtj, equations.jtr, equations.chi2
+    sigma2 = chi2 / (equations.samples - 3 * c * values.shape[0] - jtj.shape[0]).clamp_min(1)
     frozen = weight.sum(0) < MIN_SAMPLES
     if near:
         frozen = torch.cat([frozen, frozen.any(1, keepdim=True).expand(k, 3)], 1)
@@ -302,9 +353,9 @@ def _update(values, weight, b, points, directions, positions, gains, near: bool,
             trial_positions = torch.where(moved[:, 2:] > 0.05 * positions[:, 2:], moved, positions)
         if _objective(values, weight, points, directions, trial_positions, trial_gains) <= chi2 * (1 + 1e-12):
             change = float((delta.abs() / old.abs().amax(0, keepdim=True)).amax())
-            return trial_gains, trial_positions, covariance, change, max(damping / 10, 1e-12)
+            return LightStep(trial_gains, trial_positions, covariance, change, max(damping / 10, 1e-12))
         damping *= 10
-    return gains, positions, covariance, 0.0, damping
+    return LightStep(gains, positions, covariance, 0.0, damping)
 
 
 def _normalised(gains: Tensor) -> Tensor:

@@ -60,7 +60,7 @@ def left_out_misfit(
     for f in range(min(folds, k)):
         held = fold == f
         design = _Design.of(vector, torch.where(held[:, None], 1.0, gains.to(torch.float64)))
-        b, _, _ = _stereo(values, ok & ~held[None, :, None], unit, design, shadow=shadow, cut=cut, shift=False)
+        b = _stereo(values, ok & ~held[None, :, None], unit, design, shadow=shadow, cut=cut, shift=False).b
         normal = b / b.norm(dim=-1, keepdim=True).clamp_min(1e-300)
         lit = ok & (unit @ normal.transpose(1, 2) > shadow) & held[None, :, None]
         pred = design.predict(b)

@@ -28,7 +28,7 @@ from .settings import MODEL_CODES, FitConfig
 from .smoothing import plain_alternative
 from .start import LightContext, starting_point
 
-__all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TileResult", "fit_pixels", "fit_tile"]
+__all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TilePixels", "TileResult", "fit_pixels", "fit_tile"]
 
 MASK_KINDS = tuple(f.name for f in fields(Masks))
 """The masks of :class:`torchspec.photometric.Masks` that :func:`fit_tile` takes and counts."""
@@ -40,32 +40,45 @@ refits were most of the term's time; on ``experiments/rti_relight.py``'s capture
 on item3 (2.5 s against 4.2 s)."""
 
 
-def fit_pixels(
-    y: Tensor,
-    valid: Tensor,
-    lights: Lights,
-    view: Tensor,
-    channels: tuple[str, ...],
-    config: FitConfig,
-    ctx: LightContext,
-    kept: Tensor | None = None,
-    gains: Tensor | None = None,
-    domain: TermDomain | None = None,
-) -> TileResult:
-    """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
-    ``gains (K, C)``: the lights' calibrated gains (in ``lights``), which the residual term leaves
-    out (:func:`residual_term`), fitted in ``domain`` (the photographs' encoding). The residual
-    term (``FitConfig.term.order``) is fitted on the samples ``kept (n, K)`` (default
-    ``valid``): the fit's masks leave out shadowed samples, which the term is to carry.
+@dataclass(frozen=True)
+class TilePixels:
+    """The ``n`` pixels of a tile as the stages take them (:func:`fit_pixels`).
+
+    Attributes:
+        y: ``(n, K, C)`` the recorded values.
+        valid: ``(n, K)`` bool, the samples the fit uses.
+        kept: ``(n, K)`` bool, the samples the residual term (``FitConfig.term.order``) is
+            fitted on: the fit's masks leave out shadowed samples, which the term is to carry.
+    """
+
+    y: Tensor
+    valid: Tensor
+    kept: Tensor
+
+    @classmethod
+    def of(cls, tile: TileInputs) -> TilePixels:
+        """``tile``'s pixels, its samples of every kind of :data:`MASK_KINDS` left out of ``valid``,
+        the non-finite ones of ``kept``."""
+        masks = tile.masks
+        return cls(y=tile.values.permute(2, 0, 1), valid=~masks.invalid.T, kept=~masks.nonfinite.T)
+
+
+def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: FitInputs) -> TileResult:
+    """All stages for ``n`` ``pixels`` under ``lights`` (``ctx``: their
+    :class:`~torchspec.pipeline.start.LightContext`), with what every tile of the fit shares:
+    ``shared.gains (K, C)``, the lights' calibrated gains (in ``lights``), which the residual term
+    leaves out (:func:`residual_term`), fitted in ``shared.domain`` (the photographs' encoding)
+    on the samples ``pixels.kept``. ``shared.folder`` is :func:`fit_tile`'s (not used here).
 
     The stages: :func:`~torchspec.pipeline.start.starting_point`, then
     :func:`~torchspec.pipeline.selection.select_models`, then
     :func:`~torchspec.pipeline.checks.check_choice`, and with ``FitConfig.ladder.smooth`` the fits without a
     lobe (:func:`~torchspec.pipeline.smoothing.plain_alternative`)."""
+    y, valid, view, config = pixels.y, pixels.valid, shared.view, shared.config
     begun = starting_point(y, valid, lights, view, config=config, context=ctx)
     times = dict(begun.times)
     lobe = begun.lobe if config.model != "diffuse" else torch.zeros_like(begun.lobe)
-    data = TileSamples.of(y, valid, begun.level, lights, view, channels)
+    data = TileSamples.of(y, valid, begun.level, lights, view, shared.channels)
     t0 = time.perf_counter()
     choice, sensor, found_quality = select_models(begun, lobe, data, config)
     times["lm"] = time.perf_counter() - t0
@@ -79,7 +92,7 @@ def fit_pixels(
     term = None
     if config.term.order:
         t0 = time.perf_counter()
-        term = residual_term(choice, sensor, y, valid if kept is None else kept, data, config, gains, domain)
+        term = residual_term(choice, sensor, pixels, data, shared)
         times["residual_term"] = time.perf_counter() - t0
     rms = data.relative_rms(choice.cost)
     quality = quality_of(begun.diffuse.quality * found_quality, choice.status, flags)
@@ -118,19 +131,10 @@ def fit_pixels(
     )
 
 
-def residual_term(
-    choice,
-    sensor: Tensor,
-    y: Tensor,
-    kept: Tensor,
-    data: TileSamples,
-    config: FitConfig,
-    gains: Tensor | None,
-    domain: TermDomain | None = None,
-) -> ResidualTerm:
+def residual_term(choice, sensor: Tensor, pixels: TilePixels, data: TileSamples, shared: FitInputs) -> ResidualTerm:
     """The residual term (:func:`torchspec.residual_term.fit_term`) of a tile's chosen models
-    (``choice``, :func:`~torchspec.pipeline.selection.select_models`) on the samples ``kept (n, K)``
-    of ``y (n, K, C)``, judged on the folds of ``auto``'s choice.
+    (``choice``, :func:`~torchspec.pipeline.selection.select_models`) on the samples ``pixels.kept``
+    of ``pixels.y``, judged on the folds of ``auto``'s choice.
 
     The term is fitted on two bases: the chosen model, judged by its prediction of each fold from
     a refit without it (:func:`~torchspec.pipeline.prediction.held_out_refit`), and nothing (the term
@@ -138,12 +142,13 @@ def residual_term(
     left-out frames best (:func:`torchspec.residual_term.blend`: the model's weight
     ``ResidualTerm.weight``; the maps are unchanged).
 
-    With calibrated ``gains (K, C)`` the term is fitted under the lights as written (the gains
+    With calibrated ``shared.gains (K, C)`` the term is fitted under the lights as written (the gains
     divided out of the model's prediction): it then carries how the photographs' brightness
     varies with the light's direction, which a render under lights as written (new or left-out
-    ones, whose gain no photograph gave) needs. ``domain``: the encoding it is fitted and judged in
-    (:class:`torchspec.residual_term.TermDomain`; default sRGB)."""
-    kept = kept & y.isfinite().all(-1)
+    ones, whose gain no photograph gave) needs. ``shared.domain``: the encoding it is fitted and
+    judged in (:class:`torchspec.residual_term.TermDomain`; default sRGB)."""
+    y, config, gains, domain = pixels.y, shared.config, shared.gains, shared.domain
+    kept = pixels.kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
     folds = light_folds(data.lights.directions, config.ladder.folds, config.ladder.fold_regions)
     model = render(choice.svbrdf, data.lights, data.view, quadrature=config.rule)
@@ -236,15 +241,10 @@ def fit_tile(tile: TileInputs, shared: FitInputs) -> TileResult:
     saved in the checkpoint ``shared.folder`` when given; on ``config.compute.threads`` torch threads
     (:func:`torchspec.threads.fit_threads`). Returns :func:`fit_pixels`'s result with the count of
     masked samples of each kind (``TileResult.masked``)."""
-    y = tile.values.permute(2, 0, 1)  # (n, K, C)
-    masks, config = tile.masks, shared.config
-    valid, kept = ~masks.invalid.T, ~masks.nonfinite.T
+    config = shared.config
     with fit_threads(config.compute.threads):  # auto: the cores free now (other processes share them)
-        out = fit_pixels(
-            y, valid, tile.lights, shared.view, shared.channels, config, tile.ctx,
-            kept=kept, gains=shared.gains, domain=shared.domain,
-        )  # fmt: skip
-    out = replace(out, masked=masks.counts())
+        out = fit_pixels(TilePixels.of(tile), tile.lights, tile.ctx, shared)
+    out = replace(out, masked=tile.masks.counts())
     if shared.folder is not None:
         save_tile(shared.folder, tile.first, out)
     return out
