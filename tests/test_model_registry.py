@@ -1,9 +1,12 @@
 """The model registry (torchspec.models.register): a model declared in one module outside the
 package (tests/toy_phong.py: a Phong lobe and its parameters) and registered is fitted, taken by
 the config and the command line, and its Jacobian, by forward-mode AD through the renderer, is the
-derivative; the built-in models' declarations give the codes, the ladder and the docs' tables."""
+derivative; the whole fit (its deviations and peak checks from the forward-mode sandwich terms,
+equal to Ward's fused ones, auto's ladder, model.exr) takes it; the built-in models' declarations
+give the codes, the ladder and the docs' tables."""
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -142,3 +145,117 @@ def test_the_docs_list_the_registered_models():
     assert re.findall(r"`([a-z-]+)`", line.split("model_codes")[1]) == list(BUILT_IN)
     table = (ROOT / "torchspec" / "models.py").read_text().split('"""')[1]
     assert re.findall(r"^``([a-z-]+)`` {2,}", table, flags=re.M) == list(BUILT_IN)
+
+
+def _ward_case(name: str, kernel: Kernel, count: int = 5):
+    """A Ward model's maps on ``count`` pixels, lights, samples and weights of a fit's assessment."""
+    model = get_model(name)
+    g = torch.Generator().manual_seed(MODEL_CODES.index(name))
+    truth = _truth(count)
+    if model.lobe is None:
+        truth = replace(truth, specular=0 * truth.specular, roughness=0 * truth.roughness)
+    if not model.grey:
+        truth = replace(truth, specular=truth.specular * torch.tensor([1.0, 0.8, 0.6], dtype=F64))
+    if model.anisotropic:
+        roughness = truth.roughness * torch.tensor([1.0, 1.5], dtype=F64)
+        truth = replace(truth, roughness=roughness, rotation=torch.rand(count, generator=g, dtype=F64))
+    if model.fills("specular2"):
+        truth = replace(truth, specular2=0.5 * truth.specular, roughness2=2.0 * truth.roughness)
+    lights = grid_lights(kernel, n=4, extent=0.6)
+    observed = 1.05 * render(truth, lights, VIEW, quadrature=QUADRATURES["fit"]) + 0.01
+    noise = 1.0 / (0.01 + 0.1 * observed)
+    fit = torch.rand(observed.shape, generator=g, dtype=F64)
+    return model, truth, lights, observed, noise, fit
+
+
+@pytest.mark.parametrize(
+    ("name", "kernel", "rtol"),
+    [(name, Kernel("point"), 1e-12) for name in BUILT_IN] + [("ward-iso", Kernel("gaussian", sigma=0.08), 1e-2)],
+)
+def test_the_forward_mode_sandwich_terms_are_the_fused_ones_for_ward(name, kernel, rtol, monkeypatch):
+    """forward_sandwich_terms (forward-mode Jacobian, what a lobe without closed forms is assessed
+    with) forced on a Ward model gives sandwich_terms' outputs: within float64 rounding under point
+    lights (chunked over pixels), within the closed forms' quadrature error (their nodes held fixed,
+    torchspec.jacobian) under an extended kernel."""
+    import torchspec.forward_terms as forward_terms
+    from torchspec.forward_terms import forward_sandwich_terms
+    from torchspec.least_squares import sandwich_terms
+
+    monkeypatch.setattr(forward_terms, "pixels_per_chunk", lambda frames, quadrature: 2 * get_model(name).size(3))
+    model, truth, lights, observed, noise, fit = _ward_case(name, kernel)
+    options = dict(quadrature=QUADRATURES["fit"], samples=True)
+    select = model.selection(3, observed)
+    plain = model.lobe is None
+    fused = sandwich_terms(truth, lights, VIEW, observed, noise, fit, select, diffuse_only=plain, **options)
+    forward = forward_sandwich_terms(model, truth, lights, VIEW, observed, noise, fit, **options)
+    assert len(forward) == len(fused) == 6
+    for got, want in zip(forward, fused, strict=True):  # 0.5 chi^2, A, B, z2, excess, lobe_snr
+        torch.testing.assert_close(got, want, rtol=rtol, atol=rtol * float(want.abs().max()) + 1e-12)
+
+
+@pytest.fixture(scope="module")
+def phong_capture(tmp_path_factory):
+    """A simulated 10 x 10 painting (isotropic roughness) rendered with the toy Phong lobe under a
+    6 x 6 grid of point lights, recorded by the simulator's sensor (noise, clipping); its truth."""
+    from torchspec.lights import Lights
+    from torchspec.rendering import render_image
+    from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, layout, simulate
+    from torchspec.simulate import write_simulation as write
+    from torchspec.synth import PaintingConfig, sense
+
+    config = SimulationConfig(
+        scene=SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=10, seed=3)),
+        light=LightConfig(kernel="point"),
+        layout=LayoutConfig(kind="grid", nx=6, ny=6, extent=0.7, radius=1.0),
+    )
+    simulation = simulate(config)
+    truth = simulation.truth.to(F64)
+    truth = replace(truth, roughness=truth.roughness.mean(-1, keepdim=True).expand_as(truth.roughness).clone())
+    centres = layout(config.layout)
+    one = torch.ones(centres.shape[0], dtype=F64)
+    lights = Lights(centres, Kernel("point"), one[:, None], one)
+    values = render_image(truth, lights, VIEW, lobe=PHONG.lobe)  # (H, W, K, C)
+    recorded, saturated = sense(values.permute(2, 3, 0, 1), config.sensor)
+    simulation = replace(simulation, frames=recorded.float(), saturated=saturated, truth=truth.to(torch.float32))
+    path = tmp_path_factory.mktemp("phong") / "capture"
+    write(path, simulation)
+    return path, truth
+
+
+def test_a_registered_model_goes_through_the_whole_fit(phong, phong_capture, tmp_path):
+    """torchspec.fit with model phong: its maps recovered where a lobe was fitted, its deviations
+    (forward-mode sandwich terms) finite, and model.exr holding phong's code there."""
+    from torchspec.io import read_svbrdf
+    from torchspec.pipeline import fit, write_fit
+
+    path, truth = phong_capture
+    result = fit(path, config=FitConfig(model="phong"))
+    lobe = result.lobe
+    assert result.stats["models"]["phong"] == int(lobe.sum()) > 20
+    ks, alpha = result.svbrdf.specular.mean(-1), result.svbrdf.roughness[..., 0]
+    assert float((ks - truth.specular.mean(-1))[lobe].abs().median()) < 1e-3
+    assert float((alpha - truth.roughness[..., 0])[lobe].abs().median()) < 1e-4
+    assert float(torch.rad2deg((result.svbrdf.normal - truth.normal).norm(dim=-1)).median()) < 0.01
+    for key in ("specular", "roughness"):
+        finite = result.std[key][lobe].isfinite().all(-1)
+        assert finite.float().mean() > 0.9, key
+        assert bool((result.std[key][lobe][finite] > 0).all()), key
+    assert result.std["normal"].isfinite().float().mean() > 0.9
+    write_fit(tmp_path / "maps", result)
+    maps = read_svbrdf(tmp_path / "maps")
+    code = maps.extra["model"].reshape(lobe.shape).round().long()
+    assert bool((code[lobe] == MODEL_CODES.index("phong")).all()) and bool((code[~lobe] == 0).all())
+
+
+def test_auto_chooses_a_registered_model_where_it_rendered_the_pixels(phong, phong_capture):
+    """auto with the ladder (ward-iso, phong) on pixels the Phong lobe rendered: the fit runs with
+    both models assessed, and phong is chosen on most lobed pixels."""
+    from torchspec.pipeline import fit
+
+    path, _ = phong_capture
+    result = fit(path, config=FitConfig(model="auto", ladder=LadderConfig(models=("ward-iso", "phong"))))
+    models = result.stats["models"]
+    assert set(models) >= {"diffuse", "ward-iso", "phong"}
+    assert models["phong"] > models["ward-iso"] and models["phong"] > 20
+    chosen = result.model == MODEL_CODES.index("phong")
+    assert bool(result.std["roughness"][chosen].isfinite().any())

@@ -19,7 +19,7 @@ from .jacobian import assemble, jacobian_parts, pixels_per_chunk
 from .lights import Lights
 from .quadrature import Quadrature, check_quadrature
 
-__all__ = ["normal_equations", "sandwich_terms"]
+__all__ = ["normal_equations", "sandwich_terms", "jacobian_sandwich_terms"]
 
 
 def _normal(parts: tuple, observed: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -279,14 +279,48 @@ def _sandwich_samples_gram(parts: tuple, observed: Tensor, noise: Tensor, fit: T
 def _sample_terms(parts: tuple, r: Tensor, observed: Tensor, noise: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_sandwich_samples`' per-sample terms from the noise-weighted residual ``r``."""
     diffuse, _, spec, _, _, _, scale, k_d, k_s, *second = parts
-    valid = (noise > 0).to(observed.dtype)
     lambertian = k_d[:, None, :] / math.pi * diffuse[..., None] * scale
-    excess = ((observed - lambertian) * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
     lobe = k_s[:, None, :] * spec[..., None]
     if second:  # both lobes
         lobe = lobe + second[3][:, None, :] * second[0][..., None]
-    lobe = lobe * scale * noise  # the lobes' part, in units of the noise
+    return _per_sample(r, observed, noise, lambertian, lobe * scale)
+
+
+def _per_sample(r: Tensor, observed: Tensor, noise: Tensor, lambertian: Tensor, lobe: Tensor) -> tuple:
+    """``z2 (N, K)``, ``excess (N, K)`` and ``lobe_snr (N,)`` (:func:`sandwich_terms`' ``samples``)
+    from the noise-weighted residual ``r``, the diffuse part of the values ``lambertian`` and the
+    lobes' part ``lobe`` (all ``(N, K, C)``)."""
+    valid = (noise > 0).to(observed.dtype)
+    excess = ((observed - lambertian) * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
+    lobe = lobe * noise  # the lobes' part, in units of the noise
     return (r * r).sum(-1), excess, (lobe * lobe).sum((1, 2)).sqrt()
+
+
+def jacobian_sandwich_terms(
+    value: Tensor,
+    jac: Tensor,
+    diffuse: Tensor,
+    observed: Tensor,
+    noise_weight: Tensor,
+    fit_weight: Tensor,
+    *,
+    samples: bool = False,
+) -> tuple[Tensor, ...]:
+    """:func:`sandwich_terms` from the values ``value (N, K, C)`` and their Jacobian ``jac
+    (N, K, C, P)`` already in the model's parameters (any lobe's:
+    :meth:`torchspec.models.Model.forward_jacobian`), and the values' diffuse part ``diffuse
+    (N, K, C)`` (the lobes' part is ``value - diffuse``); the same outputs, from the same sums.
+
+    Example:
+        >>> one = torch.ones(1, 2, 1, dtype=torch.float64)
+        >>> cost, a, b = jacobian_sandwich_terms(one, one[..., None], 0 * one, 0 * one, one, one)
+        >>> float(cost), float(a), float(b)
+        (1.0, 2.0, 2.0)
+    """
+    cost, bread, meat, r = _sandwich_sums(value, jac, observed, noise_weight, fit_weight)
+    if not samples:
+        return cost, bread, meat
+    return cost, bread, meat, *_per_sample(r, observed, noise_weight, diffuse, value - diffuse)
 
 
 def sandwich_terms(

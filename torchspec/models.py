@@ -26,8 +26,9 @@ parameters once (:class:`torchspec.params.Param`) and its lobe as an object
 (:class:`torchspec.lobes.Lobe`); its packing, bounds, Jacobian columns and deviations, its code in
 :data:`MODEL_CODES`, the ladder's checks, ``fit --model``'s choices and the maps a fit writes
 follow. A model whose lobe has no closed forms is rendered on the nodes and its Jacobian taken by
-forward-mode AD (:meth:`Model.residuals`); the pipeline's deviations and second-lobe gate know
-Ward's lobe only (:func:`torchspec.least_squares.sandwich_terms`).
+forward-mode AD (:meth:`Model.forward_jacobian`), in the fit (:meth:`Model.residuals`) and in its
+deviations and peak checks (:func:`torchspec.forward_terms.forward_sandwich_terms`); ``auto``'s
+gate of a second lobe (:func:`torchspec.pipeline.prediction.second_lobe_held_out`) is Ward's.
 
 Example:
     >>> from torchspec.lobes import BECKMANN
@@ -65,6 +66,7 @@ __all__ = [
     "MODEL_CODES",
     "BUILT_IN",
     "get_model",
+    "render_chosen",
     "register",
     "unregister",
     "registered",
@@ -294,24 +296,40 @@ class Model:
 
         return fn
 
+    def forward_jacobian(
+        self,
+        params: Tensor,
+        lights: Lights,
+        view: Tensor,
+        channels: tuple[str, ...],
+        quadrature: Quadrature = Quadrature(),
+    ) -> tuple[Tensor, Tensor]:
+        """The rendered values ``(N, K, C)`` of the parameters ``params (N, P)`` and their Jacobian
+        ``(N, K, C, P)`` in this model's own parameters, by forward-mode AD through :meth:`unpack`
+        and the renderer (with :attr:`lobe`), one JVP a parameter: what a lobe without closed forms
+        is fitted (:meth:`residuals`) and assessed (:func:`torchspec.forward_terms.forward_sandwich_terms`)
+        with; any lobe's, Ward's too."""
+
+        def forward(p: Tensor) -> Tensor:
+            return render(self.unpack(p, channels), lights, view, quadrature=quadrature, lobe=self.lobe or WARD)
+
+        eye = torch.eye(params.shape[-1], dtype=params.dtype, device=params.device)
+        value, columns = None, []
+        for j in range(params.shape[-1]):
+            value, column = torch.func.jvp(forward, (params,), (eye[j].expand_as(params),))
+            columns.append(column)
+        return value, torch.stack(columns, -1)
+
     def _forward_residuals(self, observed, w, lights, view, channels, quadrature):
         """:meth:`residuals` of a lobe without closed forms: the Jacobian in this model's own
-        parameters by forward-mode AD through :meth:`unpack` and the renderer, one JVP a
-        parameter (no ``normal`` equations: the solver takes the Jacobian)."""
+        parameters by :meth:`forward_jacobian` (no ``normal`` equations: the solver takes the
+        Jacobian)."""
 
         def fn(params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
-            def forward(p: Tensor) -> Tensor:
-                return render(self.unpack(p, channels), lights, view, quadrature=quadrature, lobe=self.lobe)
-
-            eye = torch.eye(params.shape[-1], dtype=params.dtype, device=params.device)
-            columns = []
-            for j in range(params.shape[-1]):
-                value, column = torch.func.jvp(forward, (params,), (eye[j].expand_as(params),))
-                columns.append(column)
+            value, jac = self.forward_jacobian(params, lights, view, channels, quadrature)
             wi = w[index]
             r = ((value - observed[index]) * wi).flatten(1)
-            jac = torch.stack(columns, -1) * wi[..., None]
-            return r, jac.flatten(1, 2)
+            return r, (jac * wi[..., None]).flatten(1, 2)
 
         return fn
 
@@ -450,6 +468,29 @@ class _Codes(Sequence):
 MODEL_CODES: Sequence[str] = _Codes()
 """``model.exr``'s codes: the index of each pixel's model in this sequence (:data:`MODELS`' names,
 the registered models' included)."""
+
+
+def render_chosen(
+    svbrdf: SVBRDF, code: Tensor | None, lights: Lights, view: Tensor, *, quadrature: Quadrature = Quadrature()
+) -> Tensor:
+    """:func:`torchspec.rendering.render` of flat maps ``svbrdf (n,)`` whose pixels each have their
+    model, ``code (n,)`` (:data:`MODEL_CODES`' index; ``None``: Ward's lobe for all), each with
+    its model's lobe: ``(n, K, C)``. One render when every pixel's lobe is Ward's (or none)."""
+    lobes = [MODELS[name].lobe or WARD for name in MODEL_CODES]
+    others = sorted({i for i, lobe in enumerate(lobes) if lobe is not WARD})
+    if code is None or not others:
+        return render(svbrdf, lights, view, quadrature=quadrature)
+    code = code.long()
+    groups = [[i for i, lobe in enumerate(lobes) if lobe is WARD]]
+    groups += [[i for i in others if lobes[i] is lobe] for lobe in dict.fromkeys(lobes[i] for i in others)]
+    count = lights.directions.shape[0]
+    out = svbrdf.diffuse.new_zeros((svbrdf.diffuse.shape[0], count, svbrdf.diffuse.shape[-1]))
+    for group in groups:
+        index = torch.isin(code, torch.tensor(group, device=code.device)).nonzero()[:, 0]
+        if index.numel():
+            lobe = lobes[group[0]]
+            out[index] = render(svbrdf[index], lights, view, quadrature=quadrature, lobe=lobe).to(out)
+    return out
 
 
 def get_model(name: str) -> Model:

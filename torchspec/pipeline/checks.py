@@ -13,8 +13,7 @@ from torch import Tensor
 from ..brdf import SVBRDF
 from ..flags import WEAK_LOBE_SNR, bit, peak_checks, untrusted
 from ..lm import CONVERGED, DIVERGED
-from ..models import get_model
-from ..rendering import render
+from ..models import get_model, render_chosen
 from .samples import TileSamples
 from .selection import Choice
 from .settings import MODEL_CODES, FitConfig
@@ -91,7 +90,7 @@ def check_choice(choice: Choice, data: TileSamples, few: Tensor, config: FitConf
     return flags, Checks(peak_misfit, astray)
 
 
-def overshoot(svbrdf: SVBRDF, y: Tensor, data: TileSamples, config: FitConfig) -> Tensor:
+def overshoot(svbrdf: SVBRDF, y: Tensor, data: TileSamples, config: FitConfig, code: Tensor | None = None) -> Tensor:
     """``(n,)``: the brightest value the fitted maps ``svbrdf`` render at the tile's frames (the
     physical model, at every frame the fit read: its clipped and masked samples too) over the
     brightest value the pixel recorded, ``y (n, K, C)`` (any finite sample: a clipped one shows its
@@ -100,9 +99,12 @@ def overshoot(svbrdf: SVBRDF, y: Tensor, data: TileSamples, config: FitConfig) -
 
     Near 1 where the model explains the photographs. Far above (``FitConfig.flags.overshoot``: the
     ``implausible`` flag) where a lobe grew without bound on samples the fit did not use: a clipped
-    highlight (censored, so any height above the clipping level fits it), a masked frame."""
+    highlight (censored, so any height above the clipping level fits it), a masked frame.
+
+    ``code (n,)``: each pixel's model (:class:`~torchspec.pipeline.selection.Choice`), rendered with
+    its lobe (:func:`torchspec.models.render_chosen`); ``None``: Ward's lobe for all."""
     rule = replace(config.rule, compile=False)  # one forward render: not worth compiling
-    predicted = render(svbrdf, data.lights, data.view, quadrature=rule).amax((1, 2))
+    predicted = render_chosen(svbrdf, code, data.lights, data.view, quadrature=rule).amax((1, 2))
     recorded = torch.where(y.isfinite(), y, torch.zeros_like(y)).amax((1, 2))
     floor = 0.01 * data.scale.amax() / math.pi
     return predicted / torch.maximum(recorded, floor)

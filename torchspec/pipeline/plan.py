@@ -168,7 +168,7 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
     picked = frames if isinstance(frames, list) else select_frames(frames, len(capture.frames))
     config, capture = _reduced(config, capture, picked)
     l = capture.directions()[torch.tensor(picked, dtype=torch.long)][:, :2]  # on the CPU: the manifest, checked once
-    problem = fit_problem(l, lobe=config.model != "diffuse")
+    problem = fit_problem(l, lobe=config.lobes)
     if problem is not None:
         raise TorchspecError(f"{capture.root}: the frames cannot be fitted: {problem}")
     for message in frame_warnings(capture, picked):

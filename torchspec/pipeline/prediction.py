@@ -26,6 +26,7 @@ from torch import Tensor
 
 from ..brdf import SVBRDF
 from ..lm import bounded
+from ..lobes import WARD
 from ..models import Model, get_model
 from ..rendering import render
 from ..statistics import predicts_better  # re-exported: the rule lives with the statistics
@@ -175,7 +176,8 @@ def held_out_refit(
     start = svbrdf[torch.arange(m, device=index.device).repeat(copies)]
     settings = replace(config, lm=replace(config.lm, max_iterations=config.ladder.refit))
     solved = solve_pixels(model.name, rows, start, folded, settings)
-    predicted = render(solved.svbrdf, data.lights, data.view, quadrature=replace(config.rule, compile=False))
+    rule = replace(config.rule, compile=False)
+    predicted = render(solved.svbrdf, data.lights, data.view, quadrature=rule, lobe=model.lobe or WARD)
     residual = ((predicted - folded.observed) * inverse_noise.repeat(copies, 1, 1)).reshape(schemes, count, m, k, c)
     # Each frame takes its own fold's refit.
     pick = folds[:, None, None, :, None].expand(schemes, 1, m, k, c)

@@ -347,7 +347,13 @@ class FitConfig:
         """The lobed models fitted, in order: the ladder (``auto``), the forced model, or none."""
         if self.model == AUTO:
             return self.ladder.models
-        return () if self.model == "diffuse" else (self.model,)
+        return (self.model,) if self.lobes else ()
+
+    @property
+    def lobes(self) -> bool:
+        """Whether the fit may give a pixel a lobe: ``auto``, or a forced model with one (its
+        :attr:`torchspec.models.Model.lobe`)."""
+        return self.model == AUTO or get_model(self.model).lobe is not None
 
     @property
     def noise_known(self) -> bool:

@@ -104,7 +104,7 @@ def starting_point(
     lobe = residual.amax(-1) > config.start.detect * noise
     prior = dict(prior_normal=ps.normal, kernel_variance=ctx.kernel_variance)
     # A fit without lobes uses no specular start: the cheapest, which needs no layout for a peak.
-    init = "naive" if config.model == "diffuse" else config.start.init
+    init = config.start.init if config.lobes else "naive"
     if init == "fri":
         found = locate_peak(
             residual,

@@ -13,9 +13,8 @@ import torch
 from torch import Tensor
 
 from ..lights import Lights
-from ..models import get_model
+from ..models import get_model, render_chosen
 from ..photometric import Masks
-from ..rendering import render
 from ..residual_term import ResidualTerm, TermDomain, blend, fit_term
 from ..threads import fit_threads
 from .checkpoint import save_tile
@@ -77,7 +76,7 @@ def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: Fi
     y, valid, view, config = pixels.y, pixels.valid, shared.view, shared.config
     begun = starting_point(y, valid, lights, view, config=config, context=ctx)
     times = dict(begun.times)
-    lobe = begun.lobe if config.model != "diffuse" else torch.zeros_like(begun.lobe)
+    lobe = begun.lobe if config.lobes else torch.zeros_like(begun.lobe)
     data = TileSamples.of(y, valid, begun.level, lights, view, shared.channels)
     t0 = time.perf_counter()
     choice, sensor, found_quality = select_models(begun, lobe, data, config)
@@ -86,7 +85,8 @@ def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: Fi
     t0 = time.perf_counter()
     few = valid.sum(-1) < 3
     flags, checks = check_choice(choice, data, few, config)
-    flags = with_flags(flags, ("implausible", overshoot(choice.svbrdf, y, data, config) > config.flags.overshoot))
+    implausible = overshoot(choice.svbrdf, y, data, config, choice.code) > config.flags.overshoot
+    flags = with_flags(flags, ("implausible", implausible))
     times["checks"] = time.perf_counter() - t0
 
     term = None
@@ -151,7 +151,7 @@ def residual_term(choice, sensor: Tensor, pixels: TilePixels, data: TileSamples,
     kept = pixels.kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
     folds = light_folds(data.lights.directions, config.ladder.folds, config.ladder.fold_regions)
-    model = render(choice.svbrdf, data.lights, data.view, quadrature=config.rule)
+    model = render_chosen(choice.svbrdf, choice.code, data.lights, data.view, quadrature=config.rule)
     predicted = held_out_values(choice, model, sensor, folds, data, config)
     lights = data.lights
     if gains is not None:  # the model under the lights as written

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from ..brdf import SVBRDF
-from ..errors import TorchspecError
+from ..forward_terms import forward_sandwich_terms
 from ..geometry import normal_derivative
 from ..least_squares import sandwich_terms
 from ..lights import Lights
@@ -76,7 +76,7 @@ def sensor_noise(
         keep = solved.result.status != DIVERGED
         index = solved.index[keep]
         parts.append((solved.name, index, solved.result.cost[keep], ~peaked[index]))
-    plain = [(name, at[m], cost[m]) for name, at, cost, m in parts if name == "diffuse"]
+    plain = [(name, at[m], cost[m]) for name, at, cost, m in parts if get_model(name).lobe is None]
     if sum(at.numel() for _, at, _ in plain) < NOISE_PIXELS:
         plain = [(name, at, cost) for name, at, cost, _ in parts]
     squares, values, counts, params = [], [], [], []
@@ -105,7 +105,8 @@ def uncertainty(
 
     The estimate minimised ``|fit_weight (render - observed)|^2``, not the noise-weighted residual
     (it is fitted before the noise is known): its covariance is the sandwich ``A^-1 B A^-1``
-    (:func:`torchspec.least_squares.sandwich_terms`), larger than the inverse Fisher information
+    (:func:`torchspec.least_squares.sandwich_terms`; for a lobe without closed forms
+    :func:`torchspec.forward_terms.forward_sandwich_terms`), larger than the inverse Fisher information
     ``J^T S^-1 J`` (the Cramer-Rao bound) wherever the samples' noise differs within a pixel (shot
     noise at a specular peak).
 
@@ -113,11 +114,6 @@ def uncertainty(
         model: the fitted model; svbrdf: its solution ``(m,)``; observed: ``(m, K, C)``.
         quadrature: of the model's evaluation (:attr:`FitConfig.rule`), compiled when it says so.
     """
-    if model.lobe is not None and not model.lobe.analytic:
-        raise TorchspecError(
-            f"model {model.name!r}: the fit's deviations and peak checks need a lobe with closed forms "
-            f"(Ward's); its {model.lobe.name} lobe can be fitted (Model.residuals), not yet assessed."
-        )
     n, c = svbrdf.diffuse.shape
     select = model.selection(c, weight)
     if n == 0:
@@ -125,6 +121,10 @@ def uncertainty(
         return Uncertainty(weight.new_zeros(0), {}, PeakSamples(empty, empty, weight.new_zeros(0)))
 
     def run(fused: bool):
+        if model.lobe is not None and not model.lobe.analytic:  # no closed forms: the forward-mode Jacobian
+            return forward_sandwich_terms(
+                model, svbrdf, lights, view, observed, weight, fit_weight, quadrature=quadrature, samples=True
+            )
         return sandwich_terms(
             svbrdf,
             lights,
