@@ -21,8 +21,8 @@ def parse_args(doc: str, config: str, argv: list[str] | None = None, *, options=
 
 def scipy_fit(model, y, level, init, lights, view, channels, *, path="auto", quadrature=None, repeats=1):
     """The baseline a user would otherwise pick: ``scipy.optimize.least_squares`` (trust region
-    reflective, the fit's bounds, the analytic Jacobian of :func:`torchspec.jacobian.jacobian` with the
-    fit's :class:`~torchspec.quadrature.Quadrature` ``quadrature`` on the path ``path``) on each pixel
+    reflective, the fit's bounds, the analytic Jacobian of :func:`torchspec.model.jacobian.jacobian` with the
+    fit's :class:`~torchspec.model.quadrature.Quadrature` ``quadrature`` on the path ``path``) on each pixel
     of ``y (n, K, C)`` in turn, weighted as the fit weighs
     it (one over its ``level (n,)``), from the SVBRDF ``init (n,)``: the fit's own model, so the two
     differ in the solver only.
@@ -38,8 +38,8 @@ def scipy_fit(model, y, level, init, lights, view, channels, *, path="auto", qua
     import torch
     from scipy.optimize import least_squares
 
-    from torchspec.models import ALPHA_BOUNDS
-    from torchspec.quadrature import Quadrature
+    from torchspec.model.quadrature import Quadrature
+    from torchspec.model.registry import ALPHA_BOUNDS
 
     dtype = y.dtype
     rule = replace(quadrature or Quadrature(), path=path)

@@ -13,17 +13,17 @@ from pathlib import Path
 import torch
 
 from torchspec.io import Capture, Frame, LightSpec, Maps, write_capture
-from torchspec.lights import Kernel, Lights
-from torchspec.rendering import render
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render
 from torchspec.simulate import LayoutConfig, LightConfig, layout
-from torchspec.synth import PaintingConfig, SensorConfig, painting, sense
+from torchspec.simulate.synth import PaintingConfig, SensorConfig, painting, sense
 
 F64 = torch.float64
 
 
 @dataclass(frozen=True)
 class Scene:
-    """The object: a procedural painting (:class:`torchspec.synth.PaintingConfig`) and the lobe its
+    """The object: a procedural painting (:class:`torchspec.simulate.synth.PaintingConfig`) and the lobe its
     frames are rendered with (the truth's maps are written either way: under ``beckmann`` they are
     not the fit's model, as with the development captures)."""
 
@@ -47,7 +47,7 @@ class Lighting:
 
 
 def lights_of(lighting: Lighting, channels: int) -> Lights:
-    """The :class:`~torchspec.lights.Lights` (float64) of ``lighting`` for ``channels`` channels."""
+    """The :class:`~torchspec.model.lights.Lights` (float64) of ``lighting`` for ``channels`` channels."""
     centres = layout(lighting.layout)
     k = centres.shape[0]
     if len(lighting.irradiance) not in (1, channels):

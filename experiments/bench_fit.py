@@ -10,7 +10,7 @@ the graphs it found in its on-disk cache are counted; a first run on a machine c
 which takes longer). Run with ``TORCHINDUCTOR_CACHE_DIR`` set to an empty folder for a first run's time.
 The baseline fits a random sample of the lobed pixels one by one with
 ``scipy.optimize.least_squares`` (trust region reflective, bounds as in the fit, the analytic
-Jacobian of :func:`torchspec.jacobian.jacobian` with the fit's quadrature), from the same FRI
+Jacobian of :func:`torchspec.model.jacobian.jacobian` with the fit's quadrature), from the same FRI
 start; its time per pixel (the fastest of ``scipy_repeats`` timings of the same loop) is scaled
 to the whole image. Accuracy is scored against the truth on the same pixels.
 
@@ -33,14 +33,14 @@ import torch
 from _common import parse_args, scipy_fit
 
 from torchspec.atomic import write_json
-from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
-from torchspec.models import get_model
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import angle
+from torchspec.model.registry import get_model
 from torchspec.pipeline import FitConfig, starting_point
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig, SensorConfig
+from torchspec.simulate.synth import PaintingConfig, SensorConfig
 
 
 @dataclass(frozen=True)

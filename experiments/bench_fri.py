@@ -1,5 +1,5 @@
 """Benchmark of FRI location: speed, peak memory and accuracy against the Cramer-Rao bound, for
-every method of :func:`torchspec.fri.locate` and for the baselines a user would otherwise pick:
+every method of :func:`torchspec.start.fri.locate` and for the baselines a user would otherwise pick:
 
 - ``argmax + parabola``: the brightest sample refined by a parabola through it and its two
   neighbours (vectorised NumPy), the usual way to read a peak off point samples;
@@ -44,8 +44,8 @@ class Settings:
 def _data(settings: Settings, count: int, dtype: torch.dtype):
     """Noisy samples ``(count, N)`` in ``dtype``, the truth and the bound, made in chunks straight
     into their final tensor, so that making them does not set a high-water mark above the call."""
-    from torchspec import crb
-    from torchspec.fri import pulses
+    from torchspec.model import crb
+    from torchspec.start.fri import pulses
 
     generator = torch.Generator().manual_seed(settings.seed)
     bands = (settings.samples - 1) // 2
@@ -127,10 +127,10 @@ def _row(settings: Settings, name: str, dtype: str) -> dict:
     else:
         # "pooled": coherent with the kernel pooled over the batch (two passes).
         options = {"kernel": "pooled"} if name == "pooled" else {"method": name}
-        ts.fri.locate(y[:1024], period=1.0, **options)
+        ts.start.fri.locate(y[:1024], period=1.0, **options)
 
         def call():
-            return ts.fri.locate(y, period=1.0, **options).position
+            return ts.start.fri.locate(y, period=1.0, **options).position
 
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     runs = []

@@ -9,7 +9,7 @@
 2. The same capture fitted on the CPU with ``cpu_threads`` threads, and its agreement with the
    warm default fit on ``device``: the share of pixels with the same model, the normals' angle,
    k_d, k_s and alpha (relative) at the 99th percentile, and the untrusted pixels of one and not
-   the other (:func:`torchspec.flags.untrusted`).
+   the other (:func:`torchspec.pipeline.flags.untrusted`).
 3. A large capture as a light dome writes it: ``large_frames`` of the painting's frames (evenly
    spread over its list) tiled to ``large_width x large_height`` pixels, written as 8-bit sRGB JPEGs with a ``dirs.lp``,
    then ``torchspec import`` and ``torchspec fit`` (the default command, ``--device``) in fresh
@@ -41,9 +41,9 @@ from bench_fit import _capture
 
 from torchspec.atomic import write_json
 from torchspec.config import load_config
-from torchspec.flags import untrusted
-from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
+from torchspec.model.geometry import angle
+from torchspec.pipeline.flags import untrusted
 
 
 @dataclass(frozen=True)

@@ -53,9 +53,9 @@ ROWS = [
 
 
 def _scene(settings: Settings, count: int, point: bool, angular: bool = False):
-    from torchspec.brdf import SVBRDF
-    from torchspec.geometry import normal_from_angles
-    from torchspec.lights import Kernel, Lights
+    from torchspec.model.brdf import SVBRDF
+    from torchspec.model.geometry import normal_from_angles
+    from torchspec.model.lights import Kernel, Lights
 
     g = torch.Generator().manual_seed(settings.seed)
     side = settings.radius / math.sqrt(2.0)
@@ -78,8 +78,8 @@ def _scene(settings: Settings, count: int, point: bool, angular: bool = False):
 
 def _monte_carlo(maps, lights, view, samples, seed):
     """The kernel sampled: ``samples`` directions per frame (shared by the pixels), BRDF averaged."""
-    from torchspec.brdf import reflectance
-    from torchspec.geometry import from_plane
+    from torchspec.model.brdf import reflectance
+    from torchspec.model.geometry import from_plane
 
     g = torch.Generator().manual_seed(seed)
     sigma = lights.kernel.sigma
@@ -94,7 +94,7 @@ def _monte_carlo(maps, lights, view, samples, seed):
 
 
 def _broadcast(maps):
-    from torchspec.brdf import SVBRDF
+    from torchspec.model.brdf import SVBRDF
 
     rotation = None if maps.rotation is None else maps.rotation[:, None, None]
     return SVBRDF(
@@ -108,9 +108,9 @@ def _broadcast(maps):
 
 
 def _row(settings: Settings, path: str, what: str) -> dict:
-    from torchspec.jacobian import jacobian
-    from torchspec.quadrature import Quadrature
-    from torchspec.rendering import render
+    from torchspec.model.jacobian import jacobian
+    from torchspec.model.quadrature import Quadrature
+    from torchspec.model.rendering import render
 
     torch.manual_seed(settings.seed)
     label = path

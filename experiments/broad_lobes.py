@@ -13,7 +13,7 @@ light on a grid, with per-channel irradiance and a per-frame exposure, is fitted
   over the varnished ones;
 - the count of each chosen model on the varnished and on the matte pixels;
 - the varnished pixels fitted ``diffuse``: how many, their normal's error, their quality and the
-  count of each flag (:data:`torchspec.flags.FLAGS`) among them.
+  count of each flag (:data:`torchspec.pipeline.flags.FLAGS`) among them.
 
     python experiments/broad_lobes.py [--config experiments/configs/broad_lobes.yaml] [--output experiments/results]
 """
@@ -32,11 +32,11 @@ from _scenes import Lighting, Scene, warm_up, write_scene
 
 from torchspec.atomic import write_json
 from torchspec.config import from_mapping, load_config
-from torchspec.flags import describe
-from torchspec.geometry import angle
 from torchspec.io import read_svbrdf
+from torchspec.model.geometry import angle
 from torchspec.pipeline import MODEL_CODES, FitConfig, fit
-from torchspec.synth import MATTE, VARNISHED
+from torchspec.pipeline.flags import describe
+from torchspec.simulate.synth import MATTE, VARNISHED
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from torchspec.export import ExportWarning, export_gltf, export_openlime, export
 from torchspec.export.openlime import alpha_from_gloss
 from torchspec.export.rti import fit_rti, hemisphere_directions, read_rti, render_display
 from torchspec.io import read_svbrdf
-from torchspec.residual_term import hsh_basis
+from torchspec.model.residual_term import hsh_basis
 
 
 @dataclass(frozen=True)

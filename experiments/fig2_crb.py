@@ -29,7 +29,7 @@ from _common import parse_args
 import torchspec as ts
 from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
-from torchspec.fri import pulses
+from torchspec.start.fri import pulses
 
 F64 = torch.float64
 
@@ -75,8 +75,8 @@ every repetition of a point shares the kernel, as the pixels of a tile do."""
 
 def _locate(y: torch.Tensor, period, method: str) -> torch.Tensor:
     if method == POOLED:
-        return ts.fri.locate(y, period=period, kernel="pooled").position
-    return ts.fri.locate(y, period=period, method=method).position
+        return ts.start.fri.locate(y, period=period, kernel="pooled").position
+    return ts.start.fri.locate(y, period=period, method=method).position
 
 
 def _noisy(clean: torch.Tensor, snr_db: float, generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -108,7 +108,7 @@ def run_1d(settings: Settings, generator) -> list[dict]:
             for snr in settings.snr_db:
                 x = tau * torch.rand(settings.repetitions, 1, dtype=F64, generator=generator)
                 y, sigma = _noisy(pulses.sample(spectrum, x, num_samples=n, period=tau), snr, generator)
-                bound = ts.crb.location_1d(spectrum, num_samples=n, noise_sigma=sigma, period=tau)
+                bound = ts.model.crb.location_1d(spectrum, num_samples=n, noise_sigma=sigma, period=tau)
                 point = {"snr_db": snr, "crb": bound.mean().item(), "methods": {}}
                 for method in settings.methods:
                     position = _locate(y, tau, method)
@@ -131,7 +131,7 @@ def run_2d(settings: Settings, generator) -> list[dict]:
         for snr in settings.two_d.snr_db:
             x = tau * torch.rand(settings.repetitions, 2, dtype=F64, generator=generator)
             y, sigma = _noisy(pulses.sample_2d(spectrum, x, shape=shape, period=(tau, tau)), snr, generator)
-            cov = ts.crb.location_2d(spectrum, num_samples=shape, noise_sigma=sigma, period=(tau, tau))
+            cov = ts.model.crb.location_2d(spectrum, num_samples=shape, noise_sigma=sigma, period=(tau, tau))
             bound = cov.diagonal(dim1=-2, dim2=-1).sum(-1)
             point = {"snr_db": snr, "crb": bound.mean().item(), "methods": {}}
             estimates = {m: _locate(y, (tau, tau), m) for m in settings.methods}
@@ -139,8 +139,8 @@ def run_2d(settings: Settings, generator) -> list[dict]:
             # i.e. on the marginal sums of the samples, one axis at a time.
             estimates["ls (row 0 only, the paper)"] = torch.stack(
                 [
-                    ts.fri.locate(y.sum(-1), period=tau, method="ls").position,
-                    ts.fri.locate(y.sum(-2), period=tau, method="ls").position,
+                    ts.start.fri.locate(y.sum(-1), period=tau, method="ls").position,
+                    ts.start.fri.locate(y.sum(-2), period=tau, method="ls").position,
                 ],
                 -1,
             )

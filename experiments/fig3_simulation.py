@@ -31,14 +31,14 @@ from _common import ROOT, parse_args  # noqa: E402
 
 from torchspec.atomic import save_figure, write_json  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.geometry import (
+from torchspec.model.geometry import (
     angle,  # noqa: E402
     from_plane,  # noqa: E402
 )
-from torchspec.lights import Kernel, Lights  # noqa: E402
+from torchspec.model.lights import Kernel, Lights  # noqa: E402
+from torchspec.model.quadrature import Quadrature  # noqa: E402
+from torchspec.model.rendering import render  # noqa: E402
 from torchspec.pipeline import FitConfig, fit  # noqa: E402
-from torchspec.quadrature import Quadrature  # noqa: E402
-from torchspec.rendering import render  # noqa: E402
 from torchspec.simulate import SimulationConfig, simulate, write_simulation  # noqa: E402
 
 PAPER_DB = {"1d": 43.4, "2d": 52.2}

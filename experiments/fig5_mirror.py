@@ -8,7 +8,7 @@ peak sits at theta = 2 tilt; the 100 frames are taken once with a point light an
 extended one (a disk-like angular super-Gaussian, the development captures' light) at the same
 positions. Every 5th frame (each of the 5 offsets) leaves 20 samples, 2 degrees apart, against a
 point-light peak ~0.4 degrees wide: the point samples bracket the peak at best, while the
-extended light blurs it over several samples and FRI (``torchspec.fri.locate``) locates the
+extended light blurs it over several samples and FRI (``torchspec.start.fri.locate``) locates the
 blurred peak's centre. Errors (degrees) against the truth over tilts, offsets, noise seeds and
 pixels, for: FRI on the 20 extended samples; the best point-sample methods on the 20 point
 samples (argmax with parabolic, or Gaussian i.e. log-parabolic, interpolation); and, for
@@ -16,9 +16,9 @@ reference, FRI on the point samples and the 100-frame point-light peak.
 
 The frames come from :func:`frames`: the dome (``torchspec.dome.acquire`` with the emulator, the
 client and a simulated camera) when ``source`` is ``dome`` (or ``auto`` and the package has it),
-else direct simulation (``torchspec.render`` and the sensor model of ``torchspec.synth``). The 100
+else direct simulation (``torchspec.render`` and the sensor model of ``torchspec.simulate.synth``). The 100
 extended frames are also a calibration capture: panel D calibrates the light from them
-(``torchspec.calibrate``) against the true kernel.
+(``torchspec.calibration.kernel``) against the true kernel.
 
 Panels (fig5.png): A the 100-frame responses (point and extended, one tilt) with the 20 samples
 of one offset marked and the estimates; B the error distributions per method; C RMS error per
@@ -46,13 +46,13 @@ from _common import parse_args  # noqa: E402
 
 import torchspec as ts  # noqa: E402
 from torchspec.atomic import save_figure, write_json  # noqa: E402
-from torchspec.calibrate import recover_kernel  # noqa: E402
+from torchspec.calibration.kernel import recover_kernel  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.geometry import reflect  # noqa: E402
-from torchspec.lights import Kernel, Lights  # noqa: E402
-from torchspec.rendering import render  # noqa: E402
+from torchspec.model.geometry import reflect  # noqa: E402
+from torchspec.model.lights import Kernel, Lights  # noqa: E402
+from torchspec.model.rendering import render  # noqa: E402
 from torchspec.simulate import LayoutConfig, LightConfig, layout  # noqa: E402
-from torchspec.synth import MirrorConfig, SensorConfig, mirror, sense  # noqa: E402
+from torchspec.simulate.synth import MirrorConfig, SensorConfig, mirror, sense  # noqa: E402
 
 F64 = torch.float64
 SOURCES = ("auto", "simulate", "dome")
@@ -61,7 +61,7 @@ DOME_SPEED_DEG = 10_000.0  # the emulated dome's angular speed (deg/s): motions 
 
 @dataclass(frozen=True)
 class Calibration:
-    """Settings of :func:`torchspec.calibrate.recover_kernel` for panel D."""
+    """Settings of :func:`torchspec.calibration.kernel.recover_kernel` for panel D."""
 
     size: int = 32
     mirror_alpha: float = 0.0
@@ -235,7 +235,7 @@ def _fri(y: torch.Tensor, theta: torch.Tensor, method: str, coefficients: int | 
     """FRI location of each row's blurred peak: samples uniform over one period from ``theta[:, 0]``."""
     n = y.shape[-1]
     step = float(theta[0, 1] - theta[0, 0])
-    found = ts.fri.locate(y, period=n * step, method=method, num_coefficients=coefficients)
+    found = ts.start.fri.locate(y, period=n * step, method=method, num_coefficients=coefficients)
     return theta[:, 0] + found.position
 
 

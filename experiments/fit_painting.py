@@ -30,12 +30,12 @@ import torch  # noqa: E402
 from _common import ROOT, parse_args  # noqa: E402
 
 from torchspec.atomic import save_figure, write_json  # noqa: E402
-from torchspec.brdf import SVBRDF  # noqa: E402
 from torchspec.config import load_config  # noqa: E402
-from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf  # noqa: E402
+from torchspec.model.brdf import SVBRDF  # noqa: E402
+from torchspec.model.geometry import angle
+from torchspec.model.rendering import render  # noqa: E402
 from torchspec.pipeline import FitConfig, fit, select_frames  # noqa: E402
-from torchspec.rendering import render  # noqa: E402
 from torchspec.report import score  # noqa: E402
 
 TARGETS = {"normal_deg": 0.5, "kd": 0.03, "alpha": 0.10, "held_out_psnr_db": 40.0}

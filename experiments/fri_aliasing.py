@@ -17,7 +17,7 @@ import torch
 import torchspec as ts
 from torchspec.atomic import write_json
 from torchspec.config import load_config
-from torchspec.fri import pulses
+from torchspec.start.fri import pulses
 
 HERE = Path(__file__).parent
 
@@ -42,7 +42,7 @@ def measure(settings: Settings) -> list[dict]:
                 x = torch.rand(settings.locations, 1, dtype=dtype, generator=generator)
                 y = pulses.sample(spectrum, x, num_samples=n)
                 y = y + noise * y.abs().max() * torch.randn(y.shape, dtype=dtype, generator=generator)
-                found = ts.fri.locate(y, period=1.0)
+                found = ts.start.fri.locate(y, period=1.0)
                 error = torch.remainder(found.position - x[:, 0] + 0.5, 1.0) - 0.5
                 rms = float(error.pow(2).mean().sqrt())
                 std = float(found.std.median())

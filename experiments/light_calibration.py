@@ -1,14 +1,14 @@
-"""Lights calibrated from the photographs (:mod:`torchspec.lightcal`), simulated and real.
+"""Lights calibrated from the photographs (:mod:`torchspec.calibration.lights`), simulated and real.
 
-Simulated: a procedural painting (:func:`torchspec.synth.painting`: pigments, strokes, weave,
+Simulated: a procedural painting (:func:`torchspec.simulate.synth.painting`: pigments, strokes, weave,
 varnish with Ward lobes, a gilded box) lit by a dome of point lights at ``radius`` image widths,
 each frame with its own gain per channel drawn within +-``gain_spread``. The near light is
-rendered per pixel with the format's BRDF (:func:`torchspec.brdf.lambert`,
-:func:`torchspec.brdf.ward_cosine`: the same terms :func:`torchspec.rendering.render` sums for a
+rendered per pixel with the format's BRDF (:func:`torchspec.model.brdf.lambert`,
+:func:`torchspec.model.brdf.ward_cosine`: the same terms :func:`torchspec.model.rendering.render` sums for a
 point light), each pixel with its own direction and falloff; a check renders distant lights both
-ways. The sensor adds noise (:func:`torchspec.synth.sense`). The calibration sees the frames and
+ways. The sensor adds noise (:func:`torchspec.simulate.synth.sense`). The calibration sees the frames and
 the directions at the image centre only. Reported: gains' and positions' relative errors, and the
-normals' median angular error of Lambertian photometric stereo (:func:`torchspec.lightcal.lambert_fit`)
+normals' median angular error of Lambertian photometric stereo (:func:`torchspec.calibration.lights.lambert_fit`)
 under the calibrated, the nominal (gains 1, distant lights at the centre directions) and the true lights.
 
 Real: RTI captures (``realrti-item*``) imported with :func:`torchspec.io.rti.import_rti`, divided
@@ -32,14 +32,14 @@ import torch.nn.functional as F
 from _common import ROOT, parse_args
 
 from torchspec.atomic import write_json
-from torchspec.brdf import lambert, ward_cosine
+from torchspec.calibration.lights import calibrate_lights, lambert_fit
 from torchspec.config import load_config
 from torchspec.io.rti import import_rti
-from torchspec.lightcal import calibrate_lights, lambert_fit
-from torchspec.lights import Kernel, Lights
-from torchspec.near_lights import image_points, near_light
-from torchspec.rendering import render_image
-from torchspec.synth import PaintingConfig, SensorConfig, painting, sense
+from torchspec.model.brdf import lambert, ward_cosine
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.near_lights import image_points, near_light
+from torchspec.model.rendering import render_image
+from torchspec.simulate.synth import PaintingConfig, SensorConfig, painting, sense
 
 
 @dataclass(frozen=True)

@@ -33,12 +33,12 @@ from _common import ROOT, parse_args
 
 from torchspec.atomic import write_json
 from torchspec.config import from_mapping, load_config
-from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
+from torchspec.model.geometry import angle
 from torchspec.pipeline import MODEL_CODES, FitConfig, fit, select_frames
 from torchspec.report import REGIONS, score
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig, SensorConfig
+from torchspec.simulate.synth import PaintingConfig, SensorConfig
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from _common import parse_args
 import torchspec as ts
 from torchspec.atomic import save_figure, write_json
 from torchspec.config import load_config
-from torchspec.fri import pulses
+from torchspec.start.fri import pulses
 
 F64 = torch.float64
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -71,8 +71,8 @@ def run(settings: Settings) -> list[dict]:
             y = y + settings.offset
             for dtype_name, dtype in DTYPES.items():
                 errors = {
-                    method: _worst(ts.fri.locate(y.to(dtype), period=period, method=method).position, truth)
-                    for method in ts.fri.METHODS
+                    method: _worst(ts.start.fri.locate(y.to(dtype), period=period, method=method).position, truth)
+                    for method in ts.start.fri.METHODS
                 }
                 rows.append({"kernel": kind, "width": width, "dims": dims, "shape": list(shape),
                              "dtype": dtype_name, "max_error": errors})
@@ -109,14 +109,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     settings = load_config(args.config, Settings)
     rows = run(settings)
     print(f"worst |error| (periods) over {settings.locations} locations, every size, per kernel and dtype:")
-    print(f"{'kernel':22s} {'dtype':8s} " + " ".join(f"{m:>9s}" for m in ts.fri.METHODS) + "  within bound")
+    print(f"{'kernel':22s} {'dtype':8s} " + " ".join(f"{m:>9s}" for m in ts.start.fri.METHODS) + "  within bound")
     for kernel in settings.kernels:
         kind, width = kernel.kind, kernel.width
         for dtype in DTYPES:
             sel = [r for r in rows if r["kernel"] == kind and r["width"] == width and r["dtype"] == dtype]
-            worst = {m: max(r["max_error"][m] for r in sel) for m in ts.fri.METHODS}
+            worst = {m: max(r["max_error"][m] for r in sel) for m in ts.start.fri.METHODS}
             ok = all(v <= BOUND[dtype] for v in worst.values())
-            print(f"{kind + ' ' + str(width):22s} {dtype:8s} " + " ".join(f"{worst[m]:9.1e}" for m in ts.fri.METHODS)
+            cells = " ".join(f"{worst[m]:9.1e}" for m in ts.start.fri.METHODS)
+            print(f"{kind + ' ' + str(width):22s} {dtype:8s} " + cells
                   + f"  {'yes' if ok else 'NO'}")
     write_json(args.output / "noise_free.json", {"settings": asdict(settings), "rows": rows})
     _plot(rows, args.output / "noise_free.png")

@@ -36,14 +36,14 @@ from _common import ROOT, parse_args
 from _scenes import Lighting, Scene, warm_up, write_scene
 
 from torchspec.atomic import write_json
-from torchspec.brdf import SVBRDF
 from torchspec.config import from_mapping, load_config
-from torchspec.geometry import reflect
 from torchspec.io import read_svbrdf
-from torchspec.lights import Kernel, Lights
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import reflect
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render
 from torchspec.pipeline import MODEL_CODES, FitConfig, fit, write_fit
 from torchspec.relight import render_capture
-from torchspec.rendering import render
 from torchspec.report import REGIONS
 
 F64 = torch.float64

@@ -1,4 +1,4 @@
-"""Accuracy of :func:`torchspec.rendering.render` against an independent brute-force integration.
+"""Accuracy of :func:`torchspec.model.rendering.render` against an independent brute-force integration.
 
 The brute force (``tests/brute_force.py``) shares no code with the package: Ward from the format's
 formula with explicit angles, kernels from their definitions, a fine midpoint rule in the
@@ -29,11 +29,11 @@ import torch
 from _common import ROOT, parse_args
 
 from torchspec.atomic import write_json
-from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.lights import Kernel, Lights
-from torchspec.quadrature import Quadrature
-from torchspec.rendering import render
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.quadrature import Quadrature
+from torchspec.model.rendering import render
 
 sys.path.insert(0, str(ROOT / "tests"))
 from brute_force import pixel_tensors, random_case, reference_value  # noqa: E402

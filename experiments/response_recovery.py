@@ -30,12 +30,12 @@ from PIL import Image
 
 import torchspec
 from torchspec.atomic import write_json
+from torchspec.calibration.response import ResponseCurve
 from torchspec.config import load_config
 from torchspec.io.images import Transfer
 from torchspec.io.rti import import_rti
-from torchspec.response import ResponseCurve
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate
-from torchspec.synth import PaintingConfig
+from torchspec.simulate.synth import PaintingConfig
 
 
 @dataclass(frozen=True)

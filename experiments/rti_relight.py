@@ -20,7 +20,7 @@ least-squares photometric stereo on the same frames' luminance.
   the fitted lights' directions, ``w`` twice the mean distance from a fitted light to its nearest
   neighbour, weights by ridge regression (``ridge`` 0.1 on the diagonal) on the codes.
 - torchspec: :func:`torchspec.fit` on the fitted frames with each ``models`` entry (``auto``, or a
-  forced model), the maps rendered under the left-out lights by :func:`torchspec.rendering.render_image`:
+  forced model), the maps rendered under the left-out lights by :func:`torchspec.model.rendering.render_image`:
   ``torchspec MODEL`` the physical maps alone (``torchspec render --no-term``), ``+ term`` with the
   fit's residual term (what ``torchspec render`` renders; the default fit of an imported capture);
   the share of pixels given a lobe (``Fit.lobe``), the transfer and the lights are reported.
@@ -51,10 +51,10 @@ from torchspec.atomic import write_json
 from torchspec.config import load_config
 from torchspec.io.images import Transfer, read_photo
 from torchspec.io.rti import find_light_file, import_rti, match_images, read_lights
-from torchspec.lights import Lights
+from torchspec.model.lights import Lights
+from torchspec.model.rendering import render_image
+from torchspec.model.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
 from torchspec.relight import render_near
-from torchspec.rendering import render_image
-from torchspec.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
 
 SRGB = Transfer("srgb")
 LUMA = (0.2126, 0.7152, 0.0722)

@@ -1,8 +1,8 @@
 """Cast shadows on a known relief (issue 39, items 1 and 2): the height integrated from normals, and
 the batched horizon / visibility against a brute-force ray march.
 
-A relief (:func:`torchspec.relief.relief`: Gaussian bumps and a ridge, ``size x size`` pixels) gives
-exact normals. They are integrated back (:func:`torchspec.height.height_from_normals`):
+A relief (:func:`torchspec.simulate.relief.relief`: Gaussian bumps and a ridge, ``size x size`` pixels) gives
+exact normals. They are integrated back (:func:`torchspec.model.height.height_from_normals`):
 
 - exact normals, unweighted (the DCT solve);
 - noisy normals: every normal turned by a Gaussian angle of ``noise_deg`` (std per axis), and a
@@ -10,7 +10,7 @@ exact normals. They are integrated back (:func:`torchspec.height.height_from_nor
   ``1 / std^2`` (the std each pixel was drawn with, as a fit's ``std_normal_deg`` would give it).
 
 Reported: the RMS height error in pixels (both fields mean 0) and the time. Then ``lights`` lights at
-random azimuths and elevations in ``elevation_deg``: :func:`torchspec.visibility.horizon` (samples every
+random azimuths and elevations in ``elevation_deg``: :func:`torchspec.model.visibility.horizon` (samples every
 ``step`` pixels, finer near the pixel) against a march in float64 every ``brute_step`` pixels over
 the same bilinear field (four taps indexed directly): the horizon's error (mean, 99th percentile,
 max, degrees) and the agreement of the hard visibility (light above the horizon) everywhere and
@@ -31,9 +31,9 @@ from _common import parse_args
 
 from torchspec.atomic import write_json
 from torchspec.config import load_config
-from torchspec.height import height_from_normals
-from torchspec.relief import ReliefConfig, relief
-from torchspec.visibility import elevation, horizon, visibility
+from torchspec.model.height import height_from_normals
+from torchspec.model.visibility import elevation, horizon, visibility
+from torchspec.simulate.relief import ReliefConfig, relief
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""Light directions from a chrome sphere (torchspec.sphere): the outline from the mask against the
+"""Light directions from a chrome sphere (torchspec.calibration.sphere): the outline from the mask against the
 one found automatically (find_sphere), each scored against the reference directions lights.txt.
 
     python experiments/sphere_chrome.py [--config experiments/configs/sphere_chrome.yaml] [--output DIR] [--data DIR]
@@ -18,11 +18,11 @@ from pathlib import Path
 import torch
 
 from torchspec.atomic import write_json
+from torchspec.calibration.sphere import circle_from_mask, find_sphere, sphere_directions
 from torchspec.config import load_config
 from torchspec.io.images import read_photo
 from torchspec.io.lp import read_light_file
 from torchspec.io.rti import photographs
-from torchspec.sphere import circle_from_mask, find_sphere, sphere_directions
 
 HERE = Path(__file__).resolve().parent
 

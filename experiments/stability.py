@@ -5,12 +5,12 @@ Two families of methods locate the peak of a specular lobe seen through an exten
 l-plane (errors in l units; near the zenith one l unit is ~28.6 degrees of the normal):
 
 - *location*, batched 1D problems on a line of ``N`` lights (``trials`` per cell in one call): FRI
-  (:func:`torchspec.fri.locate`: ``coherent``, the default, ``ls``, ``esprit``, ``cadzow``) on
+  (:func:`torchspec.start.fri.locate`: ``coherent``, the default, ``ls``, ``esprit``, ``cadzow``) on
   samples of a Gaussian lobe (std ``lobe_width``: a Ward lobe near the zenith) seen through the
   light's kernel, point-sampled and not periodised (a peak near an end of the line breaks FRI's
   periodicity); and the baseline FRI replaces, ``peak`` picking (argmax + parabola) on *point-light*
   samples at the same positions with the same noise. The grazing axis renders a Ward lobe with
-  :func:`torchspec.rendering.render` instead.
+  :func:`torchspec.model.rendering.render` instead.
 - *pipeline*, :func:`torchspec.pipeline.fit` (``ward-iso``) on small simulated captures, a pixel per
   trial, an ``N x N`` grid of lights, with ``matte`` pixels from dark to light on which the fit
   measures its noise: ``fri+lm``, ``naive+lm``, ``grid+lm`` (``FitConfig.start.init``); the peak is the
@@ -28,9 +28,9 @@ other axes the noise std stays the base's (a camera's noise does not follow the 
 Failure: ``|error| > failure * sqrt(CRB)``, the CRB per trial from the Fisher information at the
 truth with the true noise and every parameter of the truth unknown but the kernel: location
 family, the peak, amplitude, lobe width, an offset and a second lobe's peak and amplitude
-(:func:`torchspec.crb.fisher_information`); peak picking is held to the extended-light samples'
+(:func:`torchspec.model.crb.fisher_information`); peak picking is held to the extended-light samples'
 bound, its point samples having none where they miss a narrow lobe; grazing and pipeline,
-:func:`torchspec.jacobian.jacobian` at the true maps (tilt angles, ``k_d``, ``k_s``, ``alpha``,
+:func:`torchspec.model.jacobian.jacobian` at the true maps (tilt angles, ``k_d``, ``k_s``, ``alpha``,
 a second facet's tilt and ``k_s``) mapped to the peak by ``d peak / d angles``. Flag rules
 (:func:`flag_location`, :func:`flag_fit`) are scored by their catch rate (failures flagged) and
 false alarms (good estimates flagged) over every trial of every cell; :func:`search_rules` lists
@@ -57,18 +57,18 @@ from torch import Tensor
 
 import torchspec as ts
 from torchspec.atomic import atomic_path, save_figure, write_json
-from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.flags import bit, untrusted
-from torchspec.geometry import angles_from_normal, from_plane, normal_from_angles, normalize
 from torchspec.io import Capture, Frame, LightSpec, write_capture
-from torchspec.jacobian import jacobian
-from torchspec.layout import mirror_point
-from torchspec.lights import Kernel, Lights
 from torchspec.lm import STATUS
-from torchspec.models import get_model
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import angles_from_normal, from_plane, normal_from_angles, normalize
+from torchspec.model.jacobian import jacobian
+from torchspec.model.layout import mirror_point
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.registry import get_model
+from torchspec.model.rendering import render
 from torchspec.pipeline import MODEL_CODES, FitConfig, fit
-from torchspec.rendering import render
+from torchspec.pipeline.flags import bit, untrusted
 
 F64 = torch.float64
 AXES = ("snr_db", "samples", "width_ratio", "skew", "edge", "separation", "grazing_deg")
@@ -185,7 +185,7 @@ class Settings:
 
 
 def flag_location(trial: dict, rule: LocationRule):
-    """Flag FRI locations ``(T,)`` from what a user has: ``quality`` and ``std`` (:class:`torchspec.fri.
+    """Flag FRI locations ``(T,)`` from what a user has: ``quality`` and ``std`` (:class:`torchspec.start.fri.
     Location`), the ``peak``, the ``brightest`` sample's position, the line's ends ``lo``, ``hi`` and
     ``spacing``, and with the noise level :func:`asymmetry_z` (``asymmetry``) and
     :func:`local_asymmetry` (``local``). Flagged: low quality, a large std, a peak far from the
@@ -209,7 +209,8 @@ def flag_fit(trial: dict, rule: FitRule):
     """Flag fitted pixels ``(T,)`` from :class:`torchspec.pipeline.Fit`: ``quality`` low, ``chi2_z`` (the
     criterion's chi^2 against its degrees of freedom, in standard deviations) high, a ``status``
     other than converged, no ``lobe`` detected, the normal's ``std_deg`` large, a misfit under the
-    peak (``local``) or the peak far from the brightest sample (``astray``; :func:`torchspec.flags.peak_checks`)."""
+    peak (``local``) or the peak far from the brightest sample (``astray``;
+    :func:`torchspec.pipeline.flags.peak_checks`)."""
     flag = (
         (trial["quality"] < rule.quality)
         | (trial["chi2_z"] > rule.chi2_z)
@@ -335,7 +336,7 @@ TAIL = 0.25  # the weight of a skewed kernel's second component
 def kernel_components(sigma: float, skewness: float) -> list[tuple[float, float, float]]:
     """A light kernel along the line as ``(weight, offset, std)`` Gaussian components: one of std
     ``sigma`` (0: a point light), or for ``skewness > 0`` two of one std, weights ``1 - TAIL`` and
-    ``TAIL``, with the mean at the light's centre (the centroid: ``torchspec.calibrate``'s convention),
+    ``TAIL``, with the mean at the light's centre (the centroid: ``torchspec.calibration.kernel``'s convention),
     variance ``sigma^2`` and that third standardised moment (at most ~1.1)."""
     if skewness == 0 or sigma == 0:
         return [(1.0, 0.0, sigma)]
@@ -409,7 +410,7 @@ def _model_1d(t, cell: Setting, settings: Settings):
 def _bound_1d(forward, truth, sigma):
     """The CRB of the peak with every parameter of the trial unknown (a missing second lobe's two
     are left out), and with the second lobe's known: ``J^T J / sigma^2`` with ``J (T, N, 6)`` by
-    central differences (:func:`torchspec.crb.fisher_information`'s to 1e-8, without its slow
+    central differences (:func:`torchspec.model.crb.fisher_information`'s to 1e-8, without its slow
     forward-mode pass through the profile)."""
     columns = []
     for j in range(truth.shape[-1]):
@@ -420,8 +421,8 @@ def _bound_1d(forward, truth, sigma):
         columns.append((forward(truth + step) - forward(truth - step)) / (2.0 * spread))
     jac = torch.stack(columns, -1)
     fisher = jac.transpose(-1, -2) @ jac / sigma**2
-    single = ts.crb.bound(fisher[:, :4, :4])[:, 0, 0]
-    two = ts.crb.bound(fisher)[:, 0, 0]
+    single = ts.model.crb.bound(fisher[:, :4, :4])[:, 0, 0]
+    two = ts.model.crb.bound(fisher)[:, 0, 0]
     return torch.where(torch.isfinite(truth[:, 4]), two, single), single
 
 
@@ -441,7 +442,7 @@ def _fri_on_line(y, t, step, method):
     """FRI location on the line: period ``N`` spacings from the first light; a position past the last
     light by more than half a spacing belongs before the first one (as the fit's start does)."""
     period = step * y.shape[-1]
-    found = ts.fri.locate(y, period=period, method=method)
+    found = ts.start.fri.locate(y, period=period, method=method)
     peak = t[0] + found.position
     peak = torch.where(peak > t[-1] + 0.5 * step, peak - period, peak)
     return peak, found.quality, found.std
@@ -498,7 +499,7 @@ def _location_cell(settings: Settings, cell: Setting, sigma: float, generator) -
     if cell.grazing_deg is not None:
         t, step, x, samples, columns, slope = _grazing_samples(settings, cell, count, generator)
         fisher = columns.transpose(-1, -2) @ columns / sigma**2
-        bound = slope**2 * ts.crb.bound(fisher)[:, 0, 0]
+        bound = slope**2 * ts.model.crb.bound(fisher)[:, 0, 0]
         single = bound
         clean, point = samples["extended"], samples["point"]
     else:
@@ -638,7 +639,7 @@ def _bound_2d(first, other, truth, view, sigma):
     slope = _slope(first.normal, view)
     out = []
     for j in (full, single):
-        cov = ts.crb.bound(j.transpose(-1, -2) @ j / sigma**2)[:, :2, :2]
+        cov = ts.model.crb.bound(j.transpose(-1, -2) @ j / sigma**2)[:, :2, :2]
         out.append((slope @ cov @ slope.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1))
     return out
 
@@ -711,7 +712,7 @@ def _fit_group(settings: Settings, folder: Path, group: dict, cells, init: str) 
         config = settings.pipeline.fit
         result = fit(folder, config=replace(config, start=replace(config.start, init=init)))
     local, astray = (result.checks[name].reshape(-1).double() for name in ("peak_misfit", "astray"))
-    # The package's verdict on a peak: a flag of torchspec.flags.UNTRUSTED, or no lobe established.
+    # The package's verdict on a peak: a flag of torchspec.pipeline.flags.UNTRUSTED, or no lobe established.
     flags = result.flags.reshape(-1)
     weak = (flags.to(torch.int32) & bit("weak_lobe")) != 0
     verdict = untrusted(flags) | ~result.lobe.reshape(-1) | weak
@@ -1177,7 +1178,8 @@ def _markdown(result: dict, settings: Settings, command: str) -> str:
         best = summary["search"][0]
         if family == "fit":
             head = (
-                f"- **fit**: the package's own flags (`Fit.flags`: a flag of `torchspec.flags.UNTRUSTED`, or no lobe "
+                "- **fit**: the package's own flags (`Fit.flags`: a flag of "
+                f"`torchspec.pipeline.flags.UNTRUSTED`, or no lobe "
                 f"fitted or established (`weak_lobe`); compare the rule {rule}: {_rate(summary['rule_all_cells'])})"
             )
         else:

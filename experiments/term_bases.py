@@ -43,9 +43,9 @@ from rti_relight import BASES, _encoded, load_reduced, polynomial, rbf, scores
 import torchspec
 from torchspec.atomic import write_json
 from torchspec.config import load_config
+from torchspec.model.rendering import render_image
+from torchspec.model.residual_term import hsh_basis
 from torchspec.relight import render_near
-from torchspec.rendering import render_image
-from torchspec.residual_term import hsh_basis
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 two-lobed gloss, and nowhere else; what a single lobe costs there; and the per-pixel baseline.
 
 A simulated painting (pigments, varnish, the gilded patch, and a box of two-lobed gloss: a sharp
-varnish lobe over a broad one, :class:`torchspec.synth.DualConfig`) is rendered under a
+varnish lobe over a broad one, :class:`torchspec.simulate.synth.DualConfig`) is rendered under a
 ``grid x grid`` layout of a projected Gaussian light with shot noise. It is fitted on every second
 frame with ``auto``, with each model forced, and (``smooth``) with ``auto``'s choice of a lobe smoothed
 over the image; per run:
@@ -34,19 +34,19 @@ import torch
 from _common import parse_args, scipy_fit
 
 from torchspec.atomic import write_json
-from torchspec.brdf import SVBRDF
 from torchspec.config import load_config
-from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
-from torchspec.lights import Lights
-from torchspec.models import get_model
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import angle
+from torchspec.model.lights import Lights
+from torchspec.model.registry import get_model
+from torchspec.model.rendering import render
 from torchspec.pipeline import MODEL_CODES, FitConfig, LadderConfig, fit, select_frames, starting_point
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.solver import solve_pixels
-from torchspec.rendering import render
 from torchspec.report import REGIONS
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import DUAL, DualConfig, PaintingConfig, SensorConfig
+from torchspec.simulate.synth import DUAL, DualConfig, PaintingConfig, SensorConfig
 
 
 @dataclass(frozen=True)

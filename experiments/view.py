@@ -43,7 +43,7 @@ from _common import ROOT, parse_args
 from torchspec.atomic import write_json
 from torchspec.config import load_config
 from torchspec.io import read_svbrdf
-from torchspec.lights import Kernel
+from torchspec.model.lights import Kernel
 from torchspec.view import open_site, serve
 from torchspec.view.browser import Browser
 from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb

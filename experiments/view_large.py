@@ -45,7 +45,7 @@ from _common import ROOT, parse_args
 
 from torchspec.atomic import write_json
 from torchspec.config import load_config
-from torchspec.flags import FLAGS, UNTRUSTED, bit
+from torchspec.pipeline.flags import FLAGS, UNTRUSTED, bit
 from torchspec.pipeline.settings import MODEL_CODES
 from torchspec.view import cache
 from torchspec.view.browser import Browser

@@ -69,7 +69,7 @@ def write_painting(
     ``grid x grid`` layout of a projected Gaussian light (sigma 0.08), with truth; shot noise of
     ``photons`` per unit when given, else the simulator's default sensor."""
     from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-    from torchspec.synth import DualConfig, GildedConfig, PaintingConfig, SensorConfig
+    from torchspec.simulate.synth import DualConfig, GildedConfig, PaintingConfig, SensorConfig
 
     painting = PaintingConfig(
         width=size,
@@ -99,7 +99,7 @@ def write_relight_painting(path: Path) -> Path:
     """A simulated 10 x 8 painting (3 strokes) under a 4 x 4 grid of lights within radius 0.6 (12
     frames, irradiance 1), with truth: the relighting tests' capture."""
     from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-    from torchspec.synth import PaintingConfig
+    from torchspec.simulate.synth import PaintingConfig
 
     config = SimulationConfig(
         scene=SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=8, strokes=3)),

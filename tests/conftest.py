@@ -48,7 +48,7 @@ def unknown_light_capture(tmp_path):
     """A small mirror capture (6 frames) written with its light kernel 'unknown', as a device's
     capture is before calibration: the capture's directory."""
     from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-    from torchspec.synth import MirrorConfig
+    from torchspec.simulate.synth import MirrorConfig
 
     config = SimulationConfig(
         scene=SceneConfig(kind="mirror", mirror=MirrorConfig(width=4, height=4)),

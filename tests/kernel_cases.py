@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from torchspec.lights import Kernel
+from torchspec.model.lights import Kernel
 
 F64 = torch.float64
 

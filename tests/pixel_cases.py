@@ -3,9 +3,9 @@ flat pixels and a grid of lights, all float64."""
 
 import torch
 
-from torchspec.brdf import SVBRDF
-from torchspec.geometry import normalize
-from torchspec.lights import Kernel, Lights
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import normalize
+from torchspec.model.lights import Kernel, Lights
 from torchspec.simulate import LayoutConfig, layout
 
 

@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from torchspec.brdf import SVBRDF, lambert, reflectance, ward, ward_cosine
-from torchspec.geometry import normal_from_angles
+from torchspec.model.brdf import SVBRDF, lambert, reflectance, ward, ward_cosine
+from torchspec.model.geometry import normal_from_angles
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""A frame much darker or brighter than its neighbours in light direction (torchspec.brightness),
+"""A frame much darker or brighter than its neighbours in light direction (torchspec.calibration.brightness),
 as ``torchspec info`` reports it: flagged, named, with its ratio, as a warning."""
 
 from __future__ import annotations
@@ -8,13 +8,13 @@ import math
 import pytest
 import torch
 
-from torchspec.brdf import SVBRDF
-from torchspec.brightness import DARKER, MIN_ELEVATION_DEG, brightness_ratios, departures, ring_neighbours
+from torchspec.calibration.brightness import DARKER, MIN_ELEVATION_DEG, brightness_ratios, departures, ring_neighbours
 from torchspec.cli import main
 from torchspec.info import OK, WARNINGS, format_report, inspect_capture
 from torchspec.io import Capture, Frame, LightSpec, write_capture
-from torchspec.lights import Kernel, Lights
-from torchspec.rendering import render_image
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render_image
 from torchspec.view.check import model_maps
 
 RINGS = (20.0, 40.0, 60.0)  # elevations of a dome's rings, degrees; 12 lights each, and one at the zenith

@@ -14,15 +14,15 @@ import pytest
 import torch
 from capture_cases import DATA, needs_data
 
-from torchspec.brdf import SVBRDF
-from torchspec.calibrate import CalibrationError, calibrate, recover_kernel, write_kernel
+from torchspec.calibration.kernel import CalibrationError, calibrate, recover_kernel, write_kernel
 from torchspec.cli import main
-from torchspec.geometry import from_plane
 from torchspec.io import read_exr
-from torchspec.lights import Kernel, Lights
-from torchspec.rendering import render
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import from_plane
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render
 from torchspec.simulate import LayoutConfig, layout
-from torchspec.synth import MirrorConfig, SensorConfig, mirror, sense
+from torchspec.simulate.synth import MirrorConfig, SensorConfig, mirror, sense
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -265,8 +265,8 @@ def test_calibrated_kernel_is_usable(tmp_path, capsys):
 def test_fit_with_a_calibrated_kernel(tmp_path):
     from dataclasses import replace
 
-    from torchspec.geometry import angle
     from torchspec.io import LightSpec, read_capture, read_svbrdf, write_capture
+    from torchspec.model.geometry import angle
     from torchspec.pipeline import FitConfig, fit
 
     source = read_capture(DATA / "mirror-dev-1d")

@@ -44,7 +44,7 @@ def test_no_command_prints_help(capsys):
 
 def test_the_model_choices_are_the_packages_models():
     from torchspec.cli import build_parser
-    from torchspec.models import MODELS
+    from torchspec.model.registry import MODELS
 
     fit = build_parser()._subparsers._group_actions[0].choices["fit"]
     (action,) = [a for a in fit._actions if a.dest == "model"]

@@ -12,16 +12,16 @@ from capture_cases import write_painting
 from pixel_cases import grid_lights, random_svbrdf
 
 from torchspec.errors import TorchspecError
-from torchspec.geometry import angle
 from torchspec.io import read_svbrdf
-from torchspec.jacobian import jacobian
-from torchspec.lights import Kernel
 from torchspec.lm import LMConfig, bounded, solve
-from torchspec.models import get_model
+from torchspec.model.geometry import angle
+from torchspec.model.jacobian import jacobian
+from torchspec.model.lights import Kernel
+from torchspec.model.registry import get_model
+from torchspec.model.rendering import render
 from torchspec.pipeline import ComputeConfig, FitConfig, QuadratureConfig, fit, write_fit
 from torchspec.pipeline.plan import device_of
 from torchspec.relight import render_capture
-from torchspec.rendering import render
 
 
 def _scene(kernel: Kernel | None = None):

@@ -31,12 +31,12 @@ from torchspec.dome.acquisition import (
 )
 from torchspec.dome.camera import CameraError, FolderCamera, SimulatedCamera
 from torchspec.dome.protocol import DomeIdentity, DomeStatus
-from torchspec.geometry import angle
 from torchspec.info import OK, UNUSABLE, inspect_capture
 from torchspec.io import CaptureError, read_capture, write_exr
+from torchspec.model.geometry import angle
 from torchspec.pipeline import fit
 from torchspec.simulate import LayoutConfig, SceneConfig, layout
-from torchspec.synth import PaintingConfig, SensorConfig, painting
+from torchspec.simulate.synth import PaintingConfig, SensorConfig, painting
 
 ACQ = importlib.import_module("torchspec.dome.acquisition")
 

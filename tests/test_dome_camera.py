@@ -18,9 +18,9 @@ from torchspec.dome.camera import (
     command_trigger,
 )
 from torchspec.io import write_exr
-from torchspec.lights import Kernel
+from torchspec.model.lights import Kernel
 from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, layout, simulate
-from torchspec.synth import PaintingConfig, SensorConfig, painting
+from torchspec.simulate.synth import PaintingConfig, SensorConfig, painting
 
 SCENE = SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=8, seed=4, gilded=None))
 GAUSSIAN = {"kernel": "gaussian", "domain": "projected", "sigma": 0.08}

@@ -15,11 +15,11 @@ from torchspec.cli import main
 from torchspec.io import Capture, Frame, LightSpec, read_capture, read_svbrdf, write_capture
 from torchspec.io.rti import import_rti
 from torchspec.io.scale import Scale, ScaledCapture, ScaleError, reduce_image, scaled
-from torchspec.near_lights import image_points, near_light
-from torchspec.photometric import sample_masks
+from torchspec.model.near_lights import image_points, near_light
 from torchspec.pipeline import FitConfig, MasksConfig, fit, write_fit
 from torchspec.pipeline.plan import setup
 from torchspec.relight import render_capture
+from torchspec.start.photometric import sample_masks
 
 
 def _box(frames: torch.Tensor, n: int) -> torch.Tensor:

@@ -348,7 +348,7 @@ def test_mirror_brightness_of_a_diffuse_surface():
 
     import torch
 
-    from torchspec.brdf import SVBRDF
+    from torchspec.model.brdf import SVBRDF
 
     tilt = torch.tensor([0.0, 5.0, 10.0, 20.0, 30.0], dtype=torch.float64).deg2rad()
     normal = torch.stack([torch.sin(tilt), torch.zeros_like(tilt), torch.cos(tilt)], -1)
@@ -365,8 +365,8 @@ def test_broad_lobes_measures_what_it_says():
 
     import torch
 
-    from torchspec.flags import FLAGS, bit
     from torchspec.pipeline import MODEL_CODES
+    from torchspec.pipeline.flags import FLAGS, bit
 
     broad = _load("broad_lobes")
     off_deg = torch.tensor([0.0, 1.0, 3.0, 10.0, 0.5, 4.0], dtype=torch.float64)

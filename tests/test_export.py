@@ -13,14 +13,14 @@ import pytest
 import torch
 from conftest import SHARED
 
-from torchspec.brdf import SVBRDF
 from torchspec.cli import main
 from torchspec.export import FORMATS, ExportError, ExportWarning, export, export_gltf, export_mitsuba, export_png16
 from torchspec.io import SVBRDFError, read_capture, read_exr, read_svbrdf
-from torchspec.lights import Kernel, Lights
-from torchspec.quadrature import Quadrature
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.quadrature import Quadrature
+from torchspec.model.rendering import render
 from torchspec.relight import psnr
-from torchspec.rendering import render
 
 RELIGHT = SHARED / "painting-dev-relight"
 needs_data = pytest.mark.skipif(

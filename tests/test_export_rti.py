@@ -14,16 +14,16 @@ import torch
 from gltf_validator import validate, validator
 from test_export import _maps, _png
 
-from torchspec.brdf import SVBRDF
 from torchspec.cli import main
 from torchspec.export import ExportError, ExportWarning, export, export_gltf, export_openlime, export_png16, export_rti
 from torchspec.export.openlime import alpha_from_gloss, gloss_from_alpha
 from torchspec.export.rti import fit_hsh, fit_rti, hemisphere_directions, render_display
 from torchspec.export.rti import read_rti as read_rti_file
 from torchspec.io import Capture, Frame, LightSpec, write_capture, write_svbrdf
-from torchspec.lights import Kernel, Lights
-from torchspec.rendering import render, render_image
-from torchspec.residual_term import hsh_basis
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render, render_image
+from torchspec.model.residual_term import hsh_basis
 
 F64 = torch.float64
 

@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.cli import main
-from torchspec.geometry import angle
 from torchspec.io import read_capture, read_svbrdf
 from torchspec.io.exr import read_exr, write_exr
+from torchspec.model.geometry import angle
 from torchspec.pipeline import (
     MODEL_CODES,
     ComputeConfig,
@@ -214,7 +214,7 @@ def test_a_failed_compilation_warns_and_fits_without(painting, monkeypatch):
     def broken(function):
         raise RuntimeError("no C++ compiler here")
 
-    monkeypatch.setattr(__import__("importlib").import_module("torchspec.fusion"), "compiled", broken)
+    monkeypatch.setattr(__import__("importlib").import_module("torchspec.model.fusion"), "compiled", broken)
     monkeypatch.setattr(module, "_COMPILE_FAILED", [])
     with pytest.warns(UserWarning, match="torch.compile failed .*no C\\+\\+ compiler here.*fitting without it"):
         result = fit(painting, frames="::3", config=FitConfig(quadrature=QuadratureConfig(compile=True)))

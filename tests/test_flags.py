@@ -1,4 +1,4 @@
-"""Per-pixel flags (torchspec.flags): the checks around the fitted peak on rendered samples with
+"""Per-pixel flags (torchspec.pipeline.flags): the checks around the fitted peak on rendered samples with
 known noise, and the flags a fit writes."""
 
 import json
@@ -8,8 +8,15 @@ import pytest
 import torch
 from capture_cases import write_painting
 
-from torchspec.brdf import SVBRDF
-from torchspec.flags import (
+from torchspec.io.exr import read_exr
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import from_plane, normalize
+from torchspec.model.layout import mirror_point
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render
+from torchspec.pipeline import FitConfig, FlagsConfig, fit, write_fit
+from torchspec.pipeline.checks import overshoot
+from torchspec.pipeline.flags import (
     FLAGS,
     UNTRUSTED,
     WEAK_LOBE_SNR,
@@ -19,14 +26,7 @@ from torchspec.flags import (
     residual_samples,
     untrusted,
 )
-from torchspec.geometry import from_plane, normalize
-from torchspec.io.exr import read_exr
-from torchspec.layout import mirror_point
-from torchspec.lights import Kernel, Lights
-from torchspec.pipeline import FitConfig, FlagsConfig, fit, write_fit
-from torchspec.pipeline.checks import overshoot
 from torchspec.pipeline.samples import TileSamples
-from torchspec.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)

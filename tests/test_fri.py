@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchspec as ts
-from torchspec.fri import METHODS, pulses
+from torchspec.start.fri import METHODS, pulses
 
 F64 = torch.float64
 KERNELS = [
@@ -35,7 +35,7 @@ def _planted(kind, width, n, batch, dtype, device, *, offset=-2.5, seed=0):
 @pytest.mark.parametrize("n", [4, 5, 8, 16, 17, 33, 64])
 def test_noise_free_1d_is_exact(kind, width, n, method, dtype, device):
     y, x = _planted(kind, width, n, 64, dtype, device)
-    result = ts.fri.locate(y, period=1.0, method=method)
+    result = ts.start.fri.locate(y, period=1.0, method=method)
     err = circular_error(result.position.double(), x).abs().max().item()
     assert err <= TOLERANCE[dtype], f"{kind} N={n} {method}: max error {err:.3g}"
     assert result.position.dtype == dtype and result.position.device == y.device
@@ -52,7 +52,7 @@ def test_noise_free_2d_is_exact(kinds, shape, method, dtype, device):
     spec = pulses.outer(*(pulses.spectrum(k, width, b) for k, b in zip(kinds, bands, strict=True)))
     x = torch.rand(32, 2, dtype=F64, generator=g)
     y = (pulses.sample_2d(spec, x, shape=shape) - 1.0).to(dtype=dtype, device=device)
-    result = ts.fri.locate(y, period=(1.0, 1.0), method=method)
+    result = ts.start.fri.locate(y, period=(1.0, 1.0), method=method)
     assert result.position.shape == (32, 2)
     err = circular_error(result.position.double().cpu(), x).abs().max().item()
     assert err <= TOLERANCE[dtype], f"{kinds} {shape} {method}: max error {err:.3g}"
@@ -65,7 +65,7 @@ def test_planted_offsets_and_periods(period, shift):
     a = pulses.spectrum("gaussian", torch.tensor(0.07 * period, dtype=F64), 7, period=period)
     x = torch.tensor([[shift * period]], dtype=F64)
     y = pulses.sample(a, x, num_samples=16, period=period)
-    position = ts.fri.locate(y, period=period).position
+    position = ts.start.fri.locate(y, period=period).position
     err = circular_error(position, x[:, 0], period).abs().item()
     assert err <= 1e-10 * period, f"period {period} shift {shift}: error {err:.3g}"
 
@@ -74,27 +74,27 @@ def test_nyquist_bin_is_not_used():
     """An even N's Nyquist bin is real; corrupting it must not move the estimate."""
     y, x = _planted("gaussian", 0.05, 16, 16, F64, "cpu")
     alternating = torch.tensor([(-1.0) ** k for k in range(16)], dtype=F64)
-    moved = ts.fri.locate(y + 3.0 * alternating, period=1.0).position
+    moved = ts.start.fri.locate(y + 3.0 * alternating, period=1.0).position
     assert circular_error(moved, x).abs().max().item() < 1e-10
 
 
 def test_batching_and_broadcasting():
     y, x = _planted("gaussian", 0.05, 17, 24, F64, "cpu")
-    whole = ts.fri.locate(y.reshape(2, 3, 4, 17), period=1.0)
+    whole = ts.start.fri.locate(y.reshape(2, 3, 4, 17), period=1.0)
     assert whole.position.shape == (2, 3, 4) and whole.quality.shape == (2, 3, 4) and whole.std.shape == (2, 3, 4)
-    single = torch.stack([ts.fri.locate(row, period=1.0).position for row in y])
+    single = torch.stack([ts.start.fri.locate(row, period=1.0).position for row in y])
     torch.testing.assert_close(whole.position.reshape(-1), single, rtol=0, atol=1e-12)
-    unbatched = ts.fri.locate(y[0], period=1.0)
+    unbatched = ts.start.fri.locate(y[0], period=1.0)
     assert unbatched.position.shape == () and abs(float(unbatched.position) - float(x[0])) < 1e-10
-    empty = ts.fri.locate(y[:0], period=1.0)
+    empty = ts.start.fri.locate(y[:0], period=1.0)
     assert empty.position.shape == (0,) and empty.quality.shape == (0,)
 
 
 def test_batching_2d_and_empty():
     spec = pulses.outer(*(pulses.spectrum("gaussian", torch.tensor(0.08, dtype=F64), 3),) * 2)
     y = pulses.sample_2d(spec, torch.rand(6, 2, dtype=F64), shape=(8, 8)).reshape(2, 3, 8, 8)
-    assert ts.fri.locate(y, period=(1.0, 1.0)).position.shape == (2, 3, 2)
-    assert ts.fri.locate(y[:0], period=(1.0, 1.0)).position.shape == (0, 3, 2)
+    assert ts.start.fri.locate(y, period=(1.0, 1.0)).position.shape == (2, 3, 2)
+    assert ts.start.fri.locate(y[:0], period=(1.0, 1.0)).position.shape == (0, 3, 2)
 
 
 def test_numpy_and_tensor_scalars_are_accepted():
@@ -102,13 +102,13 @@ def test_numpy_and_tensor_scalars_are_accepted():
 
     y, x = _planted("gaussian", 0.05, 17, 4, F64, "cpu")
     for period, bands in [(np.float64(1.0), np.int64(8)), (torch.tensor(1.0), 8), (1, (np.int32(6),))]:
-        position = ts.fri.locate(y, period=period, num_coefficients=bands).position
+        position = ts.start.fri.locate(y, period=period, num_coefficients=bands).position
         assert circular_error(position, x).abs().max().item() < 1e-10
 
 
 def test_result_is_frozen():
     y, _ = _planted("gaussian", 0.05, 9, 2, F64, "cpu")
-    result = ts.fri.locate(y, period=1.0)
+    result = ts.start.fri.locate(y, period=1.0)
     with pytest.raises(AttributeError):
         result.position = None
 
@@ -122,7 +122,7 @@ def test_two_lorentzian_pulses(n, method):
     first = 0.4 * torch.rand(50, 1, dtype=F64, generator=g)
     x = torch.cat([first, first + 0.15 + 0.4 * torch.rand(50, 1, dtype=F64, generator=g)], -1)
     y = pulses.sample(a, x, num_samples=n, amplitude=torch.tensor([1.0, 0.6], dtype=F64)) - 0.5
-    result = ts.fri.locate(y, period=1.0, num_pulses=2, method=method)
+    result = ts.start.fri.locate(y, period=1.0, num_pulses=2, method=method)
     assert result.position.shape == (50, 2)
     assert bool((result.position[:, 0] <= result.position[:, 1]).all()), "positions must be ascending"
     err = circular_error(result.position, x).abs().max().item()
@@ -138,7 +138,7 @@ def test_scattered_1d(n, bands, method):
     positions = torch.rand(n, dtype=F64, generator=g)
     x = torch.rand(40, 1, dtype=F64, generator=g)
     y = pulses.sample(a, x, positions=positions) + 0.3
-    result = ts.fri.locate(y, period=1.0, positions=positions, num_coefficients=bands, method=method)
+    result = ts.start.fri.locate(y, period=1.0, positions=positions, num_coefficients=bands, method=method)
     err = circular_error(result.position, x[:, 0]).abs().max().item()
     assert err < 1e-9, f"max error {err:.3g}"
     assert float(result.quality.min()) > 0.99
@@ -150,13 +150,13 @@ def test_scattered_per_problem_layouts_and_2d():
     positions = torch.rand(30, 28, dtype=F64, generator=g)
     x = torch.rand(30, 1, dtype=F64, generator=g)
     y = pulses.sample(a, x, positions=positions)
-    result = ts.fri.locate(y, period=1.0, positions=positions, num_coefficients=6)
+    result = ts.start.fri.locate(y, period=1.0, positions=positions, num_coefficients=6)
     assert circular_error(result.position, x[:, 0]).abs().max().item() < 1e-9
 
     spec = pulses.outer(*(pulses.spectrum("gaussian", torch.tensor(0.08, dtype=F64), 3),) * 2)
     layout = torch.rand(100, 2, dtype=F64, generator=g)
     x2 = torch.rand(20, 2, dtype=F64, generator=g)
-    result = ts.fri.locate(pulses.sample_2d(spec, x2, positions=layout), period=(1.0, 1.0), positions=layout)
+    result = ts.start.fri.locate(pulses.sample_2d(spec, x2, positions=layout), period=(1.0, 1.0), positions=layout)
     assert result.position.shape == (20, 2)
     assert circular_error(result.position, x2).abs().max().item() < 1e-9
 
@@ -167,8 +167,10 @@ def test_scattered_conditioning_lowers_quality():
     spread = torch.linspace(0, 1, 21, dtype=torch.float32)[:-1]
     clustered = 0.3 * torch.rand(20, generator=g, dtype=torch.float32)  # a narrow arc of the period
     x = torch.full((1, 1), 0.1, dtype=torch.float32)
-    good = ts.fri.locate(pulses.sample(a, x, positions=spread), period=1.0, positions=spread, num_coefficients=4)
-    bad = ts.fri.locate(pulses.sample(a, x, positions=clustered), period=1.0, positions=clustered, num_coefficients=4)
+    good = ts.start.fri.locate(pulses.sample(a, x, positions=spread), period=1.0, positions=spread, num_coefficients=4)
+    bad = ts.start.fri.locate(
+        pulses.sample(a, x, positions=clustered), period=1.0, positions=clustered, num_coefficients=4
+    )
     assert float(bad.quality) < float(good.quality), f"clustered {float(bad.quality):.3g} vs {float(good.quality):.3g}"
 
 
@@ -176,10 +178,10 @@ def test_rank_deficient_layouts():
     positions = torch.tensor([0.1, 0.1, 0.3, 0.3, 0.6, 0.6, 0.8, 0.8, 0.2], dtype=F64)
     y = torch.rand(3, 9, dtype=F64)
     with pytest.raises(ValueError, match="rank-deficient"):
-        ts.fri.locate(y, period=1.0, positions=positions, num_coefficients=4)
+        ts.start.fri.locate(y, period=1.0, positions=positions, num_coefficients=4)
     per_problem = torch.rand(3, 9, dtype=F64)
     per_problem[1] = positions
-    result = ts.fri.locate(y, period=1.0, positions=per_problem, num_coefficients=4)
+    result = ts.start.fri.locate(y, period=1.0, positions=per_problem, num_coefficients=4)
     assert math.isnan(float(result.position[1])) and float(result.quality[1]) == 0.0
     assert not bool(result.position[[0, 2]].isnan().any())
 
@@ -188,14 +190,14 @@ def test_non_finite_samples_fail_alone():
     y, x = _planted("gaussian", 0.05, 17, 4, F64, "cpu")
     y[1, 3] = math.nan
     y[2, 0] = math.inf
-    result = ts.fri.locate(y, period=1.0)
+    result = ts.start.fri.locate(y, period=1.0)
     assert bool(result.position[1:3].isnan().all()) and bool((result.quality[1:3] == 0).all())
     assert circular_error(result.position[[0, 3]], x[[0, 3]]).abs().max().item() < 1e-10
     assert bool((result.quality[[0, 3]] > 0.99).all())
 
 
 def test_flat_samples_give_zero_quality_and_finite_position():
-    result = ts.fri.locate(torch.zeros(2, 16, dtype=F64) + 4.0, period=1.0)
+    result = ts.start.fri.locate(torch.zeros(2, 16, dtype=F64) + 4.0, period=1.0)
     assert bool(torch.isfinite(result.position).all())
     assert bool((result.quality == 0).all())
 
@@ -225,16 +227,16 @@ def test_flat_samples_give_zero_quality_and_finite_position():
 )
 def test_bad_calls_name_the_argument(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        ts.fri.locate(torch.rand(4, 16, dtype=F64), **kwargs)
+        ts.start.fri.locate(torch.rand(4, 16, dtype=F64), **kwargs)
 
 
 def test_bad_samples():
     with pytest.raises(ValueError, match="real float32 or float64 tensor; got torch.int64"):
-        ts.fri.locate(torch.ones(4, 16, dtype=torch.int64), period=1.0)
+        ts.start.fri.locate(torch.ones(4, 16, dtype=torch.int64), period=1.0)
     with pytest.raises(ValueError, match="at least 2 dims"):
-        ts.fri.locate(torch.ones(16, dtype=F64), period=(1.0, 1.0))
+        ts.start.fri.locate(torch.ones(16, dtype=F64), period=(1.0, 1.0))
     with pytest.raises(ValueError, match="needs at least 2M"):
-        ts.fri.locate(torch.ones(4, 2, dtype=F64), period=1.0)
+        ts.start.fri.locate(torch.ones(4, 2, dtype=F64), period=1.0)
 
 
 def test_ls_gradient():
@@ -242,8 +244,8 @@ def test_ls_gradient():
     y, _ = _planted("gaussian", 0.05, 9, 3, F64, "cpu")
     y = y + 0.01 * torch.randn(y.shape, dtype=F64, generator=torch.Generator().manual_seed(0))
     y.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda s: ts.fri.locate(s, period=1.0, method="ls").position, (y,))
-    ts.fri.locate(y, period=1.0, method="ls").position.sum().backward()
+    assert torch.autograd.gradcheck(lambda s: ts.start.fri.locate(s, period=1.0, method="ls").position, (y,))
+    ts.start.fri.locate(y, period=1.0, method="ls").position.sum().backward()
     assert bool(torch.isfinite(y.grad).all()) and float(y.grad.abs().sum()) > 0
 
 
@@ -255,35 +257,36 @@ def _noisy(kind, width, bands, snr_db, batch, seed):
     clean = pulses.sample(a, x, num_samples=n)
     sigma = clean.pow(2).mean(-1, keepdim=True).div(10 ** (snr_db / 10)).sqrt()
     y = clean + sigma * torch.randn(clean.shape, dtype=F64, generator=g)
-    bound = ts.crb.location_1d(a, num_samples=n, noise_sigma=sigma[:, 0])
+    bound = ts.model.crb.location_1d(a, num_samples=n, noise_sigma=sigma[:, 0])
     return y, x[:, 0], bound
 
 
 @pytest.mark.parametrize("snr_db", [10.0, 20.0, 40.0])
 def test_default_is_near_the_bound(snr_db):
     y, x, bound = _noisy("gaussian", 0.05, 8, snr_db, 4000, seed=11)
-    error = circular_error(ts.fri.locate(y, period=1.0).position, x)
+    error = circular_error(ts.start.fri.locate(y, period=1.0).position, x)
     ratio = error.pow(2).mean().item() / bound.mean().item()
     assert ratio < 1.12, f"MSE / CRB = {ratio:.3f} at {snr_db} dB"
 
 
 def test_std_predicts_the_error():
     y, x, _ = _noisy("gaussian", 0.05, 8, 20.0, 4000, seed=5)
-    result = ts.fri.locate(y, period=1.0)
+    result = ts.start.fri.locate(y, period=1.0)
     rms_error = circular_error(result.position, x).pow(2).mean().sqrt().item()
     rms_std = result.std.pow(2).mean().sqrt().item()
     assert 0.85 < rms_error / rms_std < 1.15, f"rms error {rms_error:.3g} vs predicted {rms_std:.3g}"
 
 
 def test_quality_falls_with_noise_and_flags_outliers():
-    clean = ts.fri.locate(_noisy("gaussian", 0.05, 8, 30.0, 2000, seed=1)[0], period=1.0).quality
+    clean = ts.start.fri.locate(_noisy("gaussian", 0.05, 8, 30.0, 2000, seed=1)[0], period=1.0).quality
     y, x, _ = _noisy("gaussian", 0.05, 8, -5.0, 4000, seed=2)
-    noisy = ts.fri.locate(y, period=1.0)
+    noisy = ts.start.fri.locate(y, period=1.0)
     assert float(clean.median()) > 0.99 and float(noisy.quality.median()) < 0.5
     outliers = circular_error(noisy.position, x).abs() > 0.1
     caught = (outliers & (noisy.quality < 0.5)).sum().item() / max(outliers.sum().item(), 1)
     assert caught > 0.8, f"quality < 0.5 caught {caught:.2%} of the outliers"
-    pure_noise = ts.fri.locate(torch.randn(2000, 17, dtype=F64, generator=torch.Generator().manual_seed(4)), period=1.0)
+    noise = torch.randn(2000, 17, dtype=F64, generator=torch.Generator().manual_seed(4))
+    pure_noise = ts.start.fri.locate(noise, period=1.0)
     assert float(pure_noise.quality.median()) < 0.2
 
 
@@ -301,12 +304,12 @@ def test_invariances(location, roll, gain, offset, n):
     y = pulses.sample(a, torch.tensor([[location]], dtype=F64), num_samples=n)[0]
     noise = 0.02 * torch.randn(n, dtype=F64, generator=torch.Generator().manual_seed(n))
     y = y + noise
-    base = ts.fri.locate(y, period=1.0).position
-    shifted = ts.fri.locate(torch.roll(y, roll), period=1.0).position
+    base = ts.start.fri.locate(y, period=1.0).position
+    shifted = ts.start.fri.locate(torch.roll(y, roll), period=1.0).position
     assert abs(circular_error(shifted, base + roll / n).item()) < 1e-9
-    scaled = ts.fri.locate(gain * y + offset, period=1.0).position
+    scaled = ts.start.fri.locate(gain * y + offset, period=1.0).position
     assert abs(circular_error(scaled, base).item()) < 1e-9
-    mirrored = ts.fri.locate(torch.roll(y.flip(0), 1), period=1.0).position  # y'[n] = y[-n]
+    mirrored = ts.start.fri.locate(torch.roll(y.flip(0), 1), period=1.0).position  # y'[n] = y[-n]
     assert abs(circular_error(mirrored, -base).item()) < 1e-9
 
 
@@ -319,11 +322,11 @@ def test_aliased_point_samples_widen_std():
     generator = torch.Generator().manual_seed(0)
     a = pulses.spectrum("gaussian", torch.tensor(0.05, dtype=torch.float64), 60)
     x = torch.rand(400, 1, dtype=torch.float64, generator=generator)
-    found = ts.fri.locate(pulses.sample(a, x, num_samples=9), period=1.0)
+    found = ts.start.fri.locate(pulses.sample(a, x, num_samples=9), period=1.0)
     error = torch.remainder(found.position - x[:, 0] + 0.5, 1.0) - 0.5
     assert float((error.abs() <= 2 * found.std).double().mean()) > 0.9
     ratio = float(error.pow(2).mean().sqrt() / found.std.median())
     assert 0.5 < ratio < 1.5, ratio  # measured 0.88 over 2000 locations
     assert float((found.quality < 0.5).double().mean()) > 0.1  # measured 20 %: the worst are flagged
-    lowpass = ts.fri.locate(pulses.sample(a[:5], x, num_samples=9), period=1.0)
+    lowpass = ts.start.fri.locate(pulses.sample(a[:5], x, num_samples=9), period=1.0)
     assert float((lowpass.position - x[:, 0]).abs().max()) < 1e-9 and float(lowpass.quality.min()) > 0.99

@@ -1,4 +1,4 @@
-"""``locate(..., kernel=...)`` and :func:`torchspec.fri.estimate_kernel`: the known (or pooled)
+"""``locate(..., kernel=...)`` and :func:`torchspec.start.fri.estimate_kernel`: the known (or pooled)
 kernel's matched filter."""
 
 import math
@@ -8,7 +8,7 @@ import torch
 from conftest import TOLERANCE, circular_error
 
 import torchspec as ts
-from torchspec.fri import pulses
+from torchspec.start.fri import pulses
 
 F64 = torch.float64
 KERNELS = [("gaussian", 0.05), ("gaussian", 0.2236), ("lorentzian", 0.03), ("box", 0.32), ("raised-cosine", 0.25)]
@@ -30,7 +30,7 @@ def _samples(kind, width, n, batch, *, snr_db=None, seed=0, gains=False):
             (gain * pulses.sample(a, x, num_samples=n)).pow(2).mean(-1, keepdim=True).div(10 ** (snr_db / 10)).sqrt()
         )
         y = y + sigma * torch.randn(y.shape, dtype=F64, generator=g)
-        bound = ts.crb.location_1d(a, num_samples=n, noise_sigma=sigma[:, 0] / gain[:, 0])
+        bound = ts.model.crb.location_1d(a, num_samples=n, noise_sigma=sigma[:, 0] / gain[:, 0])
     return y, x[:, 0], a, bound
 
 
@@ -40,7 +40,7 @@ def test_noise_free_1d_is_exact(kind, width, n, dtype, device):
     y, x, a, _ = _samples(kind, width, n, 32, gains=True)
     y = y.to(dtype=dtype, device=device)
     for kernel in (a, 3.0 * a, "pooled"):  # any scale
-        result = ts.fri.locate(y, period=1.0, kernel=kernel)
+        result = ts.start.fri.locate(y, period=1.0, kernel=kernel)
         err = circular_error(result.position.double().cpu(), x).abs().max().item()
         assert err <= TOLERANCE[dtype], (
             f"{kind} N={n} kernel={kernel if isinstance(kernel, str) else 'true'}: {err:.3g}"
@@ -56,7 +56,7 @@ def test_noise_free_2d_is_exact(shape, dtype):
     x = torch.rand(16, 2, dtype=F64, generator=g)
     y = pulses.sample_2d(a, x, shape=shape, period=(1.0, 1.0)).to(dtype)
     for kernel in (a, "pooled"):
-        position = ts.fri.locate(y, period=(1.0, 1.0), kernel=kernel).position
+        position = ts.start.fri.locate(y, period=(1.0, 1.0), kernel=kernel).position
         assert circular_error(position.double(), x).abs().max().item() <= TOLERANCE[dtype]
 
 
@@ -69,7 +69,7 @@ def test_known_kernel_is_the_matched_filter_maximum(kind, width, n, tolerance):
     Newton to convergence. The fixed three Newton steps of ``locate`` leave at most ~1e-7 (a box
     kernel at 5 dB), far below the noise's ~1e-2."""
     y, _, a, _ = _samples(kind, width, n, 200, snr_db=5.0, seed=7)
-    position = ts.fri.locate(y, period=1.0, kernel=a).position
+    position = ts.start.fri.locate(y, period=1.0, kernel=a).position
     bands = (n - 1) // 2
     coefficients = torch.fft.rfft(y, dim=-1)[:, 1 : bands + 1] / n
     m = torch.arange(1, bands + 1, dtype=F64)
@@ -88,7 +88,7 @@ def test_closed_form_with_one_coefficient():
     """M = 1: the known-kernel maximum likelihood is the phase of ``Y_1``, whatever the kernel's sign."""
     y, _, a, _ = _samples("gaussian", 0.1, 3, 50, snr_db=0.0, seed=2)
     closed = torch.remainder(-torch.angle(torch.fft.rfft(y, dim=-1)[:, 1]) / (2.0 * math.pi), 1.0)
-    position = ts.fri.locate(y, period=1.0, kernel=a).position
+    position = ts.start.fri.locate(y, period=1.0, kernel=a).position
     assert circular_error(position, closed).abs().max().item() < 1e-12
 
 
@@ -97,12 +97,12 @@ def test_estimate_kernel_recovers_a_known_kernel(kind, width, n):
     a = pulses.spectrum(kind, torch.tensor(width, dtype=F64), (n - 1) // 2)
     unit = a[1:] / a[1:].norm()
     clean, _, _, _ = _samples(kind, width, n, 64, gains=True, seed=1)
-    exact = ts.fri.estimate_kernel(clean, period=1.0)
+    exact = ts.start.fri.estimate_kernel(clean, period=1.0)
     assert exact[0] == 0 and torch.allclose(exact[1:], unit, atol=1e-12)
     # 20 dB: the noise per coefficient is ~0.1 / sqrt(N) of the pulse, so over 4000 problems the
     # pooled spectrum's error is ~2e-3 of its norm.
     noisy, _, _, _ = _samples(kind, width, n, 4000, snr_db=20.0, gains=True, seed=2)
-    error = (ts.fri.estimate_kernel(noisy, period=1.0)[1:] - unit).abs().max().item()
+    error = (ts.start.fri.estimate_kernel(noisy, period=1.0)[1:] - unit).abs().max().item()
     assert error < 0.01, f"{kind}: max error {error:.3g}"
 
 
@@ -110,23 +110,24 @@ def test_estimate_kernel_2d_layout_and_edge_cases():
     a = pulses.outer(*(pulses.spectrum("gaussian", torch.tensor(0.1, dtype=F64), b) for b in (3, 2)))
     x = torch.rand(40, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
     y = pulses.sample_2d(a, x, shape=(7, 5), period=(1.0, 1.0))
-    estimate = ts.fri.estimate_kernel(y, period=(1.0, 1.0))
+    estimate = ts.start.fri.estimate_kernel(y, period=(1.0, 1.0))
     assert estimate.shape == (7, 5) and estimate[3, 2] == 0
     truth = a.clone()
     truth[3, 2] = 0.0
     truth = truth / (truth.norm() / math.sqrt(2.0))  # unit norm over one half-plane
     assert torch.allclose(estimate, truth, atol=1e-12)
-    assert torch.equal(ts.fri.estimate_kernel(torch.zeros(0, 9, dtype=F64), period=1.0), torch.zeros(5, dtype=F64))
+    empty = ts.start.fri.estimate_kernel(torch.zeros(0, 9, dtype=F64), period=1.0)
+    assert torch.equal(empty, torch.zeros(5, dtype=F64))
     nan = torch.full((3, 9), math.nan, dtype=F64)
-    assert torch.equal(ts.fri.estimate_kernel(nan, period=1.0), torch.zeros(5, dtype=F64))
+    assert torch.equal(ts.start.fri.estimate_kernel(nan, period=1.0), torch.zeros(5, dtype=F64))
     for empty in (torch.zeros(0, 9, dtype=F64), nan, torch.ones(3, 9, dtype=F64)):  # nothing to pool
-        pooled, alone = ts.fri.locate(empty, period=1.0, kernel="pooled"), ts.fri.locate(empty, period=1.0)
+        pooled, alone = ts.start.fri.locate(empty, period=1.0, kernel="pooled"), ts.start.fri.locate(empty, period=1.0)
         assert torch.equal(pooled.position, alone.position) or bool(pooled.position.isnan().all())
         assert torch.equal(pooled.quality, alone.quality)
     mixed = torch.cat(
         [nan, pulses.sample(pulses.spectrum("gaussian", torch.tensor(0.1, dtype=F64), 4), x[:8, :1], num_samples=9)]
     )
-    assert torch.isfinite(ts.fri.estimate_kernel(mixed, period=1.0)).all()
+    assert torch.isfinite(ts.start.fri.estimate_kernel(mixed, period=1.0)).all()
 
 
 def test_pooled_kernel_is_near_the_bound_where_the_default_is_not():
@@ -134,7 +135,7 @@ def test_pooled_kernel_is_near_the_bound_where_the_default_is_not():
     costs ~14 % over the bound there; the pooled kernel ~3 % (experiments/fig2_crb.py)."""
     y, x, _, bound = _samples("gaussian", 0.2236, 17, 4000, snr_db=10.0, seed=11)
     ratio = {
-        kernel: circular_error(ts.fri.locate(y, period=1.0, kernel=kernel).position, x).pow(2).mean().item()
+        kernel: circular_error(ts.start.fri.locate(y, period=1.0, kernel=kernel).position, x).pow(2).mean().item()
         / bound.mean().item()
         for kernel in (None, "pooled")
     }
@@ -143,12 +144,12 @@ def test_pooled_kernel_is_near_the_bound_where_the_default_is_not():
 
 def test_std_and_quality_with_a_kernel():
     y, x, a, _ = _samples("gaussian", 0.05, 17, 4000, snr_db=20.0, seed=5)
-    result = ts.fri.locate(y, period=1.0, kernel=a)
+    result = ts.start.fri.locate(y, period=1.0, kernel=a)
     rms_error = circular_error(result.position, x).pow(2).mean().sqrt().item()
     rms_std = result.std.pow(2).mean().sqrt().item()
     assert 0.85 < rms_error / rms_std < 1.15, f"rms error {rms_error:.3g} vs predicted {rms_std:.3g}"
     assert float(result.quality.median()) > 0.9
-    noise = ts.fri.locate(
+    noise = ts.start.fri.locate(
         torch.randn(500, 17, dtype=F64, generator=torch.Generator().manual_seed(4)), period=1.0, kernel=a
     )
     assert float(noise.quality.median()) < 0.2
@@ -170,4 +171,4 @@ def test_std_and_quality_with_a_kernel():
 )
 def test_bad_kernels_name_the_argument(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        ts.fri.locate(torch.rand(4, 16, dtype=F64), **kwargs)
+        ts.start.fri.locate(torch.rand(4, 16, dtype=F64), **kwargs)

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchspec.fri import pulses
+from torchspec.start.fri import pulses
 
 F64 = torch.float64
 

@@ -4,7 +4,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchspec import geometry as g
+from torchspec.model import geometry as g
 
 F64 = torch.float64
 
@@ -82,7 +82,7 @@ def test_normal_angles_smooth_at_zenith():
 def test_angle_is_accurate_near_zero_and_pi():
     import math
 
-    from torchspec.geometry import angle
+    from torchspec.model.geometry import angle
 
     e = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
     for t in (1e-9, 1e-4, 0.5, math.pi / 2, math.pi - 1e-9):

@@ -1,4 +1,4 @@
-"""Height from normals (torchspec.height): exact on planes, accurate on smooth reliefs, the
+"""Height from normals (torchspec.model.height): exact on planes, accurate on smooth reliefs, the
 capture format's sign conventions, weights that ignore corrupted normals, shapes refused."""
 
 import math
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from torchspec.errors import TorchspecError
-from torchspec.height import dct, height_from_normals, idct, normals_from_height
-from torchspec.relief import ReliefConfig, relief
+from torchspec.model.height import dct, height_from_normals, idct, normals_from_height
+from torchspec.simulate.relief import ReliefConfig, relief
 
 F64 = torch.float64
 

@@ -12,10 +12,10 @@ from pixel_cases import grid_lights, random_svbrdf
 from torch.overrides import TorchFunctionMode
 
 import torchspec.lm.solver as lm_solver
-from torchspec.lights import Kernel
 from torchspec.lm import LMConfig, bounded, solve
-from torchspec.models import MODELS, get_model
-from torchspec.quadrature import Quadrature
+from torchspec.model.lights import Kernel
+from torchspec.model.quadrature import Quadrature
+from torchspec.model.registry import MODELS, get_model
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 SYNCS = {"item", "tolist", "nonzero", "argwhere", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy",

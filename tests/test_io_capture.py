@@ -10,7 +10,6 @@ import torch
 from capture_cases import DATA, H, W, edit_manifest, needs_data, random_frames, small_capture
 
 import torchspec.io.capture as capture_module
-from torchspec.brdf import SVBRDF
 from torchspec.io import (
     Capture,
     CaptureError,
@@ -21,6 +20,7 @@ from torchspec.io import (
     write_capture,
     write_exr,
 )
+from torchspec.model.brdf import SVBRDF
 
 
 def _capture(root=".", light=None, count=3, channels=("R", "G", "B")) -> Capture:

@@ -17,7 +17,7 @@ from torchspec.io import read_capture
 from torchspec.io.images import ImageError, Transfer, read_photo
 from torchspec.io.lp import LightFileError, read_light_file
 from torchspec.io.rti import RTIImportError, import_rti
-from torchspec.photometric import sample_masks
+from torchspec.start.photometric import sample_masks
 
 DIRECTIONS = [(0.0, 0.0, 1.0), (0.6, 0.0, 0.8), (0.0, 0.6, 0.8), (-0.6, 0.0, 0.8), (0.0, -0.6, 0.8)]
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import torchspec.io.svbrdf as svbrdf_module
-from torchspec.brdf import SVBRDF
 from torchspec.io import Maps, SVBRDFError, read_exr, read_svbrdf, write_exr, write_svbrdf
+from torchspec.model.brdf import SVBRDF
 
 H, W = 6, 7
 

@@ -4,14 +4,14 @@ from dataclasses import replace
 import pytest
 import torch
 
-from torchspec.brdf import SVBRDF
-from torchspec.geometry import normal_from_angles
-from torchspec.jacobian import from_parameters, jacobian, parameters
-from torchspec.least_squares import normal_equations, sandwich_terms
-from torchspec.lights import Kernel, Lights
-from torchspec.models import MODELS
-from torchspec.quadrature import Quadrature
-from torchspec.rendering import render
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import normal_from_angles
+from torchspec.model.jacobian import from_parameters, jacobian, parameters
+from torchspec.model.least_squares import normal_equations, sandwich_terms
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.quadrature import Quadrature
+from torchspec.model.registry import MODELS
+from torchspec.model.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)

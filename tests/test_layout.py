@@ -1,4 +1,4 @@
-"""What a layout of lights lets a fit do (torchspec.layout.fit_problem, coverage_warning), said by
+"""What a layout of lights lets a fit do (torchspec.model.layout.fit_problem, coverage_warning), said by
 ``info`` and by ``fit`` before it starts; the fit's warning when many pixels stop at the solver's
 iteration limit."""
 
@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchspec.cli import main
-from torchspec.layout import coverage_warning, fit_problem
+from torchspec.model.layout import coverage_warning, fit_problem
 from torchspec.pipeline.assembly import stalled_warning
 
 F64 = torch.float64
@@ -88,7 +88,7 @@ def test_the_stalled_share():
 
 def _lights_at(plane):
     """Point lights at l-plane positions ``plane (K, 2)``, irradiance 1."""
-    from torchspec.lights import Kernel, Lights
+    from torchspec.model.lights import Kernel, Lights
 
     d = torch.cat([plane, (1 - plane.pow(2).sum(-1, keepdim=True)).sqrt()], -1)
     k = d.shape[0]
@@ -100,8 +100,8 @@ def _lights_at(plane):
 def test_lobe_support_is_the_ward_shape_at_the_best_light(seed):
     """Against brute force: ward_cosine without its factors ``sqrt(<n,wi>/<n,wo>) / (4 pi ax ay)``
     is ``exp(E)``; the support is its largest value over the lights (the sharper of two lobes)."""
-    from torchspec.brdf import SVBRDF, ward_cosine
-    from torchspec.layout import lobe_support
+    from torchspec.model.brdf import SVBRDF, ward_cosine
+    from torchspec.model.layout import lobe_support
 
     g = torch.Generator().manual_seed(seed)
     n_px, k = 7, 9
@@ -133,8 +133,8 @@ def test_lobe_support_is_the_ward_shape_at_the_best_light(seed):
 def test_a_lobe_between_the_lights_is_not_supported():
     """A lobe whose peak (the half vector n) sits midway between grid lights, narrower than their
     spacing, is not seen within its half maximum; the same lobe at a light is, as is a broad one."""
-    from torchspec.brdf import SVBRDF
-    from torchspec.layout import lobe_support
+    from torchspec.model.brdf import SVBRDF
+    from torchspec.model.layout import lobe_support
 
     lights = _lights_at(_grid(5, 0.6))  # l-plane spacing 0.3: half vectors ~0.15 apart
     # n mirrors the view to l-plane point (0.15, 0.15) (midway) or (0, 0) (on a light)

@@ -1,4 +1,4 @@
-"""Light calibration from the photographs (torchspec.lightcal) on captures made here by a forward
+"""Light calibration from the photographs (torchspec.calibration.lights) on captures made here by a forward
 model of its own: Lambertian pixels (plus a Ward-like lobe) under lights with per-frame gains,
 distant or near (a dome)."""
 
@@ -11,9 +11,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from torchspec.calibration.lights import DOME_MARGIN, RADII, RADIUS_SAMPLE, calibrate_lights, lambert_fit
 from torchspec.errors import TorchspecError
-from torchspec.lightcal import DOME_MARGIN, RADII, RADIUS_SAMPLE, calibrate_lights, lambert_fit
-from torchspec.near_lights import image_points, near_light
+from torchspec.model.near_lights import image_points, near_light
 
 F64 = torch.float64
 
@@ -240,7 +240,7 @@ def test_left_out_misfit_prefers_the_lights_that_made_the_photographs():
     intensities (the capture's) beat gains spread as a real dome's (which bend every fold's maps),
     and a dome's true positions beat the same lights taken as distant; noise-free and Lambertian,
     the true lights leave ~0."""
-    from torchspec.lightcal.judge import left_out_misfit
+    from torchspec.calibration.lights.judge import left_out_misfit
 
     frames, gains, positions, _ = make_capture(size=24, frames=20, radius=3.0)
     frames = frames / gains[:, :, None, None]  # lights of equal intensity

@@ -4,8 +4,8 @@ import pytest
 import torch
 from brute_force import integrate, kernel_density
 
-from torchspec.diffuse import clamped_diffuse
-from torchspec.lights import Kernel, Lights, diffuse_directions, nodes
+from torchspec.model.diffuse import clamped_diffuse
+from torchspec.model.lights import Kernel, Lights, diffuse_directions, nodes
 
 F64 = torch.float64
 
@@ -122,10 +122,10 @@ def test_an_angular_kernel_compiles_without_a_graph_break():
     kernels ran at eager speed), with the eager values."""
     import torch._dynamo
 
-    from torchspec.brdf import SVBRDF
-    from torchspec.geometry import normal_from_angles
-    from torchspec.quadrature import Quadrature
-    from torchspec.rendering import render
+    from torchspec.model.brdf import SVBRDF
+    from torchspec.model.geometry import normal_from_angles
+    from torchspec.model.quadrature import Quadrature
+    from torchspec.model.rendering import render
 
     kernel = Kernel("gaussian", "angular", 0.05)
     assert kernel._radial_normaliser() == pytest.approx(2 * math.pi * 0.05**2, rel=2e-3)  # small angles: planar

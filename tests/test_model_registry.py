@@ -1,4 +1,4 @@
-"""The model registry (torchspec.models.register): a model declared in one module outside the
+"""The model registry (torchspec.model.registry.register): a model declared in one module outside the
 package (tests/toy_phong.py: a Phong lobe and its parameters) and registered is fitted, taken by
 the config and the command line, and its Jacobian, by forward-mode AD through the renderer, is the
 derivative; the whole fit (its deviations and peak checks from the forward-mode sandwich terms,
@@ -14,17 +14,17 @@ import torch
 from pixel_cases import grid_lights
 from toy_phong import PHONG
 
-from torchspec.brdf import SVBRDF
 from torchspec.errors import TorchspecError
-from torchspec.lights import Kernel
 from torchspec.lm import LMConfig
-from torchspec.models import BUILT_IN, MODEL_CODES, MODELS, get_model, register, registered, unregister
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.lights import Kernel
+from torchspec.model.quadrature import QUADRATURES
+from torchspec.model.registry import BUILT_IN, MODEL_CODES, MODELS, get_model, register, registered, unregister
+from torchspec.model.rendering import render
 from torchspec.pipeline import FitConfig, LadderConfig, QuadratureConfig
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.settings import LADDER
 from torchspec.pipeline.solver import solve_pixels
-from torchspec.quadrature import QUADRATURES
-from torchspec.rendering import render
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = torch.float64
@@ -138,12 +138,12 @@ def test_a_registered_model_is_fitted_by_the_pipelines_solver(phong):
 
 
 def test_the_docs_list_the_registered_models():
-    """The model tables of docs/capture-format.md and torchspec/models.py name the built-in models
+    """The model tables of docs/capture-format.md and torchspec/model/registry.py name the built-in models
     in their code order."""
     formats = (ROOT / "docs" / "capture-format.md").read_text()
     (line,) = [line for line in formats.splitlines() if line.startswith("| `model.exr`")]
     assert re.findall(r"`([a-z-]+)`", line.split("model_codes")[1]) == list(BUILT_IN)
-    table = (ROOT / "torchspec" / "models.py").read_text().split('"""')[1]
+    table = (ROOT / "torchspec" / "model" / "registry.py").read_text().split('"""')[1]
     assert re.findall(r"^``([a-z-]+)`` {2,}", table, flags=re.M) == list(BUILT_IN)
 
 
@@ -176,10 +176,10 @@ def test_the_forward_mode_sandwich_terms_are_the_fused_ones_for_ward(name, kerne
     """forward_sandwich_terms (forward-mode Jacobian, what a lobe without closed forms is assessed
     with) forced on a Ward model gives sandwich_terms' outputs: within float64 rounding under point
     lights (chunked over pixels), within the closed forms' quadrature error (their nodes held fixed,
-    torchspec.jacobian) under an extended kernel."""
-    import torchspec.forward_terms as forward_terms
-    from torchspec.forward_terms import forward_sandwich_terms
-    from torchspec.least_squares import sandwich_terms
+    torchspec.model.jacobian) under an extended kernel."""
+    import torchspec.model.forward_terms as forward_terms
+    from torchspec.model.forward_terms import forward_sandwich_terms
+    from torchspec.model.least_squares import sandwich_terms
 
     monkeypatch.setattr(forward_terms, "pixels_per_chunk", lambda frames, quadrature: 2 * get_model(name).size(3))
     model, truth, lights, observed, noise, fit = _ward_case(name, kernel)
@@ -197,11 +197,11 @@ def test_the_forward_mode_sandwich_terms_are_the_fused_ones_for_ward(name, kerne
 def phong_capture(tmp_path_factory):
     """A simulated 10 x 10 painting (isotropic roughness) rendered with the toy Phong lobe under a
     6 x 6 grid of point lights, recorded by the simulator's sensor (noise, clipping); its truth."""
-    from torchspec.lights import Lights
-    from torchspec.rendering import render_image
+    from torchspec.model.lights import Lights
+    from torchspec.model.rendering import render_image
     from torchspec.simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, layout, simulate
     from torchspec.simulate import write_simulation as write
-    from torchspec.synth import PaintingConfig, sense
+    from torchspec.simulate.synth import PaintingConfig, sense
 
     config = SimulationConfig(
         scene=SceneConfig(kind="painting", painting=PaintingConfig(width=10, height=10, seed=3)),

@@ -2,10 +2,10 @@ import pytest
 import torch
 from pixel_cases import grid_lights, random_svbrdf
 
-from torchspec.lights import Kernel
-from torchspec.models import MODELS, get_model
-from torchspec.quadrature import Quadrature
-from torchspec.rendering import render
+from torchspec.model.lights import Kernel
+from torchspec.model.quadrature import Quadrature
+from torchspec.model.registry import MODELS, get_model
+from torchspec.model.rendering import render
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
@@ -94,7 +94,7 @@ def test_sandwich_terms_are_those_of_the_jacobian(name):
     weights per pixel; with ``W`` the noise weights, ``A = B``: the Fisher information. With
     ``samples``, the same three, and the per-sample terms of the sums over the dense Jacobian (one
     lobe is summed from Gram matrices, never that Jacobian)."""
-    from torchspec.least_squares import _contract, _sandwich_samples, sandwich_terms
+    from torchspec.model.least_squares import _contract, _sandwich_samples, sandwich_terms
 
     model = get_model(name)
     lights = _lights()
@@ -130,8 +130,8 @@ def test_sandwich_terms_are_those_of_the_jacobian(name):
 
 
 def test_normal_equations_check_their_inputs():
-    from torchspec.least_squares import normal_equations
-    from torchspec.quadrature import Quadrature
+    from torchspec.model.least_squares import normal_equations
+    from torchspec.model.quadrature import Quadrature
 
     lights = _lights()
     svbrdf = _svbrdf(count=2)

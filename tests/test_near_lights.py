@@ -1,4 +1,4 @@
-"""Near lights (torchspec.near_lights, the manifest's frame positions, the fit in blocks): geometry
+"""Near lights (torchspec.model.near_lights, the manifest's frame positions, the fit in blocks): geometry
 against hand-computed cases, the block order as a permutation, and a fit of a Lambertian capture
 lit by a dome of near lights against the same fit that takes the lights as distant."""
 
@@ -13,13 +13,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchspec.geometry import angle
 from torchspec.io import Capture, Frame, LightSpec, read_capture, write_capture
 from torchspec.io.capture import CaptureError
-from torchspec.near_lights import block_order, image_points, near_light
+from torchspec.model.geometry import angle
+from torchspec.model.near_lights import block_order, image_points, near_light
+from torchspec.model.rendering import TILE_PIXELS
 from torchspec.pipeline import FitConfig, QuadratureConfig, TermConfig, fit
 from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block, tiling_of
-from torchspec.rendering import TILE_PIXELS
 
 D = torch.float64
 DIFFUSE = FitConfig(model="diffuse", quadrature=QuadratureConfig(compile=False))
@@ -241,7 +241,7 @@ def test_auto_keeps_no_dome_radius_that_only_refitted_gains_show(tmp_path):
     """The same dome with frame intensities spread as a real dome's (log-normal, sigma 0.8): with the
     gains refitted a dome radius shows, but under the irradiance as written none does;
     where auto refuses the gains it takes the lights as written, distant, not at that radius."""
-    from torchspec.lightcal import calibrate_lights
+    from torchspec.calibration.lights import calibrate_lights
     from torchspec.pipeline import FitWarning
 
     gains = (0.8 * torch.randn(25, generator=torch.Generator().manual_seed(4), dtype=D)).exp()
@@ -272,8 +272,8 @@ def test_render_of_a_near_light_capture_follows_each_block_lights(tmp_path):
     """``torchspec render`` of the true maps of a near-light capture predicts its frames block by
     block under the lights seen from each block's centre (torchspec.relight.render_near): within
     what a block's spread of directions leaves, far closer than the lights taken as distant."""
-    from torchspec.brdf import SVBRDF
     from torchspec.io import write_svbrdf
+    from torchspec.model.brdf import SVBRDF
     from torchspec.relight import render_capture, render_near
 
     capture, normal = _lambertian_near_capture(tmp_path / "near", radius=3.0, size=32)

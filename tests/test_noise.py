@@ -5,7 +5,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchspec.noise import affine_noise
+from torchspec.model.noise import affine_noise
 
 
 def _pixels(a, b, n=2000, samples=150, params=7, seed=0, dtype=torch.float64):

@@ -81,7 +81,10 @@ COMMANDS = {
         "torchspec.relight.render_capture",
     ),
     "export": (lambda c, m, out: ["export", str(m), "--to", "png16", "-o", out], "torchspec.export.export"),
-    "calibrate": (lambda c, m, out: ["calibrate", str(c), "-o", f"{out}/kernel.exr"], "torchspec.calibrate.calibrate"),
+    "calibrate": (
+        lambda c, m, out: ["calibrate", str(c), "-o", f"{out}/kernel.exr"],
+        "torchspec.calibration.kernel.calibrate",
+    ),
     "demo": (lambda c, m, out: ["demo", "-o", out, "--size", "8", "--quiet"], "torchspec.demo.run"),
     "acquire": (
         lambda c, m, out: ["acquire", "--port", "/dev/null", "--light", "x.yaml", "--camera", "sim:x", "-o", out],
@@ -135,7 +138,7 @@ def test_an_output_holding_other_work_is_refused_before_any_work(
 def test_overwrite_writes_into_it(command, capture, maps, sim_config, tmp_path, monkeypatch, capsys):
     argv, _ = COMMANDS[command]
     if command == "calibrate":
-        monkeypatch.setattr("torchspec.calibrate.calibrate", lambda *args, **kwargs: _Calibration())
+        monkeypatch.setattr("torchspec.calibration.kernel.calibrate", lambda *args, **kwargs: _Calibration())
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")

@@ -3,10 +3,10 @@ import math
 import pytest
 import torch
 
-from torchspec.geometry import angle, from_plane, normalize
-from torchspec.lights import Kernel, Lights, diffuse_directions
-from torchspec.photometric import grid_layout, lowpass, photometric_stereo, sample_masks
+from torchspec.model.geometry import angle, from_plane, normalize
+from torchspec.model.lights import Kernel, Lights, diffuse_directions
 from torchspec.simulate import LayoutConfig, layout
+from torchspec.start.photometric import grid_layout, lowpass, photometric_stereo, sample_masks
 
 TOL = {torch.float32: 2e-4, torch.float64: 1e-9}
 
@@ -160,7 +160,7 @@ def test_photometric_stereo_bad_shapes():
 
 
 def test_masks_in_bands_equal_masks_at_once(monkeypatch):
-    import torchspec.photometric as photometric
+    import torchspec.start.photometric as photometric
 
     g = torch.Generator().manual_seed(7)
     stack = torch.rand(5, 3, 13, 9, generator=g, dtype=torch.float64)

@@ -9,15 +9,15 @@ from pixel_cases import grid_lights, random_svbrdf
 from torch import Tensor
 
 import torchspec.lm.picks as picks
-from torchspec.brdf import SVBRDF
-from torchspec.diffuse import diffuse_integral
-from torchspec.geometry import normalize
-from torchspec.lights import Kernel, diffuse_directions
 from torchspec.lm import LMConfig, bounded, solve
 from torchspec.lm.picks import Capacities, fixed_pick, keep, pick_pairs
-from torchspec.models import MODELS, get_model
-from torchspec.quadrature import QUADRATURES
-from torchspec.rendering import render
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.diffuse import diffuse_integral
+from torchspec.model.geometry import normalize
+from torchspec.model.lights import Kernel, diffuse_directions
+from torchspec.model.quadrature import QUADRATURES
+from torchspec.model.registry import MODELS, get_model
+from torchspec.model.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)

@@ -11,11 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import Tensor
 
-from torchspec.brdf import SVBRDF
-from torchspec.geometry import from_plane, normalize
-from torchspec.lights import Kernel, Lights
 from torchspec.lm import LMConfig
-from torchspec.models import get_model
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import from_plane, normalize
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.registry import get_model
+from torchspec.model.rendering import render
 from torchspec.pipeline import FitConfig, StartConfig
 from torchspec.pipeline.prediction import (
     DAMPING,
@@ -27,7 +28,6 @@ from torchspec.pipeline.prediction import (
 )
 from torchspec.pipeline.samples import TileSamples
 from torchspec.pipeline.solver import solve_pixels
-from torchspec.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)

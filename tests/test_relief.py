@@ -1,15 +1,15 @@
-"""The synthetic relief (torchspec.relief) and simulate's scene.relief: exact normals, cast
+"""The synthetic relief (torchspec.simulate.relief) and simulate's scene.relief: exact normals, cast
 shadows in the frames, truth/height.exr, the default simulation untouched."""
 
 import pytest
 import torch
 
 from torchspec.config import ConfigError, from_mapping
-from torchspec.height import normals_from_height
 from torchspec.io import read_svbrdf
-from torchspec.relief import ReliefConfig, relief
+from torchspec.model.height import normals_from_height
 from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig
+from torchspec.simulate.relief import ReliefConfig, relief
+from torchspec.simulate.synth import PaintingConfig
 
 
 def _config(relief_config=None):

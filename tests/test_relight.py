@@ -8,7 +8,7 @@ from torchspec.cli import main
 from torchspec.io import CaptureError, read_capture
 from torchspec.relight import psnr, render_capture
 from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from torchspec.synth import PaintingConfig
+from torchspec.simulate.synth import PaintingConfig
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_a_render_with_a_residual_term_below_black_is_a_capture_info_reads(paint
     the rendered frames are clamped at 0, so ``info`` and ``read_capture`` read the toolkit's own
     render; elsewhere the frames are the maps' prediction."""
     from torchspec.io import read_svbrdf, write_svbrdf
-    from torchspec.residual_term import MAP_NAME, ResidualTerm
+    from torchspec.model.residual_term import MAP_NAME, ResidualTerm
 
     truth = read_svbrdf(painting / "truth")
     height, width = truth.svbrdf.shape

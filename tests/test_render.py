@@ -7,11 +7,11 @@ from brute_force import pixel_tensors, random_case, reference_value
 from kernel_cases import KERNELS
 
 import torchspec as ts
-from torchspec.brdf import SVBRDF, ward_cosine
-from torchspec.geometry import normal_from_angles
-from torchspec.lights import Kernel, Lights
-from torchspec.quadrature import Quadrature
-from torchspec.rendering import render
+from torchspec.model.brdf import SVBRDF, ward_cosine
+from torchspec.model.geometry import normal_from_angles
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.quadrature import Quadrature
+from torchspec.model.rendering import render
 
 F64 = torch.float64
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -107,7 +107,7 @@ def test_shapes_chunks_and_devices():
     assert value.shape == (4, 5, 7, 3) and value.dtype == torch.float32
     flat = render(maps.flatten(), lights, VIEW.float())
     torch.testing.assert_close(value.reshape(20, 7, 3), flat)
-    module = importlib.import_module("torchspec.rendering")
+    module = importlib.import_module("torchspec.model.rendering")
 
     budget = module.BUDGET
     module.BUDGET = 64  # one pixel per chunk

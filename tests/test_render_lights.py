@@ -1,5 +1,5 @@
 """torchspec render MAPS --light X,Y,Z / --lights FILE: new lights rendered from the maps, as the
-capture's own frames are (torchspec.relight_lights)."""
+capture's own frames are (torchspec.relight.lights)."""
 
 import json
 import shutil
@@ -16,7 +16,7 @@ from torchspec.io.images import Transfer
 from torchspec.pipeline import fit, write_fit
 from torchspec.pipeline.assembly import scene_record
 from torchspec.relight import render_capture, render_near
-from torchspec.relight_lights import NewLight, RenderError, parse_light, read_new_lights, render_lights, scene_of
+from torchspec.relight.lights import NewLight, RenderError, parse_light, read_new_lights, render_lights, scene_of
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_near_lights_at_the_fits_dome_radius(painting, tmp_path):
 def _flat_maps(folder, photographs, transfer, kd=0.5):
     """4 x 3 flat Lambertian maps (k_d = ``kd``) whose svbrdf.json records a point light, unit
     irradiance and a capture of ``photographs`` decoded with ``transfer``."""
-    from torchspec.brdf import SVBRDF
+    from torchspec.model.brdf import SVBRDF
 
     h, w = 3, 4
     svbrdf = SVBRDF(

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from torchspec.brdf import SVBRDF
+from torchspec.model.brdf import SVBRDF
 from torchspec.report import MODEL_COLOURS, relit_title, shared_limit, stat_label, write_previews
 
 

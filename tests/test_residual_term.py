@@ -1,4 +1,4 @@
-"""The residual term (torchspec.residual_term): its transfer and basis against closed forms, its fit
+"""The residual term (torchspec.model.residual_term): its transfer and basis against closed forms, its fit
 against brute-force least squares, its choice by left-out prediction, and its maps' round trip."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from torchspec.calibration.response import ResponseCurve
 from torchspec.errors import TorchspecError
 from torchspec.io.images import Transfer
-from torchspec.lights import Kernel, Lights
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.residual_term import ResidualTerm, TermDomain, blend, decode, encode, fit_term, hsh_basis
 from torchspec.pipeline.prediction import light_folds
-from torchspec.residual_term import ResidualTerm, TermDomain, blend, decode, encode, fit_term, hsh_basis
-from torchspec.response import ResponseCurve
 
 D = torch.float64
 

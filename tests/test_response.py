@@ -1,4 +1,4 @@
-"""The camera's response estimated from a stack (torchspec.response) and its use by the import."""
+"""The camera's response estimated from a stack (torchspec.calibration.response) and its use by the import."""
 
 from __future__ import annotations
 
@@ -12,10 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from torchspec.io.images import ImageError, Transfer
-from torchspec.io.rti import import_rti
-from torchspec.pipeline.plan import TERM_FOR_PHOTOGRAPHS, setup
-from torchspec.response import (
+from torchspec.calibration.response import (
     CONTRAST,
     GAMMA,
     OFFSET,
@@ -25,6 +22,9 @@ from torchspec.response import (
     describe_response,
     estimate_response,
 )
+from torchspec.io.images import ImageError, Transfer
+from torchspec.io.rti import import_rti
+from torchspec.pipeline.plan import TERM_FOR_PHOTOGRAPHS, setup
 
 
 def dome(dtype=torch.float64) -> torch.Tensor:
@@ -244,7 +244,7 @@ def test_the_residual_term_is_on_by_default_for_photographs_only(tmp_path):
 
 
 def test_the_fit_judges_the_true_curve_best():
-    from torchspec.response_judge import judge_curves
+    from torchspec.calibration.response_judge import judge_curves
 
     linear, d = lambertian(256, seed=7)
     codes = _codes(linear, ENCODINGS["power 2.4"]).reshape(len(d), 3, 16, 16)
@@ -261,8 +261,8 @@ def test_the_term_of_a_fit_of_photographs_is_in_their_estimated_encoding(tmp_pat
     codes (that curve), recorded in svbrdf.json, and render applies it there; a capture that says
     sRGB keeps the sRGB term."""
     import torchspec
+    from torchspec.model.residual_term import TermDomain
     from torchspec.relight import render_capture
-    from torchspec.residual_term import TermDomain
 
     linear, d = lambertian(256, seed=9)
     _write_stack(tmp_path / "rti", _codes(linear, ENCODINGS["power 1.8"]), d)

@@ -6,8 +6,8 @@ import torch
 
 from torchspec.config import ConfigError, load_config
 from torchspec.io import read_capture, read_svbrdf
-from torchspec.lights import Kernel, Lights
-from torchspec.rendering import render
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.rendering import render
 from torchspec.simulate import (
     LayoutConfig,
     SceneConfig,
@@ -16,7 +16,7 @@ from torchspec.simulate import (
     simulate,
     write_simulation,
 )
-from torchspec.synth import PaintingConfig
+from torchspec.simulate.synth import PaintingConfig
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 

@@ -3,13 +3,13 @@ import math
 import pytest
 import torch
 
-from torchspec.brdf import SVBRDF
-from torchspec.geometry import angle, from_plane, normalize
-from torchspec.layout import layout_of
-from torchspec.lights import Kernel, Lights, diffuse_directions
-from torchspec.rendering import render
+from torchspec.model.brdf import SVBRDF
+from torchspec.model.geometry import angle, from_plane, normalize
+from torchspec.model.layout import layout_of
+from torchspec.model.lights import Kernel, Lights, diffuse_directions
+from torchspec.model.rendering import render
 from torchspec.simulate import LayoutConfig, layout
-from torchspec.specular import grid_search, locate_peak, naive_start, specular_residual
+from torchspec.start.specular import grid_search, locate_peak, naive_start, specular_residual
 
 VIEW = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 

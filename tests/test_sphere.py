@@ -1,4 +1,4 @@
-"""Light directions from a chrome sphere (torchspec.sphere, torchspec calibrate-sphere)."""
+"""Light directions from a chrome sphere (torchspec.calibration.sphere, torchspec calibrate-sphere)."""
 
 import json
 import math
@@ -9,11 +9,11 @@ import torch
 from conftest import DEVICES
 from PIL import Image
 
+from torchspec.calibration.sphere import Circle, circle_from_mask, find_sphere, sphere_directions
 from torchspec.cli import main
 from torchspec.errors import TorchspecError
 from torchspec.io.images import read_photo
 from torchspec.io.lp import read_light_file
-from torchspec.sphere import Circle, circle_from_mask, find_sphere, sphere_directions
 
 CIRCLE = Circle(cx=40.3, cy=35.7, r=25.0)
 LIGHTS = [

@@ -34,7 +34,7 @@ def _score(result, family, axis, value, method):
 
 
 def test_the_fit_flags_catch_the_failures(small):
-    """The package's own flags (Fit.flags: a flag of torchspec.flags.UNTRUSTED, or no lobe fitted)
+    """The package's own flags (Fit.flags: a flag of torchspec.pipeline.flags.UNTRUSTED, or no lobe fitted)
     against the failures of the fit (a peak more than 10 Cramer-Rao deviations from the truth) on
     every axis of the study but the skewed kernel: the issue's >= 90 % caught, <= 5 % of the good
     estimates flagged. (The full study: 97 % / 4.5 %.)"""

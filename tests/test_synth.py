@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchspec.config import ConfigError, from_mapping, load_config
-from torchspec.synth import (
+from torchspec.simulate.synth import (
     DUAL,
     GILDED,
     MATTE,

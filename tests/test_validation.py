@@ -37,7 +37,7 @@ from torchspec.io import (
     write_capture,
     write_exr,
 )
-from torchspec.photometric import sample_masks
+from torchspec.start.photometric import sample_masks
 
 
 def _capture(count=5, light=None, positions=None) -> Capture:

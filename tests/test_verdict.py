@@ -7,7 +7,7 @@ import pytest
 from capture_cases import write_painting
 
 from torchspec.cli import main
-from torchspec.flags import UNTRUSTED
+from torchspec.pipeline.flags import UNTRUSTED
 from torchspec.pipeline.verdict import LOW_QUALITY_SHARE, REASONS, UNTRUSTED_SHARE, summary_lines, trust_warnings
 
 

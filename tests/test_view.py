@@ -24,13 +24,13 @@ from torchspec.errors import TorchspecError
 from torchspec.export import ExportError, export
 from torchspec.io import Capture, Frame, LightSpec, Maps, read_svbrdf, write_capture, write_svbrdf
 from torchspec.io import svbrdf as svbrdf_io
-from torchspec.lights import Kernel, Lights
-from torchspec.near_lights import image_points, near_light
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.near_lights import image_points, near_light
+from torchspec.model.rendering import TILE_PIXELS, render_image
+from torchspec.model.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, encode
 from torchspec.outputs import OutputError
 from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block
 from torchspec.relight import render_capture, render_near
-from torchspec.rendering import TILE_PIXELS, render_image
-from torchspec.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, encode
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
 from torchspec.view.browser import Browser, find_chromium
 from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb, with_term
@@ -447,7 +447,7 @@ def test_the_page_adds_the_residual_term_as_render_does(browser, order):
         assert "physical maps only" in browser.evaluate("document.getElementById('shown').textContent")
 
 
-CURVES = {  # a film-like S curve per channel, and a grey power: torchspec.response's family
+CURVES = {  # a film-like S curve per channel, and a grey power: torchspec.calibration.response's family
     "film": {
         "transfer": "response",
         "response": {"gamma": [1.3, 2.0, 0.9], "offset": [0.0, 0.05, 0.2], "contrast": [4.0, -3.0, 0.0]},

@@ -18,7 +18,7 @@ from torchspec.errors import TorchspecError
 from torchspec.io import Capture, Frame, LightSpec, read_capture, write_capture
 from torchspec.io import capture as capture_io
 from torchspec.io.exr import write_exr
-from torchspec.residual_term import encode
+from torchspec.model.residual_term import encode
 from torchspec.view import open_site, site
 from torchspec.view.check import model_maps
 from torchspec.view.site import NotMade

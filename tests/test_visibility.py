@@ -1,4 +1,4 @@
-"""Cast shadows (torchspec.visibility): the batched horizon against a brute-force ray march in
+"""Cast shadows (torchspec.model.visibility): the batched horizon against a brute-force ray march in
 float64, soft visibility's derivatives, flat fields, extended kernels, shapes refused."""
 
 import math
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from torchspec.errors import TorchspecError
-from torchspec.lights import Kernel, Lights
-from torchspec.relief import ReliefConfig, relief
-from torchspec.visibility import elevation, horizon, kernel_visibility, marched_distances, visibility
+from torchspec.model.lights import Kernel, Lights
+from torchspec.model.visibility import elevation, horizon, kernel_visibility, marched_distances, visibility
+from torchspec.simulate.relief import ReliefConfig, relief
 
 F64 = torch.float64
 
@@ -106,7 +106,7 @@ def test_per_pixel_directions_equal_shared_ones(field):
 
 
 def test_chunking_does_not_change_the_result(field, monkeypatch):
-    import torchspec.visibility as module
+    import torchspec.model.visibility as module
 
     dirs = _lights(4, 4)
     whole = horizon(field, dirs)

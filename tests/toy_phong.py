@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
-from torchspec.lobes import Lobe
-from torchspec.models import ALPHA, DIFFUSE, GREY, NORMAL, Model
+from torchspec.model.lobes import Lobe
+from torchspec.model.registry import ALPHA, DIFFUSE, GREY, NORMAL, Model
 
 
 @dataclass(frozen=True)

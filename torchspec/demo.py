@@ -26,7 +26,7 @@ from .outputs import check_output
 from .pipeline import ComputeConfig, FitConfig, fit, select_frames, write_fit
 from .report import display, heldout_psnr, relit_strip, relit_title, score, write_previews, write_report
 from .simulate import LayoutConfig, LightConfig, SceneConfig, SimulationConfig, simulate, write_simulation
-from .synth import PaintingConfig, SensorConfig
+from .simulate.synth import PaintingConfig, SensorConfig
 
 __all__ = ["run", "DEFAULT_OUTPUT"]
 

@@ -3,7 +3,7 @@
 :func:`inspect_capture` validates a capture as :func:`~torchspec.io.read_capture` and
 :meth:`~torchspec.io.Capture.read_frames` do, reading the frames one at a time (memory bounded by
 one frame), and counts what a fit would have to mask: saturated samples (the clipped plateau that
-:func:`torchspec.photometric.sample_masks` detects), NaN or Inf pixels and negative pixels. It
+:func:`torchspec.start.photometric.sample_masks` detects), NaN or Inf pixels and negative pixels. It
 never raises for a bad capture: the report's verdict is then ``"unusable"``, with the reason.
 :func:`format_report` renders a report for a terminal.
 """
@@ -19,13 +19,21 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .brightness import DARKER, MIN_ELEVATION_DEG, MIN_SHARE, NEIGHBOURS, brightness_ratios, departures, sample_grid
+from .calibration.brightness import (
+    DARKER,
+    MIN_ELEVATION_DEG,
+    MIN_SHARE,
+    NEIGHBOURS,
+    brightness_ratios,
+    departures,
+    sample_grid,
+)
+from .calibration.response import describe_response
 from .errors import TorchspecError
 from .io import Capture, LightSpec, read_capture
-from .layout import MIN_FRAMES, MIN_PEAK_SAMPLES, coverage_warning, fit_problem, layout_of
-from .photometric import peak_of, sample_masks, saturation_level
+from .model.layout import MIN_FRAMES, MIN_PEAK_SAMPLES, coverage_warning, fit_problem, layout_of
 from .progress import bar as progress_bar
-from .response import describe_response
+from .start.photometric import peak_of, sample_masks, saturation_level
 
 __all__ = ["OK", "WARNINGS", "UNUSABLE", "inspect_capture", "format_report"]
 
@@ -42,7 +50,7 @@ PIXEL_COUNTS = ("clipped", "saturated", "nonfinite", "negative")
 """What the report counts, per frame and summed over the frames (a pixel counts once per frame):
 ``clipped``, pixels with a channel at or above the clipping level (what ``torchspec import``
 reports as clipped pixels, :attr:`torchspec.io.rti.Imported.saturated`); ``saturated``, the clipped
-pixels grown by a pixel, which the fit masks (:func:`torchspec.photometric.sample_masks`);
+pixels grown by a pixel, which the fit masks (:func:`torchspec.start.photometric.sample_masks`);
 ``nonfinite``, pixels with NaN or Inf in a channel; ``negative``, pixels with a negative channel."""
 
 
@@ -62,7 +70,7 @@ def inspect_capture(path: str | Path, *, saturation: float | None = None, progre
         ``warnings`` (messages). When the manifest is valid, also: ``width``, ``height``,
         ``channels``, ``frames`` (``K``), ``view``, ``light`` (the manifest's keys), ``kernel``
         (a description), ``layout`` (``kind`` ``"grid"``, ``"line"`` or ``"scattered"``, as
-        :func:`torchspec.layout.layout_of` sees the frames' ``l``, with ``spacing``, ``radius``
+        :func:`torchspec.model.layout.layout_of` sees the frames' ``l``, with ``spacing``, ``radius``
         (the largest ``|l|``) and the grid's ``rows`` and ``columns``; ``None`` for fewer than 3
         frames), ``exposure`` and ``irradiance`` (``[min, max]``), ``values`` (``[min, max]`` of
         the finite pixel values), ``saturation`` (the clipping level, ``None`` when nothing
@@ -164,8 +172,8 @@ def _decoded(source: Any) -> str | None:
 
 def _layout_notes(capture: Capture, notes: list[str]) -> list[str]:
     """Why no fit can use the frames (the reasons the capture is unusable), and, in ``notes``, what
-    the default fit (with lobes) refuses or does poorly (:func:`torchspec.layout.fit_problem`,
-    :func:`torchspec.layout.coverage_warning`)."""
+    the default fit (with lobes) refuses or does poorly (:func:`torchspec.model.layout.fit_problem`,
+    :func:`torchspec.model.layout.coverage_warning`)."""
     l = capture.directions()[:, :2]
     problem = fit_problem(l, lobe=False)
     if problem is not None:
@@ -184,7 +192,7 @@ def _scan(
 ) -> tuple[list[dict[str, Any]], float, Tensor | None]:
     """Read the frames one by one: a row of counts per frame, the clipping level (``inf`` when
     nothing clips) and, per pixel, how many frames are saturated there (``None`` when none is).
-    Each frame's pixels on :func:`torchspec.brightness.sample_grid` go to ``samples``: over its
+    Each frame's pixels on :func:`torchspec.calibration.brightness.sample_grid` go to ``samples``: over its
     exposure times irradiance, the channels' mean, NaN where saturated, NaN or Inf (or unread)."""
     rows, peaks, tops, masks = [], [], [], []
     grid = sample_grid(capture.height, capture.width)
@@ -246,11 +254,11 @@ def _brightness(
     rows: list[dict[str, Any]], samples: Tensor | None, capture: Capture
 ) -> tuple[dict[str, Any] | None, list[str]]:
     """Each frame's brightness against its neighbours in light direction
-    (:func:`torchspec.brightness.brightness_ratios`) into its row (``brightness``: ``ratio``,
+    (:func:`torchspec.calibration.brightness.brightness_ratios`) into its row (``brightness``: ``ratio``,
     ``quartiles`` of its pixels' ratios, ``neighbours`` and their ``spread``; ``None`` when not
     judged), the summary
     (``judged`` frames, ``range`` of their ratios, ``flagged`` frames; ``None`` without frames) and
-    one warning per frame that departs (:func:`torchspec.brightness.departures`)."""
+    one warning per frame that departs (:func:`torchspec.calibration.brightness.departures`)."""
     if samples is None:
         return None, []
     ratios = brightness_ratios(samples, capture.directions())
@@ -291,7 +299,7 @@ def _kept(saturated: Tensor | None, frames: int) -> dict[str, int] | None:
     pixel, ``need`` (what every pixel should keep) and ``short`` (pixels that keep fewer).
 
     A pixel is short when masking leaves it fewer than half its frames, or fewer than a fit needs
-    (:data:`~torchspec.layout.MIN_FRAMES`; :data:`~torchspec.layout.MIN_PEAK_SAMPLES` squared for a
+    (:data:`~torchspec.model.layout.MIN_FRAMES`; :data:`~torchspec.model.layout.MIN_PEAK_SAMPLES` squared for a
     lobe) where all the frames had enough."""
     if saturated is None:
         return None
@@ -347,7 +355,7 @@ def _pixel_warnings(
 
 
 def _layout(directions: torch.Tensor, extra: dict | None = None) -> dict[str, Any]:
-    """The light layout as the fit sees it: :func:`torchspec.layout.layout_of` of the frames' ``l``;
+    """The light layout as the fit sees it: :func:`torchspec.model.layout.layout_of` of the frames' ``l``;
     for a grid, its ``positions`` (rows x columns, of which the frames fill those within the
     disk) and, when the manifest's ``generator`` records the planned grid (``torchspec acquire``,
     ``torchspec simulate``), that ``planned`` grid: its outer rows and columns may lie wholly

@@ -22,11 +22,11 @@ import torch
 from torch import Tensor
 
 from .atomic import save_figure
-from .brdf import SVBRDF
-from .geometry import angle, from_plane
-from .lights import Kernel, Lights
-from .models import MODELS
-from .rendering import render
+from .model.brdf import SVBRDF
+from .model.geometry import angle, from_plane
+from .model.lights import Kernel, Lights
+from .model.registry import MODELS
+from .model.rendering import render
 
 __all__ = [
     "MODEL_COLOURS",

@@ -1,6 +1,6 @@
 """The statistics that judge one prediction against another: :func:`predicts_better`, the rule by
 which the fit keeps a larger model (:mod:`torchspec.pipeline.selection`) and a pixel keeps its
-residual term (:mod:`torchspec.residual_term`). It knows nothing of models or lights, only of
+residual term (:mod:`torchspec.model.residual_term`). It knows nothing of models or lights, only of
 residuals in noise units, so that both can use it without importing each other.
 """
 

@@ -51,9 +51,9 @@ def _check_output(args: argparse.Namespace, path: Path | None = None, **rule) ->
 def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import torch
 
+    from ..calibration.sphere import Circle, circle_from_mask, find_sphere, sphere_directions, write_lp
     from ..io.images import read_photo
     from ..io.rti import photographs
-    from ..sphere import Circle, circle_from_mask, find_sphere, sphere_directions, write_lp
 
     images = photographs(args.folder)
     if len(images) < 1:
@@ -76,10 +76,10 @@ def _calibrate_sphere(parser: argparse.ArgumentParser, args: argparse.Namespace)
 def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import warnings
 
+    from ..calibration.response import describe_response
     from ..io.rti import import_rti
     from ..io.scale import Scale
     from ..pipeline.verdict import scale_words
-    from ..response import describe_response
 
     scale = Scale.parse(args.downsample, args.crop)
     with warnings.catch_warnings():
@@ -241,8 +241,8 @@ def _render(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 
 def _render_lights(args: argparse.Namespace, device) -> int:
-    """``torchspec render MAPS --light X,Y,Z`` / ``--lights FILE``: :func:`torchspec.relight_lights.render_lights`."""
-    from ..relight_lights import LIGHTS_JSON, LIGHTS_LP, parse_light, read_new_lights, render_lights
+    """``torchspec render MAPS --light X,Y,Z`` / ``--lights FILE``: :func:`torchspec.relight.lights.render_lights`."""
+    from ..relight.lights import LIGHTS_JSON, LIGHTS_LP, parse_light, read_new_lights, render_lights
 
     lights = [parse_light(text) for text in args.light or []]
     if args.lights is not None:
@@ -315,7 +315,7 @@ def _info(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _calibrate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     import json
 
-    from ..calibrate import calibrate, kernel_outputs, write_kernel
+    from ..calibration.kernel import calibrate, kernel_outputs, write_kernel
 
     kernel_outputs(args.output, overwrite=args.overwrite, flag=OVERWRITE)
     device = device_option(parser, args)

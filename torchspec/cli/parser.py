@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from .._version import __version__
-from ..models import MODELS
+from ..model.registry import MODELS
 from ..pipeline.checkpoint import CHECKPOINT
 from ..pipeline.settings import CALIBRATE
 

@@ -5,8 +5,8 @@ which returns the frame as a linear-radiance image ``(C, H, W)`` (what a capture
 ``frames/*.exr`` hold, exposure included). Two are provided:
 
 - :class:`SimulatedCamera` renders a known SVBRDF (maps, or a procedural scene of
-  :mod:`torchspec.synth`) under the light at ``direction`` with :func:`torchspec.rendering.render`
-  and records it with :func:`torchspec.synth.sense` - the simulator's renderer and sensor, one
+  :mod:`torchspec.simulate.synth`) under the light at ``direction`` with :func:`torchspec.model.rendering.render`
+  and records it with :func:`torchspec.simulate.synth.sense` - the simulator's renderer and sensor, one
   frame at a time. Its noise is seeded by the frame index, so a frame taken again (an
   acquisition resumed) is the same frame, bit for bit.
 - :class:`FolderCamera` waits for a tethered camera's file: a frame is a new EXR that appears in
@@ -31,15 +31,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
 from ..config import ConfigError
 from ..errors import TorchspecError
 from ..io import ExrError, LightSpec, read_exr
-from ..lights import Kernel, Lights
-from ..quadrature import Quadrature
-from ..rendering import render
+from ..model.brdf import SVBRDF
+from ..model.lights import Kernel, Lights
+from ..model.quadrature import Quadrature
+from ..model.rendering import render
 from ..simulate import LightConfig, SceneConfig
-from ..synth import SensorConfig, mirror, painting, sense
+from ..simulate.synth import SensorConfig, mirror, painting, sense
 
 __all__ = [
     "Camera",
@@ -107,22 +107,22 @@ class SimulatedCameraConfig:
 class SimulatedCamera:
     """A camera looking straight down at a known SVBRDF lit by the dome's light.
 
-    Each frame is :func:`torchspec.rendering.render` of the scene under one light centred on the
+    Each frame is :func:`torchspec.model.rendering.render` of the scene under one light centred on the
     requested direction (the kernel, irradiance and view given here), recorded by
-    :func:`torchspec.synth.sense` with a generator seeded by ``(sensor.seed, index)``: frames
+    :func:`torchspec.simulate.synth.sense` with a generator seeded by ``(sensor.seed, index)``: frames
     are deterministic per index, and independent of the order they are taken in.
 
     Args:
         scene: maps with leading dims ``(H, W)`` (their dtype and device are the rendering's),
             or a :class:`~torchspec.simulate.SceneConfig` built in float64 as
             :func:`torchspec.simulate.simulate` builds it.
-        light: the light's shape: a :class:`~torchspec.lights.Kernel`, or a format light block
+        light: the light's shape: a :class:`~torchspec.model.lights.Kernel`, or a format light block
             (a mapping or :class:`~torchspec.io.LightSpec`) read by :meth:`Kernel.from_spec`.
         irradiance: a number or ``C`` numbers, as the manifest will record them.
         sensor: exposure, shot and read noise, saturation and the noise seed.
         channels: the ``C`` channel names (by default the maps' names).
         view: the direction towards the camera.
-        path: the quadrature of :func:`torchspec.rendering.render`.
+        path: the quadrature of :func:`torchspec.model.rendering.render`.
 
     Example:
         >>> camera = SimulatedCamera(SceneConfig(), {"kernel": "gaussian", "domain": "projected", "sigma": 0.08})

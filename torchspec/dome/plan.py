@@ -23,7 +23,7 @@ from ..config import read_yaml
 from ..errors import TorchspecError
 from ..io import ExrError, LightSpec, read_exr
 from ..io._manifest import Where, parse_light
-from ..lights import Kernel
+from ..model.lights import Kernel
 from ..simulate import LayoutConfig, layout
 
 __all__ = ["AcquisitionError", "LightSettings", "load_light", "parse_layout", "plan_directions", "dome_angles"]
@@ -97,7 +97,7 @@ class LightSettings:
         self.kernel()  # the kernel must be one the renderer accepts
 
     def kernel(self) -> Kernel | None:
-        """The :class:`~torchspec.lights.Kernel` of :attr:`light`; ``None`` for ``unknown``."""
+        """The :class:`~torchspec.model.lights.Kernel` of :attr:`light`; ``None`` for ``unknown``."""
         if self.light.kernel == "unknown":
             return None
         try:

@@ -31,8 +31,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..brdf import SVBRDF
 from ..io import Maps
+from ..model.brdf import SVBRDF
 from .arrays import ExportError, ExportWarning
 from .gltf import export_gltf
 from .mitsuba import MIN_ALPHA, export_mitsuba

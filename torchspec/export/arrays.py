@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Maps, read_svbrdf
+from ..model.brdf import SVBRDF
 
 __all__ = [
     "ExportError",

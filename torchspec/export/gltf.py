@@ -12,8 +12,8 @@ import numpy as np
 
 from .._version import __version__
 from ..atomic import atomic_path, write_json
-from ..brdf import SVBRDF
 from ..io import Maps
+from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .arrays import ISOTROPIC, ExportWarning, MapArrays, code8, map_arrays, rgb, srgb, write_png
 

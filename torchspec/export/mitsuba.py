@@ -12,8 +12,8 @@ import numpy as np
 
 from .._version import __version__
 from ..atomic import atomic_path
-from ..brdf import SVBRDF
 from ..io import Maps, write_exr
+from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .arrays import ISOTROPIC, ExportError, ExportWarning, MapArrays, map_arrays, rgb
 

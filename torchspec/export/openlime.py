@@ -25,8 +25,8 @@ import numpy as np
 
 from .._version import __version__
 from ..atomic import write_json
-from ..brdf import SVBRDF
 from ..io import Maps
+from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .arrays import ISOTROPIC, ExportWarning, code8, map_arrays, rgb, write_png
 

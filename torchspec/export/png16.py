@@ -9,8 +9,8 @@ import numpy as np
 
 from .._version import __version__
 from ..atomic import write_json
-from ..brdf import SVBRDF
 from ..io import Maps
+from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .arrays import map_arrays, write_png
 

@@ -16,7 +16,7 @@ Relight's ``src/legacy_rti.cpp`` reads it the same way):
 
 RTIViewer shows ``255 * sum_k c_k H_k(theta, phi)`` (clamped to 0..255) for the light of polar
 angle ``theta`` and azimuth ``phi = atan2(l_y, l_x)`` in the image frame (``x`` right, ``y`` up),
-with ``H`` the hemispherical harmonics of :func:`torchspec.residual_term.hsh_basis`: the fitted
+with ``H`` the hemispherical harmonics of :func:`torchspec.model.residual_term.hsh_basis`: the fitted
 values are display values (sRGB-encoded, 0..1), like the photographs an RTI fitter is given.
 """
 
@@ -33,14 +33,14 @@ from torch import Tensor
 
 from .._version import __version__
 from ..atomic import atomic_path, write_json
-from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
-from ..lights import Kernel, Lights
+from ..model.brdf import SVBRDF
+from ..model.lights import Kernel, Lights
+from ..model.rendering import render
+from ..model.residual_term import MAP_NAME, TermDomain, hsh_basis
 from ..outputs import check_output
 from ..relight import capture_places, fitted_scales
-from ..rendering import render
-from ..residual_term import MAP_NAME, TermDomain, hsh_basis
 from .arrays import ExportError, ExportWarning, checked_svbrdf
 
 __all__ = [
@@ -107,7 +107,7 @@ def render_display(svbrdf: SVBRDF, directions: Tensor, irradiance: float, domain
     """``(*, K, 3)`` display values of ``svbrdf`` (leading dims ``*``) under point lights from
     ``directions (K, 3)`` of irradiance ``irradiance``, seen from ``(0, 0, 1)``: the render clipped to
     ``[0, 1]`` and encoded by ``domain`` (default sRGB; a capture's camera response,
-    :class:`~torchspec.residual_term.TermDomain`), grey maps as grey RGB; what a photograph of the
+    :class:`~torchspec.model.residual_term.TermDomain`), grey maps as grey RGB; what a photograph of the
     relit maps shows."""
     domain = TermDomain() if domain is None else domain
     like = svbrdf.diffuse

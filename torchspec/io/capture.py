@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 from ..atomic import read_json, write_json
-from ..brdf import SVBRDF
 from ..errors import TorchspecError
-from ..lights import Kernel, Lights
+from ..model.brdf import SVBRDF
+from ..model.lights import Kernel, Lights
 from ..outputs import check_output
 from ._manifest import (
     FORMAT,
@@ -284,7 +284,7 @@ class Capture:
         return torch.tensor([frame.exposure for frame in self.frames], dtype=torch.float64)
 
     def lights(self, *, light: str | Path | dict | None = None, dtype: torch.dtype = torch.float64) -> Lights:
-        """The :class:`~torchspec.lights.Lights` of the capture's frames (``K`` of them), in ``dtype``.
+        """The :class:`~torchspec.model.lights.Lights` of the capture's frames (``K`` of them), in ``dtype``.
 
         Args:
             light: a JSON file, or a mapping, with the keys of the format's ``light`` block, or

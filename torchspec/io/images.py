@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..calibration.response import ResponseCurve
 from ..errors import TorchspecError
-from ..response import ResponseCurve
 from .icc import ColourProfile, read_icc
 
 __all__ = ["IMAGE_SUFFIXES", "RAW_SUFFIXES", "ImageError", "Photo", "Transfer", "read_photo", "exposure_value"]
@@ -60,7 +60,7 @@ class ImageError(TorchspecError):
 class Transfer:
     """The tone curve of encoded values ``v`` in ``[0, 1]``: ``srgb`` (IEC 61966-2-1), ``linear``,
     ``gamma`` (``v ** gamma``), or ``response``: a camera response estimated from the photographs
-    (:mod:`torchspec.response`, :attr:`curve`). ``auto`` asks for that estimate (``torchspec
+    (:mod:`torchspec.calibration.response`, :attr:`curve`). ``auto`` asks for that estimate (``torchspec
     import`` makes it; :meth:`decode` refuses it).
 
     Example:

@@ -15,7 +15,7 @@ Every photograph (:mod:`torchspec.io.images`) is decoded to linear values with o
 primaries, colours outside sRGB's gamut clipped at 0 with a note; the manifest's
 ``source.icc_profiles`` names each frame's profile). 8 and 16-bit photographs that do not say
 their encoding (no ICC profile), or ``--transfer auto``, are decoded with the camera's response
-estimated from the stack itself (:func:`torchspec.response.estimate_response`, on
+estimated from the stack itself (:func:`torchspec.calibration.response.estimate_response`, on
 :data:`RESPONSE_PIXELS` pixels under the light file's directions), recorded with its uncertainty
 as ``source.response``. Each frame is written as a float32 EXR: point lights (the
 light file's directions), irradiance 1, exposure 1, or the EXIF exposure ``t ISO / N^2`` relative to
@@ -43,9 +43,9 @@ import torch
 from tqdm.auto import tqdm
 
 from .._version import __version__
+from ..calibration.response import ResponseError, ResponseEstimate, estimate_response, response_samples
 from ..errors import TorchspecError
 from ..outputs import check_output
-from ..response import ResponseError, ResponseEstimate, estimate_response, response_samples
 from .capture import Capture, Frame, LightSpec, read_capture, write_capture
 from .images import IMAGE_SUFFIXES, RAW_SUFFIXES, ImageError, Transfer, exposure_value, read_photo
 from .lp import LightFile, keep_counted, read_light_file
@@ -375,7 +375,7 @@ def _decode_auto(stack: np.ndarray, directions: torch.Tensor, notes: list[str]):
     """The codes of ``stack (K, C, H, W)`` decoded in place with the camera's response: ``(transfer,
     estimate)``. Candidates: the curve estimated from every sample, the one estimated without the
     samples near a highlight (:data:`GLARE`), and sRGB, judged by the fit's prediction of left-out
-    frames (:func:`torchspec.response_judge.judge_curves`) where the capture has 10 frames or more:
+    frames (:func:`torchspec.calibration.response_judge.judge_curves`) where the capture has 10 frames or more:
     the first is kept unless another predicts better by :data:`JUDGE_MARGIN`;
     where no curve can be estimated, sRGB (noted)."""
     k, c, h, w = stack.shape
@@ -397,7 +397,7 @@ def _decode_auto(stack: np.ndarray, directions: torch.Tensor, notes: list[str]):
     if candidates:
         chosen, estimate = "estimated", estimates["estimated"]
     if candidates and k >= 10 and min(h, w) >= 8:
-        from ..response_judge import judge_curves  # the fit judges the curves: imported where it does
+        from ..calibration.response_judge import judge_curves  # the fit judges the curves: imported where it does
 
         candidates["srgb"] = Transfer("srgb")
         scores = judge_curves(torch.from_numpy(np.asarray(stack)), directions, candidates)

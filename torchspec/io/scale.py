@@ -16,7 +16,7 @@ reads NaN or Inf (the fit masks it).
 Near lights (frames with a ``position``, in widths of the image from its centre) are moved to
 the reduced image's frame: the origin at the reduced region's centre, the unit its width; each
 frame's ``direction`` and ``irradiance`` are then those seen from the new centre
-(:mod:`torchspec.near_lights`).
+(:mod:`torchspec.model.near_lights`).
 
 :class:`ScaledCapture` is a capture read this way: its frames are reduced as they are read, one
 at a time (memory and the work after reading drop by ``N^2``).

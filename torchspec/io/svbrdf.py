@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from ..atomic import read_json, write_json
-from ..brdf import SVBRDF
 from ..errors import TorchspecError
+from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .exr import ExrError, _read, _read_band, write_exr
 
@@ -93,7 +93,7 @@ def read_svbrdf(path: str | Path, *, rows: tuple[int, int] | None = None, extra_
 
     Example:
         >>> import shutil, tempfile
-        >>> from torchspec.synth import PaintingConfig, painting
+        >>> from torchspec.simulate.synth import PaintingConfig, painting
         >>> folder = Path(tempfile.mkdtemp())
         >>> svbrdf, regions = painting(PaintingConfig(width=8, height=6), dtype=torch.float32)
         >>> write_svbrdf(folder, svbrdf, extra={"regions": regions})

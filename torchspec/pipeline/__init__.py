@@ -3,15 +3,15 @@
 Per tile of pixels (all frames of a tile at once, so memory is bounded by the tile):
 
 1. :mod:`~torchspec.pipeline.start`: masks of non-finite, saturated and shadowed samples come
-   from the whole stack (:func:`torchspec.photometric.sample_masks`); robust photometric stereo
+   from the whole stack (:func:`torchspec.start.photometric.sample_masks`); robust photometric stereo
    gives the normal and ``k_d``; pixels whose residual peaks above the noise get a specular start
-   (:mod:`torchspec.specular`);
+   (:mod:`torchspec.start.specular`);
 2. :mod:`~torchspec.pipeline.solver`: batched Levenberg-Marquardt of one model on a set of pixels;
 3. :mod:`~torchspec.pipeline.uncertainty`: the sensor's noise, each fit's chi-square and
    standard deviations;
 4. :mod:`~torchspec.pipeline.selection`: each pixel's model by the information criterion,
    climbing ``FitConfig.ladder.models`` only where the smaller model leaves a residual above the noise;
-5. :mod:`~torchspec.pipeline.checks`: flags (:mod:`torchspec.flags`) and quality;
+5. :mod:`~torchspec.pipeline.checks`: flags (:mod:`torchspec.pipeline.flags`) and quality;
 
 run by :mod:`~torchspec.pipeline.tile` (a :class:`~torchspec.pipeline.tile.TileResult`). Over
 the whole image, :mod:`~torchspec.pipeline.assembly` joins the tiles into a :class:`Fit`

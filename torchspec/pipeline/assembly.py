@@ -12,13 +12,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
-from ..flags import describe, untrusted
 from ..io import Capture
 from ..io.scale import ScaledCapture
 from ..lm import STATUS
-from ..residual_term import ResidualTerm
+from ..model.brdf import SVBRDF
+from ..model.residual_term import ResidualTerm
 from .checks import Checks
+from .flags import describe, untrusted
 from .plan import FitWarning, frame_warnings
 from .records import PlainFit, TileResult
 from .result import Fit
@@ -73,7 +73,7 @@ def run_stats(
 
 def scene_record(capture: Capture, picked: list[int]) -> dict:
     """What rendering the maps under new lights needs of the capture (``svbrdf.json``'s
-    ``fit.scene``; :mod:`torchspec.relight_lights`): ``view``, the ``light`` block (its kernel),
+    ``fit.scene``; :mod:`torchspec.relight.lights`): ``view``, the ``light`` block (its kernel),
     the fitted frames' ``irradiance`` (per channel) and ``exposure``, the near lights' median
     ``distance`` from the image's centre (``None``: distant lights), whether the capture came
     from ``photographs`` (its manifest's ``source``) and the ``transfer`` they were decoded with

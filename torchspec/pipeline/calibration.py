@@ -1,5 +1,5 @@
 """The light-calibration policy of a fit: whether and what it estimates of its lights from the
-photographs (:mod:`torchspec.lightcal`) before the tiles are fitted, and when it refuses an
+photographs (:mod:`torchspec.calibration.lights`) before the tiles are fitted, and when it refuses an
 estimate (:func:`calibrated`; its record becomes ``stats["lights"]``).
 
 ``FitConfig.calibrate`` (``--calibrate``):
@@ -10,7 +10,7 @@ estimate (:func:`calibrated`; its record becomes ``stats["lights"]``).
   map); the lights' directions or positions as written.
 - ``positions``: gains and the near lights' positions.
 - ``dome``: gains and, for lights written as directions, one dome radius
-  (:func:`torchspec.lightcal.dome_radius`; the lights stay distant where no radius explains the
+  (:func:`torchspec.calibration.lights.dome_radius`; the lights stay distant where no radius explains the
   photographs better).
 - ``auto`` (the default): what the capture's manifest lists under ``unknown``, nothing where it
   lists nothing (:func:`calibrates`): ``irradiance`` gains, with a dome radius as ``dome`` estimates
@@ -40,7 +40,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..lights import Lights
+from ..model.lights import Lights
 from .records import FitWarning, Setup
 
 __all__ = [
@@ -55,16 +55,16 @@ __all__ = [
 
 CALIBRATION_EXPLAINED = 0.8
 """``FitConfig.calibrate = auto`` keeps calibrated lights only when the Lambertian model of
-:mod:`torchspec.lightcal` explains at least this share of the pixels ..."""
+:mod:`torchspec.calibration.lights` explains at least this share of the pixels ..."""
 CALIBRATION_RMS = 0.05
 """... with a median relative misfit per frame of at most this: on a coin or a relief in cast
 shadow, gains and positions take up what the model lacks (``experiments/results/light_calibration.json``)."""
 CALIBRATION_LEFT_OUT = 0.01
 """``auto`` also keeps calibrated lights only where they predict frames left out of the Lambertian
 maps better than the lights as written, by this share of the misfit
-(:func:`torchspec.lightcal.judge.left_out_misfit`; a left-out frame at its nominal intensity)."""
+(:func:`torchspec.calibration.lights.judge.left_out_misfit`; a left-out frame at its nominal intensity)."""
 CALIBRATION_GIVE_UP = 1.5
-"""``auto`` stops calibrating (:func:`torchspec.lightcal.calibrate_lights`'s ``give_up``) when the
+"""``auto`` stops calibrating (:func:`torchspec.calibration.lights.calibrate_lights`'s ``give_up``) when the
 sample's misfit after two steps exceeds :data:`CALIBRATION_RMS` by this factor: the lights would
 be refused anyway, and the refinement cost most of a capture's calibration. On the six captures of
 ``../shared/data/rti`` at half size (``dome=True``, every step run), that misfit was 0.90-1.57
@@ -90,13 +90,13 @@ def calibrates(calibrate: str, unknown) -> bool:
 
 
 def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict | None]:
-    """``job`` with its lights calibrated from the photographs (:func:`torchspec.lightcal.calibrate_lights`)
+    """``job`` with its lights calibrated from the photographs (:func:`torchspec.calibration.lights.calibrate_lights`)
     where ``FitConfig.calibrate`` asks for it, and the record of what was estimated (``None``: nothing).
 
     ``calibrate``: ``auto`` calibrates what the capture's manifest lists under ``unknown``
     (``irradiance``: a gain per frame and channel; ``position``: near lights' positions), ``gains``
     and ``positions`` force them (``positions`` with gains), ``dome`` estimates gains and one dome
-    radius for lights written as directions (:func:`torchspec.lightcal.dome_radius`; distant where
+    radius for lights written as directions (:func:`torchspec.calibration.lights.dome_radius`; distant where
     no radius explains the photographs better), ``none`` takes the lights as written.
     ``auto`` estimates a dome radius as ``dome`` does where it calibrates gains of lights written
     as directions, and keeps the estimate only where the photographs determine it
@@ -113,7 +113,7 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
     dome = (wanted == "dome" or (wanted == "auto" and not near)) and job.positions is None
     if not gains:
         return job, None
-    from ..lightcal import calibrate_lights  # the stage that estimates lights from photographs
+    from ..calibration.lights import calibrate_lights  # the stage that estimates lights from photographs
 
     lights = job.lights
     scale = lights.scale.to(stack)  # (K, C or 1)
@@ -180,9 +180,9 @@ def calibrated(job: Setup, stack: Tensor, usable: Tensor) -> tuple[Setup, dict |
 
 
 def _left_out(frames: Tensor, valid: Tensor, directions: Tensor, found, positions, moved: bool) -> dict:
-    """:func:`torchspec.lightcal.judge.left_out_misfit` of the lights as written and as ``found``
+    """:func:`torchspec.calibration.lights.judge.left_out_misfit` of the lights as written and as ``found``
     (its gains, and its positions where ``moved``: near lights or a dome radius)."""
-    from ..lightcal.judge import left_out_misfit
+    from ..calibration.lights.judge import left_out_misfit
 
     ones = torch.ones_like(found.gains).to(frames)
     written = left_out_misfit(frames, directions, ones, positions=positions, valid=valid)
@@ -196,7 +196,7 @@ def _left_out(frames: Tensor, valid: Tensor, directions: Tensor, found, position
 def _dome_only(job: Setup, found, refused: dict) -> tuple[Setup, dict]:
     """``auto``'s lights where the gains are refused (``refused``: the warning and its figures) but one
     dome radius explains the photographs better than distant lights with the irradiance as written
-    (:func:`torchspec.lightcal.dome_radius`'s choice under the gains given): the lights at that radius
+    (:func:`torchspec.calibration.lights.dome_radius`'s choice under the gains given): the lights at that radius
     along their written directions, that irradiance."""
     radius = found.radius_as_written
     positions = radius * job.lights.directions

@@ -1,4 +1,4 @@
-"""The checks stage: each pixel's flags (:mod:`torchspec.flags`), the peak checks behind two of
+"""The checks stage: each pixel's flags (:mod:`torchspec.pipeline.flags`), the peak checks behind two of
 them (:class:`Checks`) and its quality.
 """
 
@@ -10,10 +10,10 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
-from ..flags import WEAK_LOBE_SNR, bit, peak_checks, untrusted
 from ..lm import CONVERGED, DIVERGED
-from ..models import get_model, render_chosen
+from ..model.brdf import SVBRDF
+from ..model.registry import get_model, render_chosen
+from .flags import WEAK_LOBE_SNR, bit, peak_checks, untrusted
 from .samples import TileSamples
 from .selection import Choice
 from .settings import MODEL_CODES, FitConfig
@@ -24,7 +24,7 @@ __all__ = ["Checks", "check_choice", "overshoot", "solver_flags", "quality_of", 
 @dataclass(frozen=True)
 class Checks:
     """The values behind the ``peak_misfit`` and ``astray`` flags, ``(n,)`` each
-    (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or no noise
+    (:func:`torchspec.pipeline.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or no noise
     estimate)."""
 
     peak_misfit: Tensor
@@ -102,7 +102,7 @@ def overshoot(svbrdf: SVBRDF, y: Tensor, data: TileSamples, config: FitConfig, c
     highlight (censored, so any height above the clipping level fits it), a masked frame.
 
     ``code (n,)``: each pixel's model (:class:`~torchspec.pipeline.selection.Choice`), rendered with
-    its lobe (:func:`torchspec.models.render_chosen`); ``None``: Ward's lobe for all."""
+    its lobe (:func:`torchspec.model.registry.render_chosen`); ``None``: Ward's lobe for all."""
     rule = replace(config.rule, compile=False)  # one forward render: not worth compiling
     predicted = render_chosen(svbrdf, code, data.lights, data.view, quadrature=rule).amax((1, 2))
     recorded = torch.where(y.isfinite(), y, torch.zeros_like(y)).amax((1, 2))

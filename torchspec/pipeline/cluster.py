@@ -10,7 +10,7 @@ cluster's workers, each fitted by the same function as in-process
    (:func:`torchspec.pipeline.checkpoint.open_checkpoint`, the same folder and format: either
    driver resumes the other's);
 2. when the settings leave the sensor's clipping level to be found (``saturation: null``), tasks
-   over bands of rows find it (:func:`torchspec.photometric.sample_masks` takes it from the whole
+   over bands of rows find it (:func:`torchspec.start.photometric.sample_masks` takes it from the whole
    stack); it is kept in the checkpoint for a resumed fit;
 3. each task reads the rows of a run of consecutive tiles from every frame (and the ``grow`` rows
    around them when something clips: the saturated regions are grown in the image), masks them,
@@ -42,10 +42,10 @@ import torch
 from ..atomic import read_json, write_json
 from ..errors import TorchspecError
 from ..io import Capture
-from ..lights import Lights
-from ..photometric import peak_of, sample_masks, saturation_level
+from ..model.lights import Lights
+from ..model.residual_term import TermDomain
 from ..progress import bar as progress_bar
-from ..residual_term import TermDomain
+from ..start.photometric import peak_of, sample_masks, saturation_level
 from .assembly import assemble, run_stats
 from .calibration import calibrates
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, read_tile, refuse_unfinished, tile_name

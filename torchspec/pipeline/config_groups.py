@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 
 from ..config import ConfigError
 from ..io.scale import Scale
-from ..quadrature import QUADRATURES, Quadrature
-from ..residual_term import TERMS
+from ..model.quadrature import QUADRATURES, Quadrature
+from ..model.residual_term import TERMS
 
 __all__ = ["ComputeConfig", "FlagsConfig", "MasksConfig", "QuadratureConfig", "TermConfig"]
 
@@ -58,7 +58,7 @@ class MasksConfig:
 
 @dataclass(frozen=True)
 class TermConfig:
-    """The smooth per-pixel residual term (``FitConfig.term``; :mod:`torchspec.residual_term`).
+    """The smooth per-pixel residual term (``FitConfig.term``; :mod:`torchspec.model.residual_term`).
 
     Attributes:
         order: ``auto`` (the default: ``3`` for a capture imported from photographs, whose
@@ -90,7 +90,7 @@ class TermConfig:
 @dataclass(frozen=True)
 class FlagsConfig:
     """The thresholds of the flags that take a pixel's trust away (``FitConfig.flags``;
-    :mod:`torchspec.flags`). ``experiments/stability.py`` chose the defaults.
+    :mod:`torchspec.pipeline.flags`). ``experiments/stability.py`` chose the defaults.
 
     Attributes:
         trust_rms: a pixel whose chosen model leaves a misfit (a residual above the noise) with a
@@ -121,9 +121,9 @@ class QuadratureConfig:
 
     Attributes:
         preset: ``fit`` (the default): 3 x 3 nodes per frame for the lobe (8 radii where the
-            reference rule takes over) and the clamp's fast rule (:data:`torchspec.quadrature.CLAMPS`):
+            reference rule takes over) and the clamp's fast rule (:data:`torchspec.model.quadrature.CLAMPS`):
             within 1e-3 of a pixel's largest value; ``render``: the renderer's own rules (1e-6).
-        path: the quadrature path of the model (:func:`torchspec.rendering.render`).
+        path: the quadrature path of the model (:func:`torchspec.model.rendering.render`).
         compile: fuse the model's integrations with ``torch.compile`` (faster solver steps after
             a one-off compilation). A failed compilation warns and fits without. ``None``: when
             the fit has at least ``COMPILE_PIXELS`` pixels.
@@ -141,7 +141,7 @@ class QuadratureConfig:
 
     @property
     def rule(self) -> Quadrature:
-        """The preset ``preset`` names (:data:`torchspec.quadrature.QUADRATURES`) on ``path``,
+        """The preset ``preset`` names (:data:`torchspec.model.quadrature.QUADRATURES`) on ``path``,
         compiled when ``compile``."""
         return replace(QUADRATURES[self.preset], path=self.path, compile=bool(self.compile))
 

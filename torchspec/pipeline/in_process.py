@@ -8,8 +8,8 @@ import time
 from pathlib import Path
 
 from ..io import Capture
-from ..photometric import sample_masks
 from ..progress import bar as progress_bar
+from ..start.photometric import sample_masks
 from .assembly import assemble, run_stats
 from .calibration import calibrated
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, refuse_unfinished

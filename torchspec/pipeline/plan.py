@@ -21,11 +21,11 @@ import torch
 from ..errors import TorchspecError
 from ..io import Capture, read_capture
 from ..io.scale import Scale, scaled
-from ..layout import coverage_warning, fit_problem
-from ..lights import Lights
-from ..models import get_model
-from ..photometric import peak_of, saturation_level
-from ..residual_term import TermDomain
+from ..model.layout import coverage_warning, fit_problem
+from ..model.lights import Lights
+from ..model.registry import get_model
+from ..model.residual_term import TermDomain
+from ..start.photometric import peak_of, saturation_level
 from .calibration import (
     CALIBRATION_EXPLAINED,
     CALIBRATION_GIVE_UP,
@@ -77,7 +77,7 @@ own sensor noise)."""
 
 def frame_warnings(capture: Capture, picked: list[int]) -> list[str]:
     """What the frames ``picked`` of ``capture`` let a fit do only poorly (known before it starts):
-    :func:`torchspec.layout.coverage_warning`."""
+    :func:`torchspec.model.layout.coverage_warning`."""
     if len(picked) < 3:
         return []
     l = capture.directions()[torch.tensor(picked)][:, :2]  # on the CPU: the capture's manifest, checked once
@@ -155,7 +155,7 @@ def setup(capture: Capture | str | Path, config: FitConfig | None, frames: str |
         FitWarning: :func:`frame_warnings`.
 
     Raises:
-        TorchspecError: frames a fit cannot use (:func:`torchspec.layout.fit_problem`: fewer than 4,
+        TorchspecError: frames a fit cannot use (:func:`torchspec.model.layout.fit_problem`: fewer than 4,
             or too few along an axis for a lobe); CaptureError: an unreadable capture or light.
     """
     config = config or FitConfig()
@@ -194,7 +194,7 @@ def _reduced(config: FitConfig, capture: Capture, picked: list[int]) -> tuple[Fi
     """``capture`` read at ``config``'s ``downsample`` and ``crop`` (:func:`torchspec.io.scale.scaled`),
     clipped boxes kept clipped at the settings' level: where neither the settings nor the capture
     give one, the level is found on the picked frames at full size first
-    (:func:`torchspec.photometric.saturation_level`, as :func:`~torchspec.photometric.sample_masks`
+    (:func:`torchspec.start.photometric.saturation_level`, as :func:`~torchspec.start.photometric.sample_masks`
     finds it; the frames are read twice) and becomes the settings' ``saturation``."""
     scale = Scale(config.masks.downsample, config.masks.crop)
     if scale.identity:

@@ -24,11 +24,11 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
 from ..lm import bounded
-from ..lobes import WARD
-from ..models import Model, get_model
-from ..rendering import render
+from ..model.brdf import SVBRDF
+from ..model.lobes import WARD
+from ..model.registry import Model, get_model
+from ..model.rendering import render
 from ..statistics import predicts_better  # re-exported: the rule lives with the statistics
 from .samples import TileSamples
 from .settings import FitConfig

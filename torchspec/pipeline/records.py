@@ -15,10 +15,10 @@ from dataclasses import dataclass, field, fields, replace
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
 from ..io import Capture
-from ..lights import Lights
-from ..residual_term import ResidualTerm, TermDomain
+from ..model.brdf import SVBRDF
+from ..model.lights import Lights
+from ..model.residual_term import ResidualTerm, TermDomain
 from .checks import Checks
 from .settings import FitConfig
 
@@ -39,12 +39,12 @@ class Setup:
         lights: the picked frames' lights (``K``), on the settings' device and dtype.
         view: ``(3,)`` the view direction, alike.
         positions: ``(K, 3)`` the picked frames' near-light positions (``Frame.position``; object
-            units, :mod:`torchspec.near_lights`), alike; ``None`` for distant lights.
+            units, :mod:`torchspec.model.near_lights`), alike; ``None`` for distant lights.
         gains: ``(K, C)`` the gains :func:`~torchspec.pipeline.calibration.calibrated` found (in
             ``lights``' irradiance), else ``None``.
         domain: the encoding the residual term is fitted in: the capture's estimated camera response
             where its import estimated one (``source.transfer: response``), else sRGB
-            (:class:`torchspec.residual_term.TermDomain`).
+            (:class:`torchspec.model.residual_term.TermDomain`).
     """
 
     config: FitConfig
@@ -118,9 +118,9 @@ class TileResult:
 
 
 def _moved(value, device):
-    """``value`` with every tensor in it moved to ``device``: a tensor or :class:`~torchspec.brdf.SVBRDF`,
+    """``value`` with every tensor in it moved to ``device``: a tensor or :class:`~torchspec.model.brdf.SVBRDF`,
     a dict of them, or a record of this module, :class:`~torchspec.pipeline.checks.Checks` or
-    :class:`~torchspec.residual_term.ResidualTerm` field by field; anything else as it is."""
+    :class:`~torchspec.model.residual_term.ResidualTerm` field by field; anything else as it is."""
     if isinstance(value, (Tensor, SVBRDF)):
         return value.to(device=device)
     if isinstance(value, dict):

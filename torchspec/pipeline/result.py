@@ -8,13 +8,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
-from ..flags import FLAGS, UNTRUSTED, bit
 from ..io import write_svbrdf
 from ..lm import STATUS
+from ..model.brdf import SVBRDF
+from ..model.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 from ..outputs import check_apart, check_output
-from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
 from .checkpoint import CHECKPOINT
+from .flags import FLAGS, UNTRUSTED, bit
 from .settings import MODEL_CODES
 
 __all__ = ["Fit", "write_fit"]
@@ -31,7 +31,7 @@ class Fit:
             pixel's mean value.
         quality: ``(H, W)`` in ``[0, 1]``: photometric-stereo quality, times the peak location's
             quality for lobed pixels, halved where the solver did not converge; 0 where ``flags``
-            holds a flag of :data:`torchspec.flags.UNTRUSTED` (diverged, fewer than 3 valid
+            holds a flag of :data:`torchspec.pipeline.flags.UNTRUSTED` (diverged, fewer than 3 valid
             samples, an undetermined normal, a misfit around the peak, a peak astray).
         status: ``(H, W)`` int8 solver status (:data:`torchspec.lm.STATUS`).
         iterations: ``(H, W)`` solver steps taken.
@@ -47,15 +47,15 @@ class Fit:
             leave it undetermined.
         stats: settings, timings and per-stage statistics (JSON-ready); ``smoothed``: the lobes
             that ``FitConfig.ladder.smooth`` took away (``None`` without it).
-        flags: ``(H, W)`` int16 bits of :data:`torchspec.flags.FLAGS`: why not to trust a pixel
-            (the :data:`torchspec.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
+        flags: ``(H, W)`` int16 bits of :data:`torchspec.pipeline.flags.FLAGS`: why not to trust a pixel
+            (the :data:`torchspec.pipeline.flags.UNTRUSTED` ones; ``quality`` is then 0) or what to know
             of it (its solver stopped early, its model leaves a residual above the noise, its
             lobe is too weak to place a peak).
         checks: ``peak_misfit`` and ``astray`` ``(H, W)``: the values behind those flags
-            (:func:`torchspec.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or
+            (:func:`torchspec.pipeline.flags.peak_checks`; NaN where not computed: no lobe, a weak one, or
             no noise estimate with a forced model and ``uncertainty`` off).
         term: the residual term, ``coefficients (H, W, J, C)`` and ``chosen (H, W)``
-            (:class:`torchspec.residual_term.ResidualTerm`; ``FitConfig.term.order``, else ``None``).
+            (:class:`torchspec.model.residual_term.ResidualTerm`; ``FitConfig.term.order``, else ``None``).
     """
 
     svbrdf: SVBRDF

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..lights import Lights
+from ..model.lights import Lights
 
 __all__ = ["TileSamples"]
 

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
-from ..layout import lobe_support
 from ..lm import DIVERGED, LMResult
-from ..models import ALPHA_BOUNDS, get_model
+from ..model.brdf import SVBRDF
+from ..model.layout import lobe_support
+from ..model.registry import ALPHA_BOUNDS, get_model
 from ..statistics import predicts_better
 from .prediction import held_out, held_out_refit, light_folds, second_lobe_held_out
 from .samples import TileSamples
@@ -340,7 +340,7 @@ def resolved(fit: ModelFit, bound: float) -> Tensor:
 
 def supported(fit: ModelFit, data: TileSamples, least: float) -> Tensor:
     """``(m,)`` bool: with point lights, a fit's lobe reaches at least ``least`` of its peak at
-    one of the frames (:func:`torchspec.layout.lobe_support`); True without a lobe, with an
+    one of the frames (:func:`torchspec.model.layout.lobe_support`); True without a lobe, with an
     extended kernel (whose blur sees the peak from the frames about it) or ``least = 0``."""
     if data.lights.kernel.kind != "point" or least <= 0 or get_model(fit.name).lobe is None:
         return torch.ones_like(fit.unexplained)

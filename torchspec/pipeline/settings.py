@@ -11,11 +11,11 @@ from dataclasses import dataclass, field, fields
 from typing import ClassVar
 
 from ..config import ConfigError, from_mapping
-from ..layout import resolvable_roughness
-from ..lights import Lights
 from ..lm import LMConfig
-from ..models import ALPHA_BOUNDS, MODEL_CODES, MODELS, get_model
-from ..quadrature import Quadrature
+from ..model.layout import resolvable_roughness
+from ..model.lights import Lights
+from ..model.quadrature import Quadrature
+from ..model.registry import ALPHA_BOUNDS, MODEL_CODES, MODELS, get_model
 from .config_groups import ComputeConfig, FlagsConfig, MasksConfig, QuadratureConfig, TermConfig, positive
 
 __all__ = [
@@ -47,7 +47,7 @@ AUTO = "auto"
 """``FitConfig.model`` that picks each pixel's model."""
 LADDER = tuple(name for name, model in MODELS.items() if model.ladder)
 """The lobed models ``auto`` tries, in order: each on the pixels the previous left unexplained (the
-built-in models declared ``ladder``, :mod:`torchspec.models`; a model registered later joins
+built-in models declared ``ladder``, :mod:`torchspec.model.registry`; a model registered later joins
 ``auto`` through ``FitConfig.ladder``)."""
 CALIBRATE = ("auto", "none", "gains", "positions", "dome")
 """The values of ``FitConfig.calibrate``."""
@@ -75,7 +75,7 @@ class StartConfig:
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
         fri_kernel: the lobe's spectrum the peak location weighs coefficients by: ``pixel``
             (fitted to each pixel, the default) or ``pooled`` (one spectrum pooled over the
-            tile's pixels, :func:`torchspec.fri.estimate_kernel`: nearer the Cramer-Rao bound
+            tile's pixels, :func:`torchspec.start.fri.estimate_kernel`: nearer the Cramer-Rao bound
             for broad lobes at low SNR when the tile's lobes share a width; needs the
             ``coherent`` method).
         broad_alpha: the roughness of the broad-lobe start of ``auto``'s pixels that show no peak
@@ -152,12 +152,12 @@ class LadderConfig:
             deviations of the noise (:func:`~torchspec.statistics.predicts_better`) at one
             of a few roughnesses; ``None``: wherever ``dual_rms`` lets it.
         lobe_resolution: with point lights, no lobe narrower than ``lobe_resolution`` times the
-            half vectors' spacing (:func:`torchspec.layout.resolvable_roughness`): a narrower one
+            half vectors' spacing (:func:`torchspec.model.layout.resolvable_roughness`): a narrower one
             falls between the frames, fits one frame's sample and predicts nothing between them
-            (relighting between lights explodes). ``0``: only :data:`torchspec.models.ALPHA_BOUNDS`.
+            (relighting between lights explodes). ``0``: only :data:`torchspec.model.registry.ALPHA_BOUNDS`.
             An extended kernel's blur resolves narrower lobes: no bound from the sampling.
         lobe_support: with point lights, ``auto`` keeps a lobe only where some frame of the fit
-            sees at least ``lobe_support`` of its peak (:func:`torchspec.layout.lobe_support`; 1/2:
+            sees at least ``lobe_support`` of its peak (:func:`torchspec.model.layout.lobe_support`; 1/2:
             a light within the lobe's half maximum): a lobe peaking between the lights, farther
             from each than its width, has a height no photograph determines, and a light at its
             peak sees it at any height. ``0``: no such test.
@@ -271,7 +271,7 @@ class FitConfig:
         model: ``auto`` picks each pixel's model by what it predicts of frames left out of its
             fit (:mod:`torchspec.pipeline.prediction`), trying the larger ones only where the
             smaller leave a residual above the noise (``ladder``); or one model forced on every
-            pixel that shows a peak (:data:`torchspec.models.MODELS`): ``ward-iso`` (grey ``k_s``),
+            pixel that shows a peak (:data:`torchspec.model.registry.MODELS`): ``ward-iso`` (grey ``k_s``),
             ``ward-iso-colour``, ``ward-aniso`` or ``ward-dual`` (two grey isotropic lobes), or
             ``diffuse`` on every pixel. Where some pixel gets ``ward-dual``, the maps have a second
             lobe (``SVBRDF.specular2``, 0 where another model was chosen; ``std`` has its deviations).
@@ -281,11 +281,11 @@ class FitConfig:
             for lights written as directions, kept where the gains are refused; its lights'
             positions), ``gains``, ``positions`` (near lights' positions and gains), ``dome`` (gains
             and one dome radius for every light, or distant lights where none explains the
-            photographs better: :func:`torchspec.lightcal.dome_radius`) or ``none``.
+            photographs better: :func:`torchspec.calibration.lights.dome_radius`) or ``none``.
         uncertainty: compute each pixel's criterion and standard deviations (one more evaluation
             of the model per pixel, at the solution), with each sample's noise from the sensor's
             ``a y + b`` fitted to the residuals of the pixels without a peak
-            (:func:`torchspec.noise.affine_noise`; ``stats["sensor_noise"]``), floored at
+            (:func:`torchspec.model.noise.affine_noise`; ``stats["sensor_noise"]``), floored at
             ``start.noise_floor`` times the pixel's level. ``auto`` needs them; a forced model
             without them leaves ``criterion`` and ``std`` NaN.
         masks, start, ladder, term, flags, quadrature, compute: the groups above.
@@ -352,7 +352,7 @@ class FitConfig:
     @property
     def lobes(self) -> bool:
         """Whether the fit may give a pixel a lobe: ``auto``, or a forced model with one (its
-        :attr:`torchspec.models.Model.lobe`)."""
+        :attr:`torchspec.model.registry.Model.lobe`)."""
         return self.model == AUTO or get_model(self.model).lobe is not None
 
     @property

@@ -10,9 +10,9 @@ from dataclasses import dataclass, replace
 
 from torch import Tensor
 
-from ..brdf import SVBRDF
 from ..lm import Bounds, LMResult, bounded, solve
-from ..models import get_model
+from ..model.brdf import SVBRDF
+from ..model.registry import get_model
 from .samples import TileSamples
 from .settings import FitConfig
 
@@ -38,7 +38,7 @@ class Solved:
     """One model's solution on pixels ``index`` of a tile.
 
     Attributes:
-        name: the model (:data:`torchspec.models.MODELS`).
+        name: the model (:data:`torchspec.model.registry.MODELS`).
         index: ``(m,)`` the tile's pixels fitted.
         svbrdf: ``(m,)`` the fitted maps.
         result: the solver's :class:`torchspec.lm.LMResult` (status, iterations, cost).

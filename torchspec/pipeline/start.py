@@ -1,6 +1,6 @@
 """The stages before the solver, per batch of ``n`` pixels: robust photometric stereo (normal and
 ``k_d``), the lobe test (a residual peak above the noise) and the specular start of
-``FitConfig.start.init`` (:mod:`torchspec.specular`).
+``FitConfig.start.init`` (:mod:`torchspec.start.specular`).
 """
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
-from ..layout import Layout, kernel_variance, layout_of
-from ..lights import Lights, diffuse_directions
-from ..photometric import Diffuse, photometric_stereo
-from ..specular import LobeStart, grid_search, locate_peak, naive_start, specular_residual
+from ..model.brdf import SVBRDF
+from ..model.layout import Layout, kernel_variance, layout_of
+from ..model.lights import Lights, diffuse_directions
+from ..start.photometric import Diffuse, photometric_stereo
+from ..start.specular import LobeStart, grid_search, locate_peak, naive_start, specular_residual
 from .settings import FitConfig
 
 __all__ = ["LightContext", "StartingPoint", "light_context", "starting_point"]
@@ -52,8 +52,8 @@ class StartingPoint:
     """What the stages before the solver give a batch of ``n`` pixels (:func:`starting_point`).
 
     Attributes:
-        diffuse: the photometric-stereo fit (:class:`torchspec.photometric.Diffuse`).
-        specular: the specular start (:class:`torchspec.specular.LobeStart`).
+        diffuse: the photometric-stereo fit (:class:`torchspec.start.photometric.Diffuse`).
+        specular: the specular start (:class:`torchspec.start.specular.LobeStart`).
         lobe: ``(n,)`` bool, the pixels whose residual peaks above the noise: fitted with a lobe.
         level: ``(n,)`` the pixels' mean value (divided by exposure and irradiance).
         times: seconds per stage (``photometric``, ``specular_start``).

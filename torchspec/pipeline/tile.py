@@ -12,10 +12,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..lights import Lights
-from ..models import get_model, render_chosen
-from ..photometric import Masks
-from ..residual_term import ResidualTerm, TermDomain, blend, fit_term
+from ..model.lights import Lights
+from ..model.registry import get_model, render_chosen
+from ..model.residual_term import ResidualTerm, TermDomain, blend, fit_term
+from ..start.photometric import Masks
 from ..threads import fit_threads
 from .checkpoint import save_tile
 from .checks import check_choice, overshoot, quality_of, with_flags
@@ -30,7 +30,7 @@ from .start import LightContext, starting_point
 __all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TilePixels", "TileResult", "fit_pixels", "fit_tile"]
 
 MASK_KINDS = tuple(f.name for f in fields(Masks))
-"""The masks of :class:`torchspec.photometric.Masks` that :func:`fit_tile` takes and counts."""
+"""The masks of :class:`torchspec.start.photometric.Masks` that :func:`fit_tile` takes and counts."""
 TERM_REFIT = 2
 """Solver steps of each fold's refit that judges the residual term (:func:`held_out_values`). The
 refits were most of the term's time; on ``experiments/rti_relight.py``'s captures (4 x 4 reduced)
@@ -132,21 +132,21 @@ def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: Fi
 
 
 def residual_term(choice, sensor: Tensor, pixels: TilePixels, data: TileSamples, shared: FitInputs) -> ResidualTerm:
-    """The residual term (:func:`torchspec.residual_term.fit_term`) of a tile's chosen models
+    """The residual term (:func:`torchspec.model.residual_term.fit_term`) of a tile's chosen models
     (``choice``, :func:`~torchspec.pipeline.selection.select_models`) on the samples ``pixels.kept``
     of ``pixels.y``, judged on the folds of ``auto``'s choice.
 
     The term is fitted on two bases: the chosen model, judged by its prediction of each fold from
     a refit without it (:func:`~torchspec.pipeline.prediction.held_out_refit`), and nothing (the term
     alone, an HSH of the photographs); each pixel keeps the blend of the two that predicts the
-    left-out frames best (:func:`torchspec.residual_term.blend`: the model's weight
+    left-out frames best (:func:`torchspec.model.residual_term.blend`: the model's weight
     ``ResidualTerm.weight``; the maps are unchanged).
 
     With calibrated ``shared.gains (K, C)`` the term is fitted under the lights as written (the gains
     divided out of the model's prediction): it then carries how the photographs' brightness
     varies with the light's direction, which a render under lights as written (new or left-out
     ones, whose gain no photograph gave) needs. ``shared.domain``: the encoding it is fitted and
-    judged in (:class:`torchspec.residual_term.TermDomain`; default sRGB)."""
+    judged in (:class:`torchspec.model.residual_term.TermDomain`; default sRGB)."""
     y, config, gains, domain = pixels.y, shared.config, shared.gains, shared.domain
     kept = pixels.kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
@@ -223,7 +223,7 @@ class TileInputs:
         first: the tile's first pixel (its key in the checkpoint).
         values: ``(K, C, n)`` the pixels' recorded values.
         masks: the pixels' samples to leave out, each kind ``(K, n)``
-            (:meth:`torchspec.photometric.Masks.of_pixels`).
+            (:meth:`torchspec.start.photometric.Masks.of_pixels`).
         lights: the ``K`` lights as this tile sees them (under near lights, from its centre).
         ctx: ``lights``'s :class:`~torchspec.pipeline.start.LightContext`.
     """

@@ -1,6 +1,6 @@
 """How a fit cuts the image into tiles (:class:`Tiling`): runs of rows for distant lights, square
 blocks under near lights, each block fitted under the lights as seen from its centre
-(:mod:`torchspec.near_lights`), and the tiles' results put back in the image's order.
+(:mod:`torchspec.model.near_lights`), and the tiles' results put back in the image's order.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 import torch
 from torch import Tensor
 
-from ..lights import Lights
-from ..near_lights import block_order, block_sizes, image_points, lights_at
-from ..rendering import TILE_PIXELS
+from ..model.lights import Lights
+from ..model.near_lights import block_order, block_sizes, image_points, lights_at
+from ..model.rendering import TILE_PIXELS
 from .records import TileResult
 from .start import LightContext, light_context
 
@@ -32,7 +32,7 @@ distant; a farther dome takes larger blocks (fewer, larger batches) for the same
 def near_block(height: int, width: int, tile: int, positions: Tensor) -> int:
     """The side (pixels) of :func:`tiling_of`'s blocks under near lights at ``positions (K, 3)``:
     ``2 tan(BLOCK_ANGLE)`` times the least distance from a light to the image (image widths,
-    :mod:`torchspec.near_lights`), at least :data:`LEAST_BLOCK` and at most ``sqrt(tile)`` pixels."""
+    :mod:`torchspec.model.near_lights`), at least :data:`LEAST_BLOCK` and at most ``sqrt(tile)`` pixels."""
     half = torch.tensor([0.5, 0.5 * height / width], dtype=positions.dtype, device=positions.device)
     nearest = torch.minimum(positions[:, :2].abs(), half)  # the image's point nearest each light, mirrored
     reach = float(torch.cat([positions[:, :2].abs() - nearest, positions[:, 2:]], 1).norm(dim=1).min())
@@ -81,7 +81,7 @@ class Tiling:
 def tiling_of(height: int, width: int, tile: int, positions: Tensor | None) -> Tiling:
     """Tiles of ``tile`` pixels in row-major order for distant lights (``positions`` ``None``);
     square blocks under near lights (:func:`near_block`, of at most
-    :data:`~torchspec.rendering.TILE_PIXELS` pixels whatever ``tile``): the blocks
+    :data:`~torchspec.model.rendering.TILE_PIXELS` pixels whatever ``tile``): the blocks
     :func:`torchspec.relight.render_near` and the viewer render in, so that a render lights each
     pixel as the fit saw it (a fit cut into smaller blocks than its render saw other lights: on
     SynthRTI m1 at a dome radius of 25 image widths, 0.4 % apart, and a residual term fitted under

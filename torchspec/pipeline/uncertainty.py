@@ -11,15 +11,15 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from ..brdf import SVBRDF
-from ..forward_terms import forward_sandwich_terms
-from ..geometry import normal_derivative
-from ..least_squares import sandwich_terms
-from ..lights import Lights
 from ..lm import DIVERGED
-from ..models import Model, get_model
-from ..noise import affine_noise
-from ..quadrature import Quadrature
+from ..model.brdf import SVBRDF
+from ..model.forward_terms import forward_sandwich_terms
+from ..model.geometry import normal_derivative
+from ..model.least_squares import sandwich_terms
+from ..model.lights import Lights
+from ..model.noise import affine_noise
+from ..model.quadrature import Quadrature
+from ..model.registry import Model, get_model
 from .solver import Solved, compiled_or_eager
 
 __all__ = ["NOISE_PIXELS", "PeakSamples", "Uncertainty", "sensor_noise", "uncertainty"]
@@ -30,7 +30,7 @@ NOISE_PIXELS = 64
 
 @dataclass(frozen=True)
 class PeakSamples:
-    """What the peak checks (:func:`torchspec.flags.peak_checks`) take of a fit of ``m`` pixels.
+    """What the peak checks (:func:`torchspec.pipeline.flags.peak_checks`) take of a fit of ``m`` pixels.
 
     Attributes:
         z2: ``(m, K)`` the squared residual in noise units, summed over channels.
@@ -58,7 +58,7 @@ class Uncertainty:
 def sensor_noise(
     first: list[Solved], peaked: Tensor, observed: Tensor, valid: Tensor, level: Tensor, channels: int
 ) -> tuple[Tensor, Tensor]:
-    """The sensor's ``(a, b)`` (:func:`torchspec.noise.affine_noise`) from the first fitted models'
+    """The sensor's ``(a, b)`` (:func:`torchspec.model.noise.affine_noise`) from the first fitted models'
     costs ``0.5 sum (r / level)^2`` over each pixel's valid samples (diverged fits left out).
 
     The pixels without a peak (``peaked (n,)`` false), fitted without a lobe, are used when there
@@ -105,8 +105,8 @@ def uncertainty(
 
     The estimate minimised ``|fit_weight (render - observed)|^2``, not the noise-weighted residual
     (it is fitted before the noise is known): its covariance is the sandwich ``A^-1 B A^-1``
-    (:func:`torchspec.least_squares.sandwich_terms`; for a lobe without closed forms
-    :func:`torchspec.forward_terms.forward_sandwich_terms`), larger than the inverse Fisher information
+    (:func:`torchspec.model.least_squares.sandwich_terms`; for a lobe without closed forms
+    :func:`torchspec.model.forward_terms.forward_sandwich_terms`), larger than the inverse Fisher information
     ``J^T S^-1 J`` (the Cramer-Rao bound) wherever the samples' noise differs within a pixel (shot
     noise at a specular peak).
 

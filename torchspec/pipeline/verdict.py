@@ -9,7 +9,7 @@ from __future__ import annotations
 import shlex
 from pathlib import Path
 
-from ..flags import UNTRUSTED
+from .flags import UNTRUSTED
 
 __all__ = [
     "UNTRUSTED_SHARE",
@@ -61,7 +61,7 @@ REASONS = {
     ),
     "diverged": ("the solver diverged", "please report it with the capture"),
 }
-"""Per flag of :data:`torchspec.flags.UNTRUSTED`: what it means of the pixels and what the user can do."""
+"""Per flag of :data:`torchspec.pipeline.flags.UNTRUSTED`: what it means of the pixels and what the user can do."""
 
 
 def _share(count: int, pixels: int) -> str:
@@ -70,7 +70,7 @@ def _share(count: int, pixels: int) -> str:
 
 def trust_warnings(stats: dict) -> list[str]:
     """The warnings of a fit whose pixels are untrusted in a share above :data:`UNTRUSTED_SHARE`
-    (one per flag of :data:`torchspec.flags.UNTRUSTED`, saying what it means and what to do) or of
+    (one per flag of :data:`torchspec.pipeline.flags.UNTRUSTED`, saying what it means and what to do) or of
     low quality in a share above :data:`LOW_QUALITY_SHARE`, from ``stats`` (``Fit.stats``)."""
     pixels, flags = stats["pixels"], stats.get("flags", {})
     found = []

@@ -12,18 +12,18 @@ import math
 import numpy as np
 import torch
 
-from ..brdf import SVBRDF
 from ..errors import TorchspecError
-from ..flags import FLAGS, UNTRUSTED, bit
-from ..geometry import normal_from_angles
 from ..io import Maps
-from ..lights import Kernel, Lights
-from ..lobe import lobe_frame, lobe_moments
-from ..near_lights import image_points, near_light
+from ..model.brdf import SVBRDF
+from ..model.geometry import normal_from_angles
+from ..model.lights import Kernel, Lights
+from ..model.lobe import lobe_frame, lobe_moments
+from ..model.near_lights import image_points, near_light
+from ..model.rendering import render, render_image
+from ..model.residual_term import MAP_NAME, TERMS, WEIGHT_MAP, ResidualTerm, encode
+from ..pipeline.flags import FLAGS, UNTRUSTED, bit
 from ..pipeline.settings import MODEL_CODES
 from ..relight import render_near
-from ..rendering import render, render_image
-from ..residual_term import MAP_NAME, TERMS, WEIGHT_MAP, ResidualTerm, encode
 
 __all__ = [
     "MODEL_TYPES",
@@ -89,7 +89,7 @@ def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1, enco
     """``maps`` with a random residual term (as a fit writes it: ``residual_term`` channel-major,
     ``residual_term_weight``): coefficients uniform in ``[-size, size]`` on three pixels of four
     (the others none), the weight 1 on half of those and uniform in ``[0, 1]`` on the rest; in the
-    domain of ``encoding`` (:meth:`~torchspec.residual_term.TermDomain.to_json`, recorded in the
+    domain of ``encoding`` (:meth:`~torchspec.model.residual_term.TermDomain.to_json`, recorded in the
     maps' ``meta`` as a fit records it; ``None``: sRGB, nothing recorded)."""
     height, width = maps.svbrdf.shape
     channels = len(maps.svbrdf.channels)
@@ -115,7 +115,7 @@ def reference_srgb(
     position=None,
     each_pixel: bool = False,
 ) -> np.ndarray:
-    """``(H, W, 3)`` uint8: :func:`torchspec.rendering.render_image` of ``svbrdf`` under a light
+    """``(H, W, 3)`` uint8: :func:`torchspec.model.rendering.render_image` of ``svbrdf`` under a light
     centred at ``light (3,)`` of unit irradiance (a point, or ``kernel``), with the residual
     ``term`` applied as ``torchspec render`` applies it (:meth:`ResidualTerm.apply`), times ``exposure``,
     sRGB-encoded (clipped to ``[0, 1]``) and rounded to 8 bits as the page shows it (grey
@@ -180,7 +180,7 @@ def hemisphere_lights(count: int = 20, max_zenith_deg: float = 80.0) -> np.ndarr
 def lobe_width(svbrdf: SVBRDF, view=(0.0, 0.0, 1.0)) -> np.ndarray:
     """``(H, W)``: the full width at half maximum, in the l-plane and along its narrowest axis, of
     the narrower of each pixel's lobes (Ward's, linearised about the mirror direction:
-    :func:`torchspec.lobe.lobe_moments`); ``inf`` where a pixel has no lobe."""
+    :func:`torchspec.model.lobe.lobe_moments`); ``inf`` where a pixel has no lobe."""
     flat = svbrdf.to(torch.float64).flatten()
     view = torch.tensor(view, dtype=torch.float64, device=flat.normal.device)
     width = torch.full(flat.shape, math.inf, dtype=torch.float64, device=flat.normal.device)

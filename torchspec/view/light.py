@@ -11,21 +11,21 @@ its direction in the tangent frame ``e1 = x - c_x c`` normalised, ``e2 = c x e1`
 kernel is the same about every centre.
 
 A Gaussian kernel takes the product Gauss-Hermite rule of ``order`` nodes an axis (those of
-:func:`torchspec.quadrature.hermite`, which ``torchspec.render`` places on a broad lobe's product
+:func:`torchspec.model.quadrature.hermite`, which ``torchspec.render`` places on a broad lobe's product
 with the kernel); a tabulated or super-Gaussian kernel the reference nodes of
-:func:`torchspec.lights.nodes` about the zenith merged into at most ``order x order`` cells of its
+:func:`torchspec.model.lights.nodes` about the zenith merged into at most ``order x order`` cells of its
 whitened extent (each cell's mass at its centre of mass: mass and mean kept).
 
 Under a Gaussian kernel the page does better than a fixed rule, as ``torchspec.render``'s fast path
 does: a lobe narrower than the nodes' spacing would fall between them, so for a ``projected``
 Gaussian each lobe takes render's own fast rule (``FAST_ORDER x FAST_ORDER`` Gauss-Hermite points)
 placed on its own product with the kernel (the lobe linearised in the l-plane about its mirror
-point, then about that product's mean: :func:`torchspec.nodes.fast_rule`). A Gaussian's diffuse
+point, then about that product's mean: :func:`torchspec.model.nodes.fast_rule`). A Gaussian's diffuse
 term is ``<n, d>`` with the kernel's effective direction ``d``
-(:func:`torchspec.lights.diffuse_directions`, exact at the horizon, where fixed nodes are cut)
+(:func:`torchspec.model.lights.diffuse_directions`, exact at the horizon, where fixed nodes are cut)
 interpolated in a table over the centre's distance from the zenith, plus the nodes' share behind
 the normal's horizon (or the share in front where that is the smaller,
-:func:`torchspec.diffuse.diffuse_integral`'s rule). Other kernels are summed on the fixed nodes for
+:func:`torchspec.model.diffuse.diffuse_integral`'s rule). Other kernels are summed on the fixed nodes for
 both terms: their lobes narrower than :attr:`LightQuadrature.spacing` are not resolved.
 """
 
@@ -39,11 +39,11 @@ import torch
 
 from ..errors import TorchspecError
 from ..io import Capture
-from ..lights import Kernel, Lights, diffuse_directions, nodes
+from ..model.lights import Kernel, Lights, diffuse_directions, nodes
+from ..model.quadrature import FAST_ORDER, Quadrature, hermite
+from ..model.rendering import TILE_PIXELS
 from ..pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block
-from ..quadrature import FAST_ORDER, Quadrature, hermite
 from ..relight import fit_positions
-from ..rendering import TILE_PIXELS
 
 __all__ = ["MAX_NODES", "DIFFUSE_ROWS", "DIFFUSE_REACH", "LightQuadrature", "light_quadrature", "near_lights"]
 
@@ -73,7 +73,7 @@ class LightQuadrature:
         lobe_rule: ``(Q, 3)``: ``torchspec.render``'s fast rule (standard normal Gauss-Hermite
             points, ``FAST_ORDER`` an axis, and weights) for a projected Gaussian, else none.
         diffuse: ``(DIFFUSE_ROWS, 2)`` for a Gaussian kernel (else none): its effective diffuse
-            direction (:func:`torchspec.lights.diffuse_directions`) ``(a c_xy / |c_xy|, b)`` for
+            direction (:func:`torchspec.model.lights.diffuse_directions`) ``(a c_xy / |c_xy|, b)`` for
             centres ``c`` at ``|c_xy|`` evenly spaced on ``[0, DIFFUSE_REACH]``; the page
             interpolates it (the fixed nodes cannot follow the horizon's cut of the kernel).
     """
@@ -196,7 +196,7 @@ def light_quadrature(kernel: Kernel | None, order: int = 8) -> LightQuadrature:
 
 
 def near_lights(capture: Capture | None, meta: dict, height: int, width: int) -> dict:
-    """The manifest's keys of near lights (:mod:`torchspec.near_lights`): ``positions``, each of
+    """The manifest's keys of near lights (:mod:`torchspec.model.near_lights`): ``positions``, each of
     the capture's ``K`` frames' light position ``[x, y, z]`` in image widths from the image's
     centre (``[]``: distant lights); ``near_radius``, the distance the page's light starts at (the
     positions' median distance; ``None``: distant); ``near_source``, what the positions come from;

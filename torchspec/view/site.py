@@ -31,16 +31,16 @@ import OpenEXR
 import torch
 
 from ..atomic import atomic_path, write_json
-from ..brdf import SVBRDF
 from ..errors import TorchspecError
 from ..io import Capture, Maps, read_capture, read_svbrdf
 from ..io.exr import exr_size
 from ..io.scale import capture_at
-from ..lights import Kernel
+from ..model.brdf import SVBRDF
+from ..model.lights import Kernel
+from ..model.residual_term import MAP_NAME, TermDomain
 from ..outputs import check_output
 from ..progress import bar
 from ..report import MODEL_COLOURS, model_colours
-from ..residual_term import MAP_NAME, TermDomain
 from .cache import Stopped
 from .light import light_quadrature, near_lights
 from .tiles import EXTRA_MAPS, KEEP_TEXELS, PHOTO_QUALITY, Pyramid, frame_pyramid, photo_tile
@@ -74,7 +74,7 @@ def _quantile(values: list[np.ndarray], q: float = 0.99, samples: int = 1 << 18)
 
 def term_encoding(meta: dict) -> dict:
     """The manifest's ``term_encoding``: the residual term's encoding (``svbrdf.json``'s
-    ``residual_term.encoding``, :class:`torchspec.residual_term.TermDomain`), ``{"transfer":
+    ``residual_term.encoding``, :class:`torchspec.model.residual_term.TermDomain`), ``{"transfer":
     "srgb"}`` or a camera response's ``gamma``, ``offset``, ``contrast`` and ``slope`` at code 1
     for the page's three colour channels (a grey curve repeated)."""
     domain = TermDomain.from_json((meta.get(MAP_NAME) or {}).get("encoding"), f"svbrdf.json {MAP_NAME}.encoding")

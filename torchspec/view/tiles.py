@@ -10,7 +10,7 @@ what a highlight is sensitive to (the normal, the rotation, the roughness), floa
 of level 0 (normals renormalised); the model code, the flags and the rotation take the top-left
 texel. The coarser levels are made in the background (:class:`Pyramid`).
 
-Maps with a residual term (``residual_term.exr``, :mod:`torchspec.residual_term`) add the
+Maps with a residual term (``residual_term.exr``, :mod:`torchspec.model.residual_term`) add the
 textures of :func:`term_textures`: its weight ``w`` and its coefficients per basis function and
 channel (RGB, grey replicated), float16, packed four planes a texture (:func:`term_planes`).
 
@@ -37,7 +37,7 @@ from PIL import Image
 
 from ..errors import TorchspecError
 from ..io import Maps, read_svbrdf
-from ..residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, decode, encode
+from ..model.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, decode, encode
 from .cache import LevelCache, Stopped
 
 __all__ = [

@@ -1,0 +1,273 @@
+"""Cast shadows from a height field: each pixel's horizon along a light's azimuth, and a soft
+visibility of the light against it.
+
+A pixel ``p`` of a height field ``h`` (``torchspec.model.height``: rows down, columns right, surface ``y``
+up) sees a light in direction ``w`` when the light's elevation ``e = atan2(w_z, |w_xy|)`` is above
+the horizon along the light's azimuth,
+
+    horizon(p, w) = max_{0 < t <= reach} atan((h(p + t d) - h(p)) / t),
+
+``d`` the unit step in the image along ``w_xy`` (``+x`` = a column to the right, ``+y`` = a row
+up) and ``t`` in pixels from ``step`` on (:func:`marched_distances`), heights in pixels
+(``height / pitch``). The height is sampled bilinearly (``grid_sample``) along the ray, every
+``step`` pixels but denser near the pixel, for all pixels and lights at once, in chunks of
+lights and steps that bound the memory. Beyond the image border there is no occluder: a ray that
+leaves the image ends there (a pixel at the border looking out sees down to ``-pi/2``).
+
+The visibility is ``sigmoid((e - horizon) / softness)``: smooth in the height field and in the
+light's direction, so its derivatives exist; ``softness`` (radians) is the width of the penumbra
+in elevation. Near lights give a direction per pixel: ``(H, W, K, 3)`` directions are accepted
+everywhere a ``(K, 3)`` one is.
+
+Extended kernels (:func:`kernel_visibility`) average the visibility over the kernel. The default
+rule, ``probit``, takes the kernel's spread along the elevation only: its l-plane covariance
+(:meth:`torchspec.model.lights.Kernel.covariance`) along the radius gives the elevation variance
+``s_e^2 = var_r / w_z^2`` (``|l| = cos e``), and a Gaussian in elevation against the sigmoid is
+close to a sigmoid of widened softness (the probit approximation),
+``E[sigmoid((e - H) / s)] ~ sigmoid((e_c - H) / sqrt(s^2 + pi s_e^2 / 8))``; the horizon is taken at
+the centre's azimuth. The ``nodes`` rule integrates the visibility exactly on the kernel's own
+quadrature (:func:`torchspec.model.lights.nodes`, ``order`` radial nodes): slower (one horizon per node),
+the reference of the first.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..errors import TorchspecError
+from .lights import Lights, nodes
+
+__all__ = [
+    "horizon",
+    "visibility",
+    "kernel_visibility",
+    "elevation",
+    "shadow_reach",
+    "marched_distances",
+    "CHUNK_ELEMENTS",
+    "SOFTNESS",
+]
+
+SOFTNESS = math.radians(1.0)
+"""The default penumbra width in elevation, radians (1 degree)."""
+
+CHUNK_ELEMENTS = 1 << 23
+"""The most height samples (pixels x lights x steps) one chunk of :func:`horizon` takes at once."""
+
+
+def _check(height: Tensor, directions: Tensor, pitch: float, step: float) -> None:
+    if not isinstance(height, Tensor) or height.dim() != 2 or not height.is_floating_point():
+        shape = tuple(height.shape) if isinstance(height, Tensor) else type(height).__name__
+        raise TorchspecError(f"a height field must be a floating-point tensor of shape (H, W); got {shape}.")
+    size = tuple(height.shape)
+    if not isinstance(directions, Tensor) or directions.shape[-1] != 3 or directions.dim() not in (2, 4):
+        shape = tuple(directions.shape) if isinstance(directions, Tensor) else type(directions).__name__
+        raise TorchspecError(f"light directions must have shape (K, 3) or (H, W, K, 3); got {shape}.")
+    if directions.dim() == 4 and tuple(directions.shape[:2]) != size:
+        raise TorchspecError(
+            f"per-pixel light directions must have shape (H, W, K, 3) with (H, W) = {size} as the height "
+            f"field; got {tuple(directions.shape)}."
+        )
+    for name, value in (("pitch", pitch), ("step", step)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise TorchspecError(f"{name} must be a finite number > 0; got {value!r}.")
+
+
+def elevation(directions: Tensor) -> Tensor:
+    """The elevation ``atan2(w_z, |w_xy|)`` of directions ``(*, 3)``, radians ``(*)``."""
+    flat = torch.linalg.vector_norm(directions[..., :2], dim=-1)
+    return torch.atan2(directions[..., 2], flat)
+
+
+def _azimuth_steps(directions: Tensor) -> Tensor:
+    """Unit image steps ``(*, 2)`` = (columns, rows) along the directions' azimuths; straight up
+    (no azimuth) takes ``+x``, harmless since nothing shadows the zenith."""
+    flat = torch.linalg.vector_norm(directions[..., :2], dim=-1, keepdim=True)
+    ok = flat > 0
+    u = directions[..., :2] / torch.where(ok, flat, torch.ones_like(flat))
+    u = torch.where(ok, u, torch.tensor([1.0, 0.0], dtype=u.dtype, device=u.device))
+    return torch.stack([u[..., 0], -u[..., 1]], -1)  # surface y is up: a row less
+
+
+def marched_distances(step: float, reach: float, levels: int = 3) -> Tensor:
+    """The distances (pixels, float64 on the CPU: a small table) at which :func:`horizon` samples a
+    ray: from ``step`` on, ``2^levels`` times finer than ``step`` up to ``2 step``, half as fine
+    again up to ``4 step``, ..., then every ``step``, up to ``reach`` (included): the angle of a near
+    occluder changes fast with the distance, and every distance is a multiple of ``step / 2^levels``
+    (whole pixels are sampled when ``step`` divides 1). A light is not hidden by what lies within
+    ``step`` of the pixel: there the surface's own slope (its attached shadow, ``<n, w> <= 0``)
+    decides."""
+    near = [step * 2**level * (1.0 + i / 2**levels) for level in range(levels) for i in range(2**levels)]
+    start = step * 2**levels
+    far = [start + i * step for i in range(max(0, math.ceil((reach - start) / step)))]
+    return torch.tensor([t for t in near + far if t < reach] + [reach], dtype=torch.float64, device="cpu")
+
+
+def shadow_reach(height: Tensor, directions: Tensor, pitch: float = 1.0, margin: float = 0.0) -> float:
+    """The farthest distance (pixels) at which the field can hide a light at elevation above the
+    lowest of ``directions`` less ``margin`` (radians): its height range over that elevation's
+    tangent, at most the image's diagonal (one host sync)."""
+    rows, cols = height.shape
+    diagonal = math.hypot(rows, cols)
+    span = float(height.max() - height.min()) / pitch if height.numel() else 0.0
+    low = float(elevation(directions.detach()).min()) - margin
+    if low <= 0:
+        return diagonal
+    return min(diagonal, span / math.tan(low) + 1.0)
+
+
+def horizon(
+    height: Tensor,
+    directions: Tensor,
+    pitch: float = 1.0,
+    *,
+    step: float = 0.5,
+    reach: float | None = None,
+) -> Tensor:
+    """The horizon elevation of every pixel along every light's azimuth (module docstring).
+
+    Args:
+        height: the height field ``(H, W)``, in the unit of ``pitch``.
+        directions: light directions ``(K, 3)`` (distant lights) or ``(H, W, K, 3)`` (a direction per
+            pixel: near lights); only their azimuth counts here. Need not be unit.
+        pitch: the pixel pitch, in the height's unit (heights in pixels: 1).
+        step: the largest distance between samples along the ray, and the nearest one, pixels.
+        reach: how far the ray goes, pixels (default: the image's diagonal).
+
+    Returns:
+        ``(H, W, K)`` radians in ``[-pi/2, pi/2)``, the height's dtype and device; differentiable in
+        ``height`` and ``directions``.
+
+    Raises:
+        TorchspecError: a height that is not ``(H, W)``, directions not ``(K, 3)`` or
+            ``(H, W, K, 3)``, a pitch or step that is not a positive number.
+
+    Example:
+        >>> h = torch.zeros(5, 9, dtype=torch.float64)
+        >>> h[2, 6] = 2.0  # a post two pixels right of the centre, 2 pixels high
+        >>> east = torch.tensor([[1.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> round(math.degrees(float(horizon(h, east)[2, 4, 0])), 3)
+        45.0
+    """
+    _check(height, directions, pitch, step)
+    rows, cols = height.shape
+    h = height / pitch
+    reach = math.hypot(rows, cols) if reach is None else float(reach)
+    distances = marched_distances(step, reach).to(dtype=h.dtype, device=h.device)
+    samples = distances.shape[0]
+    directions = directions.to(h)
+    per_pixel = directions.dim() == 4
+    lights = directions.shape[-2]
+    steps = _azimuth_steps(directions)  # (K, 2) or (H, W, K, 2)
+    steps = steps.reshape(-1, lights, 2) if per_pixel else steps[None]  # (1 or P, K, 2)
+    r = torch.arange(rows, dtype=h.dtype, device=h.device)
+    c = torch.arange(cols, dtype=h.dtype, device=h.device)
+    rr, cc = torch.meshgrid(r, c, indexing="ij")
+    base = torch.stack([cc, rr], -1).reshape(-1, 1, 1, 2)  # (P, 1, 1, 2) as (col, row)
+    here = h.reshape(-1, 1, 1)
+    image = h[None, None]
+    scale = torch.tensor([2.0 / max(cols - 1, 1), 2.0 / max(rows - 1, 1)], dtype=h.dtype, device=h.device)
+    pixels = rows * cols
+    light_chunk = max(1, min(lights, CHUNK_ELEMENTS // max(pixels, 1)))
+    sample_chunk = max(1, min(samples, CHUNK_ELEMENTS // max(pixels * light_chunk, 1)))
+    lowest = torch.finfo(h.dtype).max
+    parts = []
+    for k0 in range(0, lights, light_chunk):
+        d = steps[:, k0 : k0 + light_chunk, None, :]  # (1 or P, k, 1, 2)
+        best = torch.full((pixels, d.shape[1]), -lowest, dtype=h.dtype, device=h.device)
+        for s0 in range(0, samples, sample_chunk):
+            t = distances[s0 : s0 + sample_chunk]
+            at = base + t[None, None, :, None] * d  # (P, k, s, 2) in (col, row)
+            inside = (at[..., 0] >= 0) & (at[..., 0] <= cols - 1) & (at[..., 1] >= 0) & (at[..., 1] <= rows - 1)
+            grid = (at * scale - 1.0).reshape(1, pixels, -1, 2)
+            value = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            rise = (value.reshape(pixels, -1, t.shape[0]) - here) / t  # (P, k, s)
+            rise = torch.where(inside, rise, torch.full_like(rise, -lowest))
+            best = torch.maximum(best, rise.amax(-1))
+        parts.append(torch.atan(best))
+    return torch.cat(parts, -1).reshape(rows, cols, lights)
+
+
+def visibility(
+    height: Tensor,
+    directions: Tensor,
+    pitch: float = 1.0,
+    softness: float | Tensor = SOFTNESS,
+    *,
+    step: float = 0.5,
+    reach: float | None = None,
+) -> Tensor:
+    """Soft visibility ``sigmoid((e - horizon) / softness)`` ``(H, W, K)`` in ``[0, 1]`` of lights in
+    ``directions`` (``(K, 3)`` or per pixel ``(H, W, K, 3)``) over the height field ``(H, W)``.
+
+    ``softness``: radians, a number or one per light ``(K,)``. ``reach`` defaults to
+    :func:`shadow_reach` with a margin of 8 softnesses (farther occluders cannot change the value
+    by more than ``sigmoid(-8)``, 3e-4). Other arguments as :func:`horizon`.
+
+    Example:
+        >>> flat = torch.zeros(4, 4, dtype=torch.float64)
+        >>> low = torch.tensor([[0.9, 0.0, 0.2]], dtype=torch.float64)
+        >>> bool((visibility(flat, low) > 0.999).all())
+        True
+    """
+    _check(height, directions, pitch, step)
+    soft = torch.as_tensor(softness, dtype=height.dtype, device=height.device)
+    if not bool((soft > 0).all()):
+        raise TorchspecError(f"softness must be > 0 (radians); got {softness!r}.")
+    if reach is None:
+        reach = shadow_reach(height, directions, pitch, margin=8.0 * float(soft.max()))
+    e = elevation(directions.to(height))
+    e = e if directions.dim() == 4 else e.expand(*height.shape, -1)
+    return torch.sigmoid((e - horizon(height, directions, pitch, step=step, reach=reach)) / soft)
+
+
+def kernel_visibility(
+    height: Tensor,
+    lights: Lights,
+    pitch: float = 1.0,
+    softness: float = SOFTNESS,
+    *,
+    rule: str = "probit",
+    order: int = 4,
+    step: float = 0.5,
+) -> Tensor:
+    """The visibility ``(H, W, K)`` of extended lights, averaged over each frame's kernel (the
+    module docstring gives the two rules); a point light's is :func:`visibility` of its direction.
+
+    Args:
+        height: the height field ``(H, W)``, in the unit of ``pitch``.
+        lights: distant lights (one direction per frame) and their kernel.
+        rule: ``probit`` (closed form, elevation spread only) or ``nodes`` (the kernel's quadrature,
+            ``order`` radial nodes and twice as many angles: ``2 order^2`` horizons per frame).
+
+    Raises:
+        TorchspecError: an unknown rule, an ``unknown`` kernel, or the arguments of :func:`visibility`.
+    """
+    if rule not in ("probit", "nodes"):
+        raise TorchspecError(f"kernel_visibility: rule must be 'probit' or 'nodes'; got {rule!r}.")
+    kernel = lights.kernel
+    centre = lights.directions.to(height)
+    if kernel.kind == "point":
+        return visibility(height, centre, pitch, softness, step=step)
+    if kernel.kind == "unknown":
+        raise TorchspecError("kernel_visibility needs the light kernel's shape; the kernel is 'unknown'.")
+    if rule == "nodes":
+        points, weight = nodes(lights.to(device=height.device, dtype=height.dtype), order=order)
+        k, q = weight.shape
+        seen = visibility(height, points.reshape(k * q, 3), pitch, softness, step=step).reshape(*height.shape, k, q)
+        mass = weight.sum(-1)
+        return (seen * weight).sum(-1) / torch.where(mass > 0, mass, torch.ones_like(mass))
+    l = centre[:, :2] + kernel.offset(centre)
+    radius = torch.linalg.vector_norm(l, dim=-1, keepdim=True)
+    u = torch.where(radius > 0, l / torch.where(radius > 0, radius, torch.ones_like(radius)), torch.zeros_like(l))
+    cov = kernel.covariance(centre)  # (K, 2, 2)
+    along = torch.einsum("ki,kij,kj->k", u, cov, u)
+    radial = torch.where(radius[:, 0] > 0, along, 0.5 * cov.diagonal(dim1=-2, dim2=-1).sum(-1))  # zenith: the mean
+    wz = (1.0 - radius[:, 0].square()).clamp(min=1e-6).sqrt()
+    mean = torch.cat([l, wz[:, None]], -1)
+    soft = torch.sqrt(softness**2 + (math.pi / 8.0) * radial / wz.square())
+    return visibility(height, mean, pitch, soft, step=step)
