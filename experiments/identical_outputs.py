@@ -61,17 +61,10 @@ def flat_settings(settings: dict) -> dict:
     settings before their groups (``lm`` stays nested, as it was): the records of the two layouts
     compare key by key. Flat settings are returned as they are."""
     try:
-        from torchspec.pipeline.settings import MOVED
+        from torchspec.pipeline.settings import flat_settings
     except ImportError:  # a checkout from before the groups: its settings are flat
         return settings
-    flat_key = {place: key for key, place in MOVED.items()}
-    flat = {}
-    for key, value in settings.items():
-        if isinstance(value, dict) and key != "lm":
-            flat.update({flat_key[f"{key}.{name}"]: item for name, item in value.items()})
-        else:
-            flat[key] = value
-    return flat
+    return flat_settings(settings)
 
 
 def outputs(result) -> dict:

@@ -32,7 +32,7 @@ from _common import parse_args
 from torchspec.atomic import write_json
 from torchspec.config import load_config
 from torchspec.model.height import height_from_normals
-from torchspec.model.visibility import elevation, horizon, visibility
+from torchspec.model.visibility import elevation, horizon, marched_horizon, visibility
 from torchspec.simulate.relief import ReliefConfig, relief
 
 F64 = torch.float64
@@ -53,32 +53,8 @@ class Settings:
 
 
 def brute_horizon(height, directions, start, step, rows_per_chunk=8):
-    """The reference horizon: every ray marched in fine steps over the bilinear field, light by light
-    and in bands of rows, the four neighbours indexed directly."""
-    rows, cols = height.shape
-    t = torch.arange(start, math.hypot(rows, cols) + step, step, dtype=F64)
-    out = torch.empty(rows, cols, len(directions), dtype=F64)
-    for k, w in enumerate(directions.tolist()):
-        u = torch.tensor([w[0], -w[1]], dtype=F64)
-        u = u / u.norm()
-        for top in range(0, rows, rows_per_chunk):
-            r, c = torch.meshgrid(
-                torch.arange(top, min(rows, top + rows_per_chunk), dtype=F64),
-                torch.arange(cols, dtype=F64),
-                indexing="ij",
-            )
-            pc, pr = c[..., None] + t * u[0], r[..., None] + t * u[1]
-            inside = (pc >= 0) & (pc <= cols - 1) & (pr >= 0) & (pr <= rows - 1)
-            pc, pr = pc.clamp(0, cols - 1), pr.clamp(0, rows - 1)
-            c0, r0 = pc.floor().long().clamp(max=cols - 2), pr.floor().long().clamp(max=rows - 2)
-            fc, fr = pc - c0, pr - r0
-            v = (height[r0, c0] * (1 - fc) + height[r0, c0 + 1] * fc) * (1 - fr) + (
-                height[r0 + 1, c0] * (1 - fc) + height[r0 + 1, c0 + 1] * fc
-            ) * fr
-            here = height[top : top + rows_per_chunk, :, None]
-            rise = torch.where(inside, (v - here) / t, torch.tensor(-1e300, dtype=F64))
-            out[top : top + rows_per_chunk, :, k] = torch.atan(rise.amax(-1))
-    return out
+    """The reference horizon (:func:`torchspec.model.visibility.marched_horizon`)."""
+    return marched_horizon(height, directions, start, step, rows_per_chunk)
 
 
 def _turn(normal, std_rad, g):

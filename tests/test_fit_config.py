@@ -22,7 +22,7 @@ from torchspec.pipeline import (
     TermConfig,
 )
 from torchspec.pipeline.checkpoint import STATE, open_checkpoint
-from torchspec.pipeline.settings import GROUPS, MOVED, nested_settings
+from torchspec.pipeline.settings import GROUPS, MOVED, flat_settings, nested_settings
 
 FIT_YAML = Path(__file__).parents[1] / "configs" / "fit.yaml"
 OLD_KEYS = (
@@ -37,14 +37,7 @@ uncertainty and lm."""
 
 def _flat(settings: dict) -> dict:
     """A nested settings record in the flat layout of before the groups (``lm`` nested, as it was)."""
-    flat_key = {place: key for key, place in MOVED.items()}
-    flat = {}
-    for key, value in settings.items():
-        if isinstance(value, dict) and key != "lm":
-            flat.update({flat_key[f"{key}.{name}"]: item for name, item in value.items()})
-        else:
-            flat[key] = value
-    return flat
+    return flat_settings(settings)
 
 
 def test_fit_yaml_writes_every_key_of_every_group_and_loads_as_the_defaults():

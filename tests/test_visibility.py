@@ -8,33 +8,22 @@ import torch
 
 from torchspec.errors import TorchspecError
 from torchspec.model.lights import Kernel, Lights
-from torchspec.model.visibility import elevation, horizon, kernel_visibility, marched_distances, visibility
+from torchspec.model.visibility import (
+    elevation,
+    horizon,
+    kernel_visibility,
+    marched_distances,
+    marched_horizon,
+    visibility,
+)
 from torchspec.simulate.relief import ReliefConfig, relief
 
 F64 = torch.float64
 
 
 def brute_horizon(height, directions, start=0.5, step=1.0 / 32):
-    """The horizon by marching each ray in fine steps over the bilinear height field, light by
-    light, indexing the four neighbours directly (no grid_sample): the reference."""
-    rows, cols = height.shape
-    r, c = torch.meshgrid(torch.arange(rows, dtype=F64), torch.arange(cols, dtype=F64), indexing="ij")
-    t = torch.arange(start, math.hypot(rows, cols) + step, step, dtype=F64)
-    out = []
-    for w in directions.tolist():
-        u = torch.tensor([w[0], -w[1]], dtype=F64)
-        u = u / u.norm()
-        pc, pr = c[..., None] + t * u[0], r[..., None] + t * u[1]
-        inside = (pc >= 0) & (pc <= cols - 1) & (pr >= 0) & (pr <= rows - 1)
-        pc, pr = pc.clamp(0, cols - 1), pr.clamp(0, rows - 1)
-        c0, r0 = pc.floor().long().clamp(max=cols - 2), pr.floor().long().clamp(max=rows - 2)
-        fc, fr = pc - c0, pr - r0
-        v = (height[r0, c0] * (1 - fc) + height[r0, c0 + 1] * fc) * (1 - fr) + (
-            height[r0 + 1, c0] * (1 - fc) + height[r0 + 1, c0 + 1] * fc
-        ) * fr
-        rise = torch.where(inside, (v - height[..., None]) / t, torch.tensor(-1e300, dtype=F64))
-        out.append(torch.atan(rise.amax(-1)))
-    return torch.stack(out, -1)
+    """The reference: :func:`marched_horizon`, every ray marched in fine steps."""
+    return marched_horizon(height, directions, start, step)
 
 
 def _lights(count, seed, low=10.0, high=60.0):

@@ -48,6 +48,7 @@ __all__ = [
     "elevation",
     "shadow_reach",
     "marched_distances",
+    "marched_horizon",
     "CHUNK_ELEMENTS",
     "SOFTNESS",
 ]
@@ -271,3 +272,34 @@ def kernel_visibility(
     mean = torch.cat([l, wz[:, None]], -1)
     soft = torch.sqrt(softness**2 + (math.pi / 8.0) * radial / wz.square())
     return visibility(height, mean, pitch, soft, step=step)
+
+
+def marched_horizon(
+    height: Tensor, directions: Tensor, start: float = 0.5, step: float = 1.0 / 32, rows: int = 8
+) -> Tensor:
+    """The reference of :func:`horizon` (``(H, W, K)``, radians, pixel pitch 1): every ray marched in
+    fine ``step``s from ``start`` to the image's diagonal over the bilinear height field, indexing
+    the four neighbours directly (no ``grid_sample``), light by light and in bands of ``rows`` rows.
+    Slow (a loop over lights; for tests and ``experiments/shadows_synthetic.py``, in float64)."""
+    height_rows, cols = height.shape
+    like = dict(dtype=height.dtype, device=height.device)
+    t = torch.arange(start, math.hypot(height_rows, cols) + step, step, **like)
+    out = height.new_empty(height_rows, cols, directions.shape[0])
+    for k in range(directions.shape[0]):  # the reference: one light at a time
+        u = torch.stack([directions[k, 0], -directions[k, 1]]).to(**like)
+        u = u / u.norm()
+        for top in range(0, height_rows, rows):
+            r, c = torch.meshgrid(
+                torch.arange(top, min(height_rows, top + rows), **like), torch.arange(cols, **like), indexing="ij"
+            )
+            pc, pr = c[..., None] + t * u[0], r[..., None] + t * u[1]
+            inside = (pc >= 0) & (pc <= cols - 1) & (pr >= 0) & (pr <= height_rows - 1)
+            pc, pr = pc.clamp(0, cols - 1), pr.clamp(0, height_rows - 1)
+            c0, r0 = pc.floor().long().clamp(max=cols - 2), pr.floor().long().clamp(max=height_rows - 2)
+            fc, fr = pc - c0, pr - r0
+            v = (height[r0, c0] * (1 - fc) + height[r0, c0 + 1] * fc) * (1 - fr) + (
+                height[r0 + 1, c0] * (1 - fc) + height[r0 + 1, c0 + 1] * fc
+            ) * fr
+            rise = torch.where(inside, (v - height[top : top + rows, :, None]) / t, torch.full_like(v, -math.inf))
+            out[top : top + rows, :, k] = torch.atan(rise.amax(-1))
+    return out

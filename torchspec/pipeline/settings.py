@@ -36,6 +36,7 @@ __all__ = [
     "StartConfig",
     "TermConfig",
     "nested_settings",
+    "flat_settings",
     "select_frames",
 ]
 
@@ -254,6 +255,25 @@ def nested_settings(settings: dict) -> dict:
             group, name = MOVED[key].split(".")
             nested[group] = {**nested.get(group, {}), name: value}
     return nested
+
+
+def flat_settings(settings: dict) -> dict:
+    """The inverse of :func:`nested_settings`: a nested settings record (``asdict(FitConfig())``, a
+    fit's ``svbrdf.json`` settings) in the flat keys of before the groups (``lm`` stays nested, as
+    it was), so that records of the two layouts compare key by key.
+
+    Example:
+        >>> flat_settings({"model": "auto", "ladder": {"smooth": 10.0}, "quadrature": {"preset": "render"}, "lm": {}})
+        {'model': 'auto', 'smooth': 10.0, 'quadrature': 'render', 'lm': {}}
+    """
+    flat_key = {place: key for key, place in MOVED.items()}
+    flat = {}
+    for key, value in settings.items():
+        if isinstance(value, dict) and key != "lm":
+            flat.update({flat_key[f"{key}.{name}"]: item for name, item in value.items()})
+        else:
+            flat[key] = value
+    return flat
 
 
 @dataclass(frozen=True)
