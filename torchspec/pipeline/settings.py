@@ -25,6 +25,7 @@ __all__ = [
     "INITS",
     "LADDER",
     "MODEL_CODES",
+    "SHADOWS",
     "FitConfig",
     "select_frames",
 ]
@@ -33,6 +34,8 @@ INITS = ("fri", "naive", "grid")
 """The specular starts of ``FitConfig.init``."""
 FRI_KERNELS = ("pixel", "pooled")
 """The lobe spectra of ``FitConfig.fri_kernel``."""
+SHADOWS = ("auto", "on", "off")
+"""The choices of ``FitConfig.shadows``."""
 AUTO = "auto"
 """``FitConfig.model`` that picks each pixel's model."""
 LADDER = ("ward-iso", "ward-iso-colour", "ward-aniso", "ward-dual")
@@ -158,6 +161,11 @@ class FitConfig:
         grow: saturated regions are grown by this many pixels (of the image fitted: of the
             reduced one with ``downsample``).
         shadow: samples below this fraction of the pixel's median are shadows.
+        shadows: cast shadows in the model (:mod:`torchspec.pipeline.shadows`): ``on`` fits the
+            maps with each light's visibility over a height field integrated from the normals,
+            alternating with the height, and keeps it where it predicts left-out frames better;
+            ``auto`` (the default) tries it only where the photographs hold shadows (a share of
+            samples masked as shadows of at least ``SHADOW_SHARE``); ``off``: never.
         trim, cut: of the robust photometric stereo.
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
         fri_kernel: the lobe's spectrum the peak location weighs coefficients by: ``pixel``
@@ -225,6 +233,7 @@ class FitConfig:
     crop: tuple[int, int, int, int] | None = None
     grow: int = 1
     shadow: float = 0.02
+    shadows: str = AUTO
     trim: float = 0.25
     cut: float = 3.0
     fri_method: str | None = None
@@ -293,6 +302,8 @@ class FitConfig:
                 f"FitConfig.smooth regularises auto's choice of a lobe; a forced model ({self.model!r}) has none "
                 "to regularise: set smooth to 0, or model to 'auto'."
             )
+        if self.shadows not in SHADOWS:
+            raise ConfigError(f"FitConfig.shadows must be one of {list(SHADOWS)}; got {self.shadows!r}.")
         if self.init not in INITS:
             raise ConfigError(f"FitConfig.init must be one of {INITS}; got {self.init!r}.")
         if self.fri_kernel not in FRI_KERNELS:

@@ -28,7 +28,18 @@ from .settings import MODEL_CODES, FitConfig
 from .smoothing import plain_alternative
 from .start import LightContext, starting_point
 
-__all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TileResult", "fit_pixels", "fit_tile"]
+__all__ = [
+    "EXPLAINED",
+    "MASK_KINDS",
+    "TERM_REFIT",
+    "VISIBLE",
+    "FitInputs",
+    "TileInputs",
+    "TileResult",
+    "fit_pixels",
+    "fit_tile",
+    "seen_through",
+]
 
 MASK_KINDS = tuple(f.name for f in fields(Masks))
 """The masks of :class:`torchspec.photometric.Masks` that :func:`fit_tile` takes and counts."""
@@ -51,8 +62,12 @@ def fit_pixels(
     kept: Tensor | None = None,
     gains: Tensor | None = None,
     domain: TermDomain | None = None,
+    visibility: Tensor | None = None,
 ) -> TileResult:
     """All stages for ``n`` pixels: ``y (n, K, C)`` recorded values, ``valid (n, K)`` the samples to use.
+    With the lights' fixed ``visibility (n, K)`` (cast shadows), ``y`` holds the recorded values
+    over it (:func:`seen_through`) and the stages fit the maps without shadows to them, each
+    sample's weight times its visibility (:class:`~torchspec.pipeline.samples.TileSamples`).
     ``gains (K, C)``: the lights' calibrated gains (in ``lights``), which the residual term leaves
     out (:func:`residual_term`), fitted in ``domain`` (the photographs' encoding). The residual
     term (``FitConfig.residual_term``) is fitted on the samples ``kept (n, K)`` (default
@@ -65,7 +80,7 @@ def fit_pixels(
     begun = starting_point(y, valid, lights, view, config=config, context=ctx)
     times = dict(begun.times)
     lobe = begun.lobe if config.model != "diffuse" else torch.zeros_like(begun.lobe)
-    data = TileSamples.of(y, valid, begun.level, lights, view, channels)
+    data = TileSamples.of(y, valid, begun.level, lights, view, channels, visibility=visibility)
     t0 = time.perf_counter()
     choice, sensor, found_quality = select_models(begun, lobe, data, config)
     times["lm"] = time.perf_counter() - t0
@@ -221,6 +236,7 @@ class TileInputs:
             (:meth:`torchspec.photometric.Masks.of_pixels`).
         lights: the ``K`` lights as this tile sees them (under near lights, from its centre).
         ctx: ``lights``'s :class:`~torchspec.pipeline.start.LightContext`.
+        visibility: ``(K, n)`` the lights' fixed visibility at the pixels (cast shadows), or ``None``.
     """
 
     first: int
@@ -228,6 +244,30 @@ class TileInputs:
     masks: Masks
     lights: Lights
     ctx: LightContext
+    visibility: Tensor | None = None
+
+
+VISIBLE = 0.2
+"""A sample whose light's visibility is below this is left out (as a shadowed one is without a
+visibility): ``y / V`` would amplify its noise and the shadow's edge, which the height places only
+roughly."""
+EXPLAINED = 0.5
+"""A sample masked as a shadow (too dark) is used again where the visibility is below this: the
+visibility explains its darkness."""
+
+
+def seen_through(y: Tensor, masks: Masks, visibility: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A tile's ``y (n, K, C)`` over the lights' visibility ``(n, K)``, the samples to fit and the
+    residual term's (:func:`fit_tile`), ``(y / V, valid, kept)``: a sample is left out where
+    ``V < VISIBLE``, non-finite, saturated, or masked as a shadow that ``V`` does not explain
+    (``V >= EXPLAINED``). With ``V = 1`` everywhere, ``y`` itself and the masks' samples, exactly."""
+    v = visibility.to(y)
+    seen = v >= VISIBLE
+    unexplained = masks.shadowed.T & (v >= EXPLAINED)
+    valid = ~(masks.nonfinite.T | masks.saturated.T | unexplained) & seen
+    kept = ~masks.nonfinite.T & seen
+    values = torch.where(seen[..., None], y / torch.where(seen, v, torch.ones_like(v))[..., None], y)
+    return values, valid, kept
 
 
 def fit_tile(tile: TileInputs, shared: FitInputs) -> TileResult:
@@ -239,10 +279,13 @@ def fit_tile(tile: TileInputs, shared: FitInputs) -> TileResult:
     y = tile.values.permute(2, 0, 1)  # (n, K, C)
     masks, config = tile.masks, shared.config
     valid, kept = ~masks.invalid.T, ~masks.nonfinite.T
+    seen = None if tile.visibility is None else tile.visibility.T.to(y)  # (n, K)
+    if seen is not None:
+        y, valid, kept = seen_through(y, masks, seen)
     with fit_threads(config.threads):  # auto: the cores free now (other processes share them)
         out = fit_pixels(
             y, valid, tile.lights, shared.view, shared.channels, config, tile.ctx,
-            kept=kept, gains=shared.gains, domain=shared.domain,
+            kept=kept, gains=shared.gains, domain=shared.domain, visibility=seen,
         )  # fmt: skip
     out = replace(out, masked=masks.counts())
     if shared.folder is not None:
