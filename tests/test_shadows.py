@@ -25,7 +25,7 @@ from torchspec.synth import PaintingConfig
 F64 = torch.float64
 
 
-def _lights(side: int = 6, extent: float = 0.8) -> Lights:
+def _lights(side: int = 6, extent: float = 0.6) -> Lights:
     t = torch.linspace(-extent, extent, side, dtype=F64)
     gy, gx = torch.meshgrid(t, t, indexing="ij")
     d = from_plane(torch.stack([gx, gy], -1).reshape(-1, 2))
@@ -62,7 +62,7 @@ def test_fixed_visibility_recovers_the_truth_and_unit_visibility_is_bitwise_toda
     partial = 0.25 + 0.5 * torch.rand(12, 36, generator=g, dtype=F64)
     v = torch.where(torch.rand(12, 36, generator=g, dtype=F64) < 0.3, partial, 1.0)
     y = render(truth, lights, view) * v[..., None]  # (n, K, C): partly shadowed, noise-free
-    config = FitConfig(model="diffuse", dtype="float64", threads=1)
+    config = FitConfig(model="diffuse", dtype="float64", threads=1, residual_term=0)
     shared = _shared(lights, config)
     seen = fit_tile(_tile(y, lights, v.T), shared)
     angle = torch.rad2deg(torch.acos((seen.svbrdf.normal * truth.normal).sum(-1).clamp(-1, 1)))
@@ -163,5 +163,5 @@ def test_shadows_setting_and_cli_flag():
     assert "shadows" in {f.name for f in fields(FitConfig)}
     from torchspec.cli.parser import build_parser
 
-    args = build_parser().parse_args(["fit", "capture", "out", "--shadows", "on"])
+    args = build_parser().parse_args(["fit", "capture", "-o", "out", "--shadows", "on"])
     assert args.shadows == "on"
