@@ -14,7 +14,7 @@ from torchspec.geometry import from_plane
 from torchspec.lights import Kernel, Lights
 from torchspec.photometric import Masks
 from torchspec.pipeline import FitConfig, fit, write_fit
-from torchspec.pipeline.shadows import predict_frames, shadows_tried
+from torchspec.pipeline.shadows import shadows_tried
 from torchspec.pipeline.start import light_context
 from torchspec.pipeline.tile import FitInputs, TileInputs, fit_tile, seen_through
 from torchspec.relief import ReliefConfig
@@ -100,6 +100,7 @@ def _angle(fitted, truth):
     return torch.rad2deg(torch.acos((fitted.double() * truth.double()).sum(-1).clamp(-1, 1)))
 
 
+@pytest.mark.slow  # four fits of a 24 x 24 relief: a minute on two cores
 def test_relief_is_fitted_better_with_shadows(tmp_path):
     sim = simulate(_simulation(ReliefConfig(seed=2, bumps=3, bump_height=(4.0, 6.0), ridge_height=0.0)))
     capture = write_simulation(tmp_path / "relief", sim)
@@ -132,29 +133,23 @@ def test_flat_painting_keeps_todays_fit(tmp_path):
 
 
 def test_render_multiplies_by_the_visibility_of_height_exr(tmp_path):
-    from torchspec.io import read_capture
-    from torchspec.relight import render as render_capture
+    from torchspec.io import read_capture, write_svbrdf
+    from torchspec.relight import render_capture
     from torchspec.visibility import frame_visibility
 
     sim = simulate(_simulation(ReliefConfig(seed=2, bumps=3), size=16, side=4))
-    capture = write_simulation(tmp_path / "relief", sim)
-    result = fit(capture, config=FitConfig(model="diffuse", threads=1, shadows="off"))
-    height = sim.height.to(result.svbrdf.normal)
-    write_fit(tmp_path / "plain", result)
-    write_fit(tmp_path / "shadowed", replace(result, height=height))
+    write_simulation(tmp_path / "relief", sim)
+    truth = sim.truth.to(torch.float32)
+    write_svbrdf(tmp_path / "plain", truth)
+    write_svbrdf(tmp_path / "shadowed", truth, extra={"height": sim.height.float()})
     plain = render_capture(tmp_path / "plain", tmp_path / "relief", None)["predicted"]
     shadowed = render_capture(tmp_path / "shadowed", tmp_path / "relief", None)["predicted"]
     lights = read_capture(tmp_path / "relief").lights(dtype=torch.float32)
-    seen = frame_visibility(height.float(), lights).permute(2, 0, 1)[:, None]
-    assert float(seen.min()) < 0.5  # the relief shadows some pixel
+    seen = frame_visibility(sim.height.float(), lights).permute(2, 0, 1)[:, None]
+    assert float(seen.min()) < 0.9  # the relief shadows some pixel
     assert torch.allclose(shadowed, plain * seen, atol=1e-6)
     off = render_capture(tmp_path / "shadowed", tmp_path / "relief", None, shadows=False)["predicted"]
     assert torch.equal(off, plain)
-
-
-def test_predict_frames_renders_the_fit():
-    lights, truth = _lights(4), _pixels(4 * 4)
-    assert callable(predict_frames) and truth.normal.shape == (16, 3) and lights.directions.shape == (16, 3)
 
 
 def test_shadows_setting_and_cli_flag():
