@@ -24,6 +24,11 @@ least-squares photometric stereo on the same frames' luminance.
   ``torchspec MODEL`` the physical maps alone (``torchspec render --no-term``), ``+ term`` with the
   fit's residual term (what ``torchspec render`` renders; the default fit of an imported capture);
   the share of pixels given a lobe (``Fit.lobe``), the transfer and the lights are reported.
+  ``shadows`` (``FitConfig.shadows``: ``off``, ``auto``, ``on``) adds rows ``torchspec MODEL shadows
+  on`` (and ``+ term``): a fit that tried cast shadows (:mod:`torchspec.pipeline.shadows`) renders
+  both times each light's visibility over its height where its judge kept them (``Fit.height``);
+  each row records the judge's rounds (``shadows``) and the share of samples masked as shadows.
+  ``synth_left_out: false`` scores SynthRTI captures on Dome -> Test only.
 - per method: the worst left-out frame's mean brightness ratio (predicted over photographed, in
   linear values; the frame furthest from 1).
 
