@@ -103,7 +103,7 @@ def height_of(fit: Fit) -> Tensor:
     if positive.numel() == 0:
         return height_from_normals(normal)
     weight = weight.clamp(max=100.0 * float(positive.median()))
-    return height_from_normals(normal, weight)
+    return height_from_normals(normal, weight, tol=1e-4)  # the heights to 1e-4 of their scale: enough for shadows
 
 
 def visibility_of(height: Tensor, run: StackRun) -> Tensor:
