@@ -130,6 +130,8 @@ def test_flat_painting_keeps_todays_fit(tmp_path):
     assert not shadows_tried(FitConfig(), Masks(nonfinite=none, saturated=none, shadowed=none))
     assert shadows_tried(FitConfig(shadows="on"), Masks(nonfinite=none, saturated=none, shadowed=none))
     assert not shadows_tried(FitConfig(shadows="off"), Masks(nonfinite=none, saturated=none, shadowed=~none))
+    assert shadows_tried(FitConfig(), Masks(nonfinite=none, saturated=none, shadowed=none), imported=True)
+    assert shadows_tried(FitConfig(), Masks(nonfinite=none, saturated=none, shadowed=~none))
 
 
 def test_render_multiplies_by_the_visibility_of_height_exr(tmp_path):

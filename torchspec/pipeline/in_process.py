@@ -84,7 +84,8 @@ def fit(
 
     run = StackRun(job=job, stack=stack, masks=masks, calibration=calibration,
                    seconds={"read": read_seconds, "masks": mask_seconds}, started=clock - read_seconds)  # fmt: skip
-    if shadows_tried(config, masks):  # cast shadows from a height field (torchspec.pipeline.shadows)
+    imported = bool(capture.extra.get("source"))
+    if shadows_tried(config, masks, imported=imported):  # cast shadows from a height field (pipeline.shadows)
         return fit_with_shadows(run, fit_stack, folder=folder, resume=resume, progress=progress)
     return fit_stack(run, folder=folder, resume=resume, progress=progress)
 

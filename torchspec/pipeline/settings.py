@@ -164,8 +164,9 @@ class FitConfig:
         shadows: cast shadows in the model (:mod:`torchspec.pipeline.shadows`): ``on`` fits the
             maps with each light's visibility over a height field integrated from the normals,
             alternating with the height, and keeps it where it predicts left-out frames better;
-            ``auto`` (the default) tries it only where the photographs hold shadows (a share of
-            samples masked as shadows of at least ``SHADOW_SHARE``); ``off``: never.
+            ``auto`` (the default) tries it on captures imported from photographs and where the
+            frames hold shadows (a share of samples masked as shadows of at least
+            ``torchspec.pipeline.shadows.SHADOW_SHARE``); ``off``: never.
         trim, cut: of the robust photometric stereo.
         fri_method, fri_coefficients: of the peak location (``None``: the defaults).
         fri_kernel: the lobe's spectrum the peak location weighs coefficients by: ``pixel``

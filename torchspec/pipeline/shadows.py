@@ -25,11 +25,13 @@ The alternation (:func:`fit_with_shadows`), judged by left-out frames as the mod
 4. all frames are fitted, with the visibility of the best height if any round predicted better
    (its height is the fit's ``height``, written as ``height.exr``), else without: today's fit.
 
-``auto`` tries this only where the photographs hold shadows: at least :data:`SHADOW_SHARE` of the
-usable samples masked as shadows (:func:`shadows_tried`; a flat painting under a dome has none and
-keeps today's fit and speed); and stops before the first refit where the first height hides fewer
-than :data:`SHADOWED_SHARE` of the samples. ``on`` skips both gates (the judge still decides).
-Cost where tried: two to ``ROUNDS + 1`` fits of four fifths of the frames, then the fit.
+``auto`` tries this on captures imported from photographs (``source`` in ``capture.json``) and
+where the photographs hold shadows: at least :data:`SHADOW_SHARE` of the usable samples masked as
+shadows (:func:`shadows_tried`; a simulated flat painting has none and keeps today's fit and
+speed); and stops before the first refit where the first height hides fewer than
+:data:`SHADOWED_SHARE` of the samples (the cost is then one fit of four fifths of the frames).
+``on`` skips both gates (the judge still decides). Cost where refitted: two to ``ROUNDS + 1`` fits
+of four fifths of the frames, then the fit.
 """
 
 from __future__ import annotations
@@ -83,13 +85,14 @@ def shadow_share(masks) -> float:
     return float((masks.shadowed & usable).sum()) / max(int(usable.sum()), 1)
 
 
-def shadows_tried(config: FitConfig, masks) -> bool:
-    """Whether the fit tries cast shadows: ``FitConfig.shadows`` ``on``, or ``auto`` where
-    :func:`shadow_share` of ``masks`` (:class:`torchspec.photometric.Masks`) reaches
-    :data:`SHADOW_SHARE` (one host sync)."""
+def shadows_tried(config: FitConfig, masks, imported: bool = False) -> bool:
+    """Whether the fit tries cast shadows: ``FitConfig.shadows`` ``on``, or ``auto`` on a capture
+    ``imported`` from photographs (an RTI capture: reliefs, coins; their shadows are rarely dark
+    enough to be masked) or where :func:`shadow_share` of ``masks``
+    (:class:`torchspec.photometric.Masks`) reaches :data:`SHADOW_SHARE` (one host sync)."""
     if config.shadows == "off":
         return False
-    return config.shadows == "on" or shadow_share(masks) >= SHADOW_SHARE
+    return config.shadows == "on" or imported or shadow_share(masks) >= SHADOW_SHARE
 
 
 def height_of(fit: Fit) -> Tensor:
