@@ -127,6 +127,8 @@ def test_flat_painting_keeps_todays_fit(tmp_path):
     found = fit(capture, config=FitConfig(model="diffuse", threads=1))
     assert found.height is None and "shadows" not in found.stats
     none = torch.zeros(25, 16, 16, dtype=torch.bool)
+    few = torch.zeros(8, 16, 16, dtype=torch.bool)
+    assert not shadows_tried(FitConfig(), Masks(nonfinite=few, saturated=few, shadowed=~few), imported=True)
     assert not shadows_tried(FitConfig(), Masks(nonfinite=none, saturated=none, shadowed=none))
     assert shadows_tried(FitConfig(shadows="on"), Masks(nonfinite=none, saturated=none, shadowed=none))
     assert not shadows_tried(FitConfig(shadows="off"), Masks(nonfinite=none, saturated=none, shadowed=~none))

@@ -75,7 +75,8 @@ def judge_curves(
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 capture = write_capture(root, capture, linear.float())
-                result = fit(capture, config=FitConfig(calibrate="none", residual_term=0, compile=False), frames=fitted)
+                config = FitConfig(calibrate="none", residual_term=0, compile=False, shadows="off")
+                result = fit(capture, config=config, frames=fitted)
             lights = capture.lights(dtype=torch.float64)[predicted].to(device=crop.device)
             maps = result.svbrdf.to(dtype=torch.float64, device=crop.device)  # where the codes are
             values = render_image(maps, lights, view).permute(2, 3, 0, 1)  # (K', C, H, W)

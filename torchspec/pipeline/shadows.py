@@ -55,6 +55,7 @@ from .tiling import tiling_of
 
 __all__ = [
     "LEFT_OUT",
+    "MIN_FRAMES",
     "ROUNDS",
     "SHADOWED_SHARE",
     "SHADOW_SHARE",
@@ -74,6 +75,9 @@ SHADOWED_SHARE = 0.002
 share of the samples."""
 ROUNDS = 2
 """The most refits with a visibility (each from the previous round's height)."""
+MIN_FRAMES = 20
+"""``auto`` tries shadows only on at least this many frames (a fit of four fifths of fewer frames
+may not resolve a lobe, and few lights show little of a relief's shadows)."""
 LEFT_OUT = 5
 """Every ``LEFT_OUT``-th frame (``i % LEFT_OUT == 2``) judges the shadows."""
 
@@ -89,10 +93,13 @@ def shadows_tried(config: FitConfig, masks, imported: bool = False) -> bool:
     """Whether the fit tries cast shadows: ``FitConfig.shadows`` ``on``, or ``auto`` on a capture
     ``imported`` from photographs (an RTI capture: reliefs, coins; their shadows are rarely dark
     enough to be masked) or where :func:`shadow_share` of ``masks``
-    (:class:`torchspec.photometric.Masks`) reaches :data:`SHADOW_SHARE` (one host sync)."""
+    (:class:`torchspec.photometric.Masks`) reaches :data:`SHADOW_SHARE` (one host sync); on at
+    least :data:`MIN_FRAMES` frames."""
     if config.shadows == "off":
         return False
-    return config.shadows == "on" or imported or shadow_share(masks) >= SHADOW_SHARE
+    if config.shadows == "on":
+        return True
+    return masks.shadowed.shape[0] >= MIN_FRAMES and (imported or shadow_share(masks) >= SHADOW_SHARE)
 
 
 def height_of(fit: Fit) -> Tensor:
