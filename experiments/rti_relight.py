@@ -24,6 +24,11 @@ least-squares photometric stereo on the same frames' luminance.
   ``torchspec MODEL`` the physical maps alone (``torchspec render --no-term``), ``+ term`` with the
   fit's residual term (what ``torchspec render`` renders; the default fit of an imported capture);
   the share of pixels given a lobe (``Fit.lobe``), the transfer and the lights are reported.
+  ``shadows`` (``FitConfig.shadows``: ``off``, ``auto``, ``on``) adds rows ``torchspec MODEL shadows
+  on`` (and ``+ term``): a fit that tried cast shadows (:mod:`torchspec.pipeline.shadows`) renders
+  both times each light's visibility over its height where its judge kept them (``Fit.height``);
+  each row records the judge's rounds (``shadows``) and the share of samples masked as shadows.
+  ``synth_left_out: false`` scores SynthRTI captures on Dome -> Test only.
 - per method: the worst left-out frame's mean brightness ratio (predicted over photographed, in
   linear values; the frame furthest from 1).
 
@@ -54,6 +59,7 @@ from torchspec.io.rti import find_light_file, import_rti, match_images, read_lig
 from torchspec.model.lights import Lights
 from torchspec.model.rendering import render_image
 from torchspec.model.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
+from torchspec.model.visibility import frame_visibility
 from torchspec.relight import render_near
 
 SRGB = Transfer("srgb")
@@ -73,6 +79,8 @@ class Settings:
     calibrations: tuple[str, ...] = ("auto",)  # FitConfig.calibrate of the torchspec rows (each model, each)
     transfer: str | None = None  # import's --transfer (None: its default, auto for these untagged 8-bit files)
     ridge: float = 0.1  # the RBF baseline's ridge
+    shadows: tuple[str, ...] = ("off",)  # FitConfig.shadows of the torchspec rows (each model, each)
+    synth_left_out: bool = True  # SynthRTI captures: also the left-out protocol on Dome/ (else Dome -> Test only)
 
 
 # --- data ---------------------------------------------------------------------------------------
@@ -145,16 +153,20 @@ def polynomial(basis, train_d, train_codes, test_d):
 # --- torchspec ------------------------------------------------------------------------------------
 
 
-def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, calibrate: str, settings: Settings):
+def torchspec_predict(
+    capture, fitted: list[int], lights: Lights, model: str, calibrate: str, settings: Settings, shadows: str = "off"
+):
     """Fit ``capture`` on the ``fitted`` frames with ``model`` and ``calibrate``; render under
     ``lights`` as ``torchspec render`` does (under a dome the fit found, the lights at its radius
     along their directions, block by block: :func:`torchspec.relight.render_near`): ``(linear
     (K, C, H, W) of the physical maps, the same with the fit's residual term (``None`` without
-    one), seconds, fit)``."""
+    one), seconds, fit)``; a fit with cast shadows (``shadows``, ``FitConfig.shadows``) renders both
+    times each light's visibility over its height, as ``torchspec render`` does."""
     config = torchspec.FitConfig.from_dict(
         {
             "model": model,
             "calibrate": calibrate,
+            "shadows": shadows,
             "quadrature": {"compile": settings.compile},
             "term": {"order": settings.residual_term},
         }
@@ -166,16 +178,21 @@ def torchspec_predict(capture, fitted: list[int], lights: Lights, model: str, ca
     view = torch.tensor(capture.view, dtype=torch.float64)
     radius = (fit.stats.get("lights") or {}).get("radius")
     svbrdf = fit.svbrdf.to(torch.float64)
+    positions = None if radius is None else radius * lights.directions
+    seen = 1.0
+    if fit.height is not None:  # (H, W, K, 1) the visibility over the fit's height
+        seen = frame_visibility(fit.height.to(torch.float64), lights, positions)[..., None]
     if radius is not None:
-        positions = radius * lights.directions
         values = render_near(svbrdf, lights, positions, view)
         termed = None if fit.term is None else render_near(svbrdf, lights, positions, view, term=fit.term)
-        return values.permute(2, 3, 0, 1), None if termed is None else termed.permute(2, 3, 0, 1), seconds, fit
-    values = render_image(svbrdf, lights, view)  # (H, W, K, C)
-    termed = None
-    if fit.term is not None:  # as torchspec render does: the maps rendered, then the term applied
-        termed = fit.term.apply(values, lights).permute(2, 3, 0, 1)
-    return values.permute(2, 3, 0, 1), termed, seconds, fit
+    else:
+        values = render_image(svbrdf, lights, view)  # (H, W, K, C)
+        termed = None
+        if fit.term is not None:  # as torchspec render does: the maps rendered, then the term applied
+            termed = fit.term.apply(values, lights)
+    values = values * seen
+    termed = None if termed is None else termed * seen
+    return values.permute(2, 3, 0, 1), None if termed is None else termed.permute(2, 3, 0, 1), seconds, fit
 
 
 # --- scores -----------------------------------------------------------------------------------------
@@ -275,11 +292,13 @@ def relight(capture, linear, codes, fitted, predicted, settings, transfer, targe
     rows.append({"method": "RBF", "fit_seconds": seconds, **scores(values, truth, transfer)})
     rows[-1]["worst_frame"] = predicted[rows[-1]["worst_frame"]]
     fits = {}
-    for model, calibrate in [(m, c) for m in settings.models for c in settings.calibrations]:
+    runs = [(m, c, s) for m in settings.models for c in settings.calibrations for s in settings.shadows]
+    for model, calibrate, shadows in runs:
         values, termed, seconds, fit = torchspec_predict(
-            capture, fitted, target_capture.lights(dtype=torch.float64)[predicted], model, calibrate, settings
+            capture, fitted, target_capture.lights(dtype=torch.float64)[predicted], model, calibrate, settings, shadows
         )
         label = model if calibrate == "auto" else f"{model} ({calibrate})"
+        label = label if shadows == "off" else f"{label} shadows {shadows}"
         fits[label] = fit
         for name, prediction in ((f"torchspec {label}", values), (f"torchspec {label} + term", termed)):
             if prediction is None:
@@ -292,6 +311,10 @@ def relight(capture, linear, codes, fitted, predicted, settings, transfer, targe
             row["pixel_frames_per_second"] = capture.width * capture.height * len(fitted) / seconds
             row["dome_radius"] = (fit.stats.get("lights") or {}).get("radius")
             row["lights"] = _lights_record(fit.stats.get("lights"))
+            row["shadows"] = fit.stats.get("shadows")  # tried: the rounds, their left-out RMS; used or not
+            masked = fit.stats.get("masked_samples") or {}
+            pixel_frames = max(capture.width * capture.height * len(fitted), 1)
+            row["shadow_masked_share"] = masked.get("shadowed", 0) / pixel_frames
             rows.append(row)
     shown["elevation"] = test_d[:, 2]
     return rows, fits, shown
@@ -324,7 +347,9 @@ def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: li
     count = len(capture.frames)
     predicted = [i for i in range(count) if i % 5 == settings.left_out]
     fitted = [i for i in range(count) if i % 5 != settings.left_out]
-    rows, _, shown = relight(capture, linear, codes, fitted, predicted, settings, transfer)
+    rows, shown = [], {"elevation": capture.directions()[predicted][:, 2]}
+    if settings.synth_left_out or not synth:
+        rows, _, shown = relight(capture, linear, codes, fitted, predicted, settings, transfer)
     out = {
         "capture": folder.name,
         "size": [capture.width, capture.height],
@@ -334,7 +359,8 @@ def run_capture(folder: Path, scratch: Path, settings: Settings, figure_rows: li
         "response": None if getattr(imported, "response", None) is None else imported.response.to_json(),
         "rows": rows,
     }
-    figure_rows.append((folder.name, shown))
+    if rows:
+        figure_rows.append((folder.name, shown))
     if synth:
         target = load_reduced(folder / "Test", scratch, settings.downsample, transfer)[:3]  # the Dome's curve
         every = list(range(count))
@@ -357,6 +383,8 @@ def _print(result: dict) -> None:
     if "dome_to_test" in result:
         blocks.append(("Dome -> Test", result["dome_to_test"]))
     for title, rows in blocks:
+        if not rows:
+            continue
         print(f"  {title}:")
         print(f"    {'method':22s} {'PSNR dB':>8s} {'SSIM':>6s} {'fit s':>7s} {'lobes':>6s} {'worst ratio':>11s}")
         for row in rows:
@@ -414,14 +442,15 @@ def main(argv: list[str] | None = None) -> dict:
         for name in settings.captures:
             results.append(run_capture(data / name, Path(scratch), settings, shown))
             _print(results[-1])
-    figure(shown, Path(args.output) / f"{Path(args.config).stem}.png")
-    out = {
-        "settings": asdict(settings),
-        "torch_threads": torch.get_num_threads(),
-        "seconds": time.perf_counter() - started,
-        "captures": results,
-    }
-    write_json(Path(args.output) / f"{Path(args.config).stem}.json", out)
+            out = {
+                "settings": asdict(settings),
+                "torch_threads": torch.get_num_threads(),
+                "seconds": time.perf_counter() - started,
+                "captures": results,
+            }
+            write_json(Path(args.output) / f"{Path(args.config).stem}.json", out)  # each capture's as it ends
+    if shown:
+        figure(shown, Path(args.output) / f"{Path(args.config).stem}.png")
     return out
 
 

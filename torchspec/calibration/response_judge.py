@@ -58,7 +58,9 @@ def judge_curves(
         for i in range(k)
     )
     scores = {}
-    plain = FitConfig(calibrate="none", term=TermConfig(order=0), quadrature=QuadratureConfig(compile=False))
+    plain = FitConfig(
+        calibrate="none", shadows="off", term=TermConfig(order=0), quadrature=QuadratureConfig(compile=False)
+    )
     with tempfile.TemporaryDirectory(prefix="torchspec-judge-") as scratch:
         for name, transfer in candidates.items():
             linear = transfer.decode(crop.movedim(1, -1)).movedim(-1, 1)

@@ -147,6 +147,8 @@ def _fit(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         config = replace(config, model=args.model)
     if args.calibrate is not None:
         config = replace(config, calibrate=args.calibrate)
+    if args.shadows is not None:
+        config = replace(config, shadows=args.shadows)
     if args.residual_term is not None:
         term = args.residual_term
         config = replace(config, term=replace(config.term, order=term if term == "auto" else int(term)))

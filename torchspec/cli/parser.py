@@ -145,6 +145,11 @@ def _add_fit_command(commands) -> None:
                           "predicts left-out frames better, for relighting what the physical model cannot (cast "
                           "shadows); written to residual_term.exr, the physical maps unchanged (default auto: 3 "
                           "for a capture imported from photographs, else 0: off)")
+    fit.add_argument("--shadows", default=None, choices=["auto", "on", "off"],
+                     help="cast shadows: fit the maps with each light's visibility over a height field integrated "
+                          "from the normals (written to height.exr), where it predicts left-out frames better; "
+                          "auto (default) tries it on captures imported from photographs and where the frames hold "
+                          "shadows, on always, off never")
     fit.add_argument("--threads", default=None, metavar="N|auto",
                      help="torch threads per tile: auto (the default: the cores other processes leave free, "
                           "measured before each tile) or a number")

@@ -40,11 +40,13 @@ from torch import Tensor
 
 from ..errors import TorchspecError
 from .lights import Lights, nodes
+from .near_lights import image_points
 
 __all__ = [
     "horizon",
     "visibility",
     "kernel_visibility",
+    "frame_visibility",
     "elevation",
     "shadow_reach",
     "marched_distances",
@@ -303,3 +305,21 @@ def marched_horizon(
             rise = torch.where(inside, (v - height[top : top + rows, :, None]) / t, torch.full_like(v, -math.inf))
             out[top : top + rows, :, k] = torch.atan(rise.amax(-1))
     return out
+
+
+def frame_visibility(height: Tensor, lights: Lights, positions: Tensor | None = None) -> Tensor:
+    """``(H, W, K)`` the visibility of a capture's frames over ``height (H, W)`` (pixels), as a fit
+    with cast shadows and ``torchspec render`` take it: distant lights through their kernel
+    (:func:`kernel_visibility`, its ``probit`` rule; a kernel of ``unknown`` shape as a point);
+    near lights at ``positions (K, 3)`` (object units, :mod:`torchspec.model.near_lights`) by each pixel's
+    own direction to the light (their kernel left out). In the height's dtype and on its device."""
+    lights = lights.to(device=height.device, dtype=height.dtype)
+    if positions is not None:
+        h, w = height.shape
+        points = image_points(h, w, dtype=height.dtype, device=height.device).reshape(h, w, 1, 3)
+        directions = positions.to(height)[None, None] - points  # (H, W, K, 3)
+        length = torch.linalg.vector_norm(directions, dim=-1, keepdim=True).clamp(min=1e-12)
+        return visibility(height, directions / length)
+    if lights.kernel.kind == "unknown":
+        return visibility(height, lights.directions)
+    return kernel_visibility(height, lights)

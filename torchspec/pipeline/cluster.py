@@ -186,8 +186,14 @@ def _distant(begun):
     Raises:
         TorchspecError: near lights (frames with a ``position``), or lights to calibrate from the
             photographs (``FitConfig.calibrate``: :func:`~torchspec.pipeline.calibration.calibrates`),
-            which a fit on a cluster does not handle yet.
+            which a fit on a cluster does not handle yet; ``FitConfig.shadows: on`` (cast shadows need
+            the whole image between fits: :mod:`~torchspec.pipeline.shadows`; ``auto`` is off there).
     """
+    if begun.config.shadows == "on":
+        raise TorchspecError(
+            f"{begun.capture.manifest}: cast shadows (shadows: on) need the fit in one process; fit it without "
+            "--scheduler / --workers, or with --shadows off (a fit on a cluster does not try them)."
+        )
     if begun.positions is not None or calibrates(begun.config.calibrate, begun.capture.unknown):
         what = (
             "give near-light positions" if begun.positions is not None else "are to be calibrated from the photographs"

@@ -7,6 +7,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from torch import Tensor
+
 from ..io import Capture
 from ..progress import bar as progress_bar
 from ..start.photometric import sample_masks
@@ -14,13 +16,15 @@ from .assembly import assemble, run_stats
 from .calibration import calibrated
 from .checkpoint import FitInterrupted, job_record, open_checkpoint, refuse_unfinished
 from .plan import plan, setup
+from .records import StackRun
 from .result import Fit
 from .settings import FitConfig
+from .shadows import fit_with_shadows, shadows_tried
 from .start import light_context
 from .tile import FitInputs, TileInputs, fit_tile
 from .tiling import tiling_of
 
-__all__ = ["fit"]
+__all__ = ["fit", "fit_stack"]
 
 
 def fit(
@@ -76,15 +80,37 @@ def fit(
     config = job.config
     masks = sample_masks(stack, saturation=config.masks.saturation, grow=config.masks.grow, shadow=config.masks.shadow)
     job, calibration = calibrated(job, stack, ~(masks.nonfinite | masks.saturated))
-    lights, ctx = job.lights, light_context(job.lights)
     mask_seconds = time.perf_counter() - clock
 
+    run = StackRun(job=job, stack=stack, masks=masks, calibration=calibration,
+                   seconds={"read": read_seconds, "masks": mask_seconds}, started=clock - read_seconds)  # fmt: skip
+    imported = bool(capture.extra.get("source"))
+    if shadows_tried(config, masks, imported=imported):  # cast shadows from a height field (pipeline.shadows)
+        return fit_with_shadows(run, fit_stack, folder=folder, resume=resume, progress=progress)
+    return fit_stack(run, folder=folder, resume=resume, progress=progress)
+
+
+def fit_stack(
+    run: StackRun,
+    *,
+    visibility: Tensor | None = None,
+    folder: Path | None = None,
+    resume: bool = False,
+    progress: bool = False,
+) -> Fit:
+    """Every tile of ``run``'s frames in this process (:func:`fit`'s work once the frames are read
+    and masked), with the lights' fixed ``visibility (K, H, W)`` where given
+    (:func:`~torchspec.pipeline.tile.fit_tile`; ``None``: no cast shadow, today's fit)."""
+    job, stack, masks = run.job, run.stack, run.masks
+    view, capture, config = job.view, job.capture, job.config
+    lights, ctx = job.lights, light_context(job.lights)
     k, c, h, w = stack.shape
     pixels = h * w
     config, tile = plan(config, k, c, h, w, stack.element_size(), stack.device)
     tiling = tiling_of(h, w, tile, job.positions)
     flat = tiling.pixels(stack.flatten(2))  # (K, C, H W) in the fit's order (a view for row-major tiles)
     flat_masks = masks.flat().map(tiling.pixels)  # each (K, H W) in the fit's order
+    seen = None if visibility is None else tiling.pixels(visibility.flatten(1))  # (K, H W)
     shared = FitInputs(view=view, channels=capture.channels, config=config, folder=folder, gains=job.gains,
                        domain=job.domain)  # fmt: skip
     done = {}
@@ -99,7 +125,8 @@ def fit(
                 else:
                     tile_lights, tile_ctx = tiling.lights(lights, ctx, first, stop)
                     values, tile_masks = flat[:, :, first:stop], flat_masks.of_pixels(slice(first, stop))
-                    inputs = TileInputs(first=first, values=values, masks=tile_masks, lights=tile_lights, ctx=tile_ctx)
+                    inputs = TileInputs(first=first, values=values, masks=tile_masks, lights=tile_lights, ctx=tile_ctx,
+                                        visibility=None if seen is None else seen[:, first:stop])  # fmt: skip
                     out = fit_tile(inputs, shared)
                 parts.append(out)
                 bar.update(stop - first)
@@ -115,11 +142,10 @@ def fit(
         pixels=pixels,
         tile=tile,
         resumed=len(done),
-        seconds={"read": read_seconds, "masks": mask_seconds},
+        seconds=dict(run.seconds),
         masked=masks.counts(),
-        lights=calibration,
+        lights=run.calibration,
     )
-    # clock: when the masks began
     return assemble(
-        tiling.restore(parts), height=h, width=w, channels=capture.channels, stats=stats, started=clock - read_seconds
+        tiling.restore(parts), height=h, width=w, channels=capture.channels, stats=stats, started=run.started
     )

@@ -172,6 +172,7 @@ def held_out_refit(
         level=data.level[at],
         count=data.count[at],
         samples=data.samples[at],
+        visibility=None if data.visibility is None else data.visibility[at],
     )
     start = svbrdf[torch.arange(m, device=index.device).repeat(copies)]
     settings = replace(config, lm=replace(config.lm, max_iterations=config.ladder.refit))

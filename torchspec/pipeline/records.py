@@ -19,10 +19,11 @@ from ..io import Capture
 from ..model.brdf import SVBRDF
 from ..model.lights import Lights
 from ..model.residual_term import ResidualTerm, TermDomain
+from ..start.photometric import Masks
 from .checks import Checks
 from .settings import FitConfig
 
-__all__ = ["FitWarning", "PlainFit", "Setup", "TileResult"]
+__all__ = ["FitWarning", "PlainFit", "Setup", "StackRun", "TileResult"]
 
 
 class FitWarning(UserWarning):
@@ -55,6 +56,41 @@ class Setup:
     positions: Tensor | None = None
     gains: Tensor | None = None
     domain: TermDomain = field(default_factory=TermDomain)
+
+
+@dataclass(frozen=True)
+class StackRun:
+    """A fit's frames read, masked and their lights calibrated: what remains is to fit the tiles
+    (:func:`torchspec.pipeline.in_process.fit_stack`), once or (cast shadows,
+    :mod:`~torchspec.pipeline.shadows`) several times on subsets of the frames.
+
+    Attributes:
+        job: the :class:`Setup`, its lights calibrated; stack: ``(K, C, H, W)`` the frames;
+        masks: their :class:`~torchspec.start.photometric.Masks`; calibration: the light calibration's
+        record (``None``: none); seconds: per stage so far; started: ``time.perf_counter`` when
+        the fit began.
+    """
+
+    job: Setup
+    stack: Tensor
+    masks: Masks
+    calibration: dict | None
+    seconds: dict
+    started: float
+
+    def frames(self, index: list[int]) -> StackRun:
+        """The run on its frames ``index`` only (positions in its own frames)."""
+        at = torch.tensor(index, dtype=torch.long, device=self.stack.device)
+        job, lights = self.job, self.job.lights
+        picked = Lights(lights.directions[at], lights.kernel, lights.irradiance[at], lights.exposure[at])
+        job = replace(
+            job,
+            picked=[job.picked[i] for i in index],
+            lights=picked,
+            positions=None if job.positions is None else job.positions[at],
+            gains=None if job.gains is None else job.gains[at],
+        )
+        return replace(self, job=job, stack=self.stack[at], masks=self.masks.map(lambda mask: mask[at]))
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,8 @@ class Fit:
             no noise estimate with a forced model and ``uncertainty`` off).
         term: the residual term, ``coefficients (H, W, J, C)`` and ``chosen (H, W)``
             (:class:`torchspec.model.residual_term.ResidualTerm`; ``FitConfig.term.order``, else ``None``).
+        height: ``(H, W)`` the height field (pixels) whose cast shadows the maps were fitted with
+            (``FitConfig.shadows``, :mod:`torchspec.pipeline.shadows`), else ``None``.
     """
 
     svbrdf: SVBRDF
@@ -71,6 +73,7 @@ class Fit:
     flags: Tensor
     checks: dict[str, Tensor]
     term: ResidualTerm | None = None
+    height: Tensor | None = None
 
 
 def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None:
@@ -120,4 +123,7 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
         extra[MAP_NAME] = result.term.to_map().float()
         extra[WEIGHT_MAP] = result.term.weight.float()
         meta[MAP_NAME] = result.term.description()
+    if result.height is not None:  # cast shadows: the height their visibility came from
+        extra["height"] = result.height.float()
+        meta["height"] = result.stats.get("height") or {"unit": "pixel", "pitch": 1.0}
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra, overwrite=True)

@@ -20,6 +20,7 @@ from .config_groups import ComputeConfig, FlagsConfig, MasksConfig, QuadratureCo
 
 __all__ = [
     "AUTO",
+    "SHADOWS",
     "COMPILE_PIXELS",
     "FRI_KERNELS",
     "GROUPS",
@@ -52,6 +53,8 @@ built-in models declared ``ladder``, :mod:`torchspec.model.registry`; a model re
 ``auto`` through ``FitConfig.ladder``)."""
 CALIBRATE = ("auto", "none", "gains", "positions", "dome")
 """The values of ``FitConfig.calibrate``."""
+SHADOWS = ("auto", "on", "off")
+"""The choices of ``FitConfig.shadows``."""
 COMPILE_PIXELS = 1 << 17
 """``FitConfig.quadrature.compile=None`` compiles the model for fits of at least this many pixels (the
 one-off compilation pays for itself on large fits only)."""
@@ -308,6 +311,12 @@ class FitConfig:
             (:func:`torchspec.model.noise.affine_noise`; ``stats["sensor_noise"]``), floored at
             ``start.noise_floor`` times the pixel's level. ``auto`` needs them; a forced model
             without them leaves ``criterion`` and ``std`` NaN.
+        shadows: cast shadows in the model (:mod:`torchspec.pipeline.shadows`): ``on`` fits the
+            maps with each light's visibility over a height field integrated from the normals,
+            alternating with the height, and keeps it where it predicts left-out frames better;
+            ``auto`` (the default) tries it on captures imported from photographs and where the
+            frames hold shadows (a share of samples masked as shadows of at least
+            ``torchspec.pipeline.shadows.SHADOW_SHARE``); ``off``: never.
         masks, start, ladder, term, flags, quadrature, compute: the groups above.
         lm: the solver's settings.
     """
@@ -315,6 +324,7 @@ class FitConfig:
     model: str = "auto"
     calibrate: str = "auto"
     uncertainty: bool = True
+    shadows: str = AUTO
     masks: MasksConfig = field(default_factory=MasksConfig)
     start: StartConfig = field(default_factory=StartConfig)
     ladder: LadderConfig = field(default_factory=LadderConfig)
@@ -331,6 +341,8 @@ class FitConfig:
             raise ConfigError(f"FitConfig.model must be one of {[AUTO, *sorted(MODELS)]}; got {self.model!r}.")
         if self.calibrate not in CALIBRATE:
             raise ConfigError(f"FitConfig.calibrate must be one of {list(CALIBRATE)}; got {self.calibrate!r}.")
+        if self.shadows not in SHADOWS:
+            raise ConfigError(f"FitConfig.shadows must be one of {list(SHADOWS)}; got {self.shadows!r}.")
         for name, kind in (*GROUPS.items(), ("lm", LMConfig)):
             if not isinstance(getattr(self, name), kind):
                 raise ConfigError(

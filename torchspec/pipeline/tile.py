@@ -27,7 +27,19 @@ from .settings import MODEL_CODES, FitConfig
 from .smoothing import plain_alternative
 from .start import LightContext, starting_point
 
-__all__ = ["MASK_KINDS", "TERM_REFIT", "FitInputs", "TileInputs", "TilePixels", "TileResult", "fit_pixels", "fit_tile"]
+__all__ = [
+    "EXPLAINED",
+    "MASK_KINDS",
+    "TERM_REFIT",
+    "VISIBLE",
+    "FitInputs",
+    "TileInputs",
+    "TilePixels",
+    "TileResult",
+    "fit_pixels",
+    "fit_tile",
+    "seen_through",
+]
 
 MASK_KINDS = tuple(f.name for f in fields(Masks))
 """The masks of :class:`torchspec.start.photometric.Masks` that :func:`fit_tile` takes and counts."""
@@ -48,18 +60,28 @@ class TilePixels:
         valid: ``(n, K)`` bool, the samples the fit uses.
         kept: ``(n, K)`` bool, the samples the residual term (``FitConfig.term.order``) is
             fitted on: the fit's masks leave out shadowed samples, which the term is to carry.
+        visibility: ``(n, K)`` the lights' fixed visibility (cast shadows), else ``None``: ``y``
+            then holds the recorded values over it (:func:`seen_through`), and the stages fit the
+            maps without shadows to them, each sample's weight times its visibility
+            (:class:`~torchspec.pipeline.samples.TileSamples`).
     """
 
     y: Tensor
     valid: Tensor
     kept: Tensor
+    visibility: Tensor | None = None
 
     @classmethod
     def of(cls, tile: TileInputs) -> TilePixels:
         """``tile``'s pixels, its samples of every kind of :data:`MASK_KINDS` left out of ``valid``,
         the non-finite ones of ``kept``."""
         masks = tile.masks
-        return cls(y=tile.values.permute(2, 0, 1), valid=~masks.invalid.T, kept=~masks.nonfinite.T)
+        y = tile.values.permute(2, 0, 1)  # (n, K, C)
+        if tile.visibility is None:
+            return cls(y=y, valid=~masks.invalid.T, kept=~masks.nonfinite.T)
+        seen = tile.visibility.T.to(y)  # (n, K)
+        y, valid, kept = seen_through(y, masks, seen)
+        return cls(y=y, valid=valid, kept=kept, visibility=seen)
 
 
 def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: FitInputs) -> TileResult:
@@ -77,7 +99,7 @@ def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: Fi
     begun = starting_point(y, valid, lights, view, config=config, context=ctx)
     times = dict(begun.times)
     lobe = begun.lobe if config.lobes else torch.zeros_like(begun.lobe)
-    data = TileSamples.of(y, valid, begun.level, lights, view, shared.channels)
+    data = TileSamples.of(y, valid, begun.level, lights, view, shared.channels, visibility=pixels.visibility)
     t0 = time.perf_counter()
     choice, sensor, found_quality = select_models(begun, lobe, data, config)
     times["lm"] = time.perf_counter() - t0
@@ -226,6 +248,7 @@ class TileInputs:
             (:meth:`torchspec.start.photometric.Masks.of_pixels`).
         lights: the ``K`` lights as this tile sees them (under near lights, from its centre).
         ctx: ``lights``'s :class:`~torchspec.pipeline.start.LightContext`.
+        visibility: ``(K, n)`` the lights' fixed visibility at the pixels (cast shadows), or ``None``.
     """
 
     first: int
@@ -233,6 +256,30 @@ class TileInputs:
     masks: Masks
     lights: Lights
     ctx: LightContext
+    visibility: Tensor | None = None
+
+
+VISIBLE = 0.2
+"""A sample whose light's visibility is below this is left out (as a shadowed one is without a
+visibility): ``y / V`` would amplify its noise and the shadow's edge, which the height places only
+roughly."""
+EXPLAINED = 0.5
+"""A sample masked as a shadow (too dark) is used again where the visibility is below this: the
+visibility explains its darkness."""
+
+
+def seen_through(y: Tensor, masks: Masks, visibility: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A tile's ``y (n, K, C)`` over the lights' visibility ``(n, K)``, the samples to fit and the
+    residual term's (:func:`fit_tile`), ``(y / V, valid, kept)``: a sample is left out where
+    ``V < VISIBLE``, non-finite, saturated, or masked as a shadow that ``V`` does not explain
+    (``V >= EXPLAINED``). With ``V = 1`` everywhere, ``y`` itself and the masks' samples, exactly."""
+    v = visibility.to(y)
+    seen = v >= VISIBLE
+    unexplained = masks.shadowed.T & (v >= EXPLAINED)
+    valid = ~(masks.nonfinite.T | masks.saturated.T | unexplained) & seen
+    kept = ~masks.nonfinite.T & seen
+    values = torch.where(seen[..., None], y / torch.where(seen, v, torch.ones_like(v))[..., None], y)
+    return values, valid, kept
 
 
 def fit_tile(tile: TileInputs, shared: FitInputs) -> TileResult:

@@ -26,6 +26,7 @@ from ..model.near_lights import lights_at
 from ..model.quadrature import Quadrature
 from ..model.rendering import TILE_PIXELS, render, render_image
 from ..model.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
+from ..model.visibility import frame_visibility
 from ..outputs import check_apart, check_output
 from ..pipeline.plan import device_of
 from ..pipeline.tiling import tiling_of
@@ -177,6 +178,7 @@ def render_capture(
     progress: bool = False,
     term: bool = True,
     device: str | torch.device = "auto",
+    shadows: bool = True,
 ) -> dict:
     """Predict a capture's frames from the maps in ``svbrdf_dir``; write them to ``output_dir``
     (unless ``None``) and compare with the capture's frames. The frames are computed on
@@ -189,6 +191,9 @@ def render_capture(
     :mod:`torchspec.model.residual_term`) is added to the physical prediction unless ``term`` is false; the
     frames are then clamped at 0 where the term takes them below black, as a photograph holds no
     negative light (the output is a capture that ``info`` and ``read_capture`` read).
+    Maps fitted with cast shadows (``height.exr``, ``FitConfig.shadows``) are rendered times each
+    light's visibility over that height (:func:`torchspec.model.visibility.frame_visibility`) unless
+    ``shadows`` is false.
     Maps fitted at a crop or downsample (``svbrdf.json``'s ``fit.scale``) are compared with the
     capture read at it (:func:`capture_for`); the frames written are then that size.
 
@@ -227,6 +232,10 @@ def render_capture(
         values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
         if found is not None:
             values = found.apply(values, lights)
+    height = maps.extra.get("height") if shadows else None
+    if height is not None:  # cast shadows: the visibility over the fit's height, as the fit saw it
+        near = None if positions is None else positions.to(where, dtype)
+        values = values * frame_visibility(height.to(where, dtype), lights, near)[..., None]
     if found is not None:  # a smooth term can dip below black (a cast shadow); a frame holds no negative light
         values = values.clamp(min=0)
     predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored

@@ -6,7 +6,9 @@ the fit's residual term, ``residual_term.exr``, unless ``term`` is false), under
 capture's kernel from the new directions, seen from the capture's view. What a render needs of
 the capture comes from the maps' ``svbrdf.json`` (``fit.scene``, which a fit records:
 :func:`torchspec.pipeline.assembly.scene_record`), else from the capture (given, or the one the
-fit names when it is still there, or the folder holding a ``truth/``).
+fit names when it is still there, or the folder holding a ``truth/``). Maps fitted with cast
+shadows (``height.exr``) are rendered times each light's visibility over that height
+(:func:`torchspec.visibility.frame_visibility`).
 
 Each new light has the irradiance ``irradiance`` (one value, or one per channel) and exposure 1;
 by default the median over the fitted frames of ``exposure x irradiance x gain`` per channel
@@ -48,6 +50,7 @@ from ..io.rti import find_light_file, read_lights
 from ..model.lights import Lights
 from ..model.quadrature import Quadrature
 from ..model.rendering import render_image
+from ..model.visibility import frame_visibility
 from ..outputs import check_output
 from ..pipeline.assembly import scene_record
 from ..pipeline.plan import device_of
@@ -319,6 +322,8 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
     svbrdf = maps.svbrdf.to(where).to(dtype)
     height, width = svbrdf.shape
     found = residual_term_of(maps, svbrdf_dir, where) if term else None
+    shape = maps.extra.get("height")  # cast shadows (height.exr): each light's visibility over it
+    shape = None if shape is None else shape.to(where, dtype)
     view = torch.tensor(scene.view, dtype=dtype, device=where)
     directions = torch.tensor([light.direction for light in lights], dtype=dtype, device=where)
     scale = torch.tensor(values, dtype=dtype, device=where)
@@ -333,6 +338,9 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
         else:
             rendered = render_image(svbrdf, here, view, quadrature=quadrature, progress=progress)
             rendered = rendered if found is None else found.apply(rendered, here)
+        if shape is not None:
+            near = None if scene.distance is None else scene.distance * part
+            rendered = rendered * frame_visibility(shape, here, near)[..., None]
         out[first : first + count] = rendered.permute(2, 3, 0, 1).float().cpu()
     return out
 
