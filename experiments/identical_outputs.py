@@ -116,6 +116,12 @@ def compare(old: Path, new: Path) -> list[str]:
         for saved in (a, b):  # the settings of either layout, compared key by key
             if isinstance(saved.get("stats"), dict) and isinstance(saved["stats"].get("settings"), dict):
                 saved["stats"]["settings"] = flat_settings(saved["stats"]["settings"])
+        if isinstance(a.get("stats"), dict) and isinstance(b.get("stats"), dict):
+            # A setting the old code did not have (no case sets it: it is at its default) is not an
+            # output; it is named, and its outputs compared as the rest.
+            added = sorted(set(b["stats"].get("settings", {})) - set(a["stats"].get("settings", {})))
+            for key in added:
+                print(f"{path.stem}: new setting {key}={b['stats']['settings'].pop(key)!r} (at its default)")
         differ += [f"{path.stem} {key}" for key in sorted(set(a) | set(b)) if not _same(a.get(key), b.get(key))]
     return differ
 
