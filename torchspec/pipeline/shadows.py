@@ -19,7 +19,7 @@ The alternation (:func:`fit_with_shadows`), judged by left-out frames as the mod
    distant lights, a direction per pixel for near ones);
 3. the same frames are fitted with that visibility fixed and the left-out frames predicted times
    their visibility; where that predicts better than the best so far by more than the noise would
-   make it (:func:`torchspec.statistics.predicts_better` with ``FitConfig.predict_z``, the whole
+   make it (:func:`torchspec.statistics.predicts_better` with ``FitConfig.ladder.predict_z``, the whole
    image as one pixel, every left-out sample in the statistic, the shadowed ones too), the height
    is integrated again from the new normals and the next round begins (at most :data:`ROUNDS`);
 4. all frames are fitted, with the visibility of the best height if any round predicted better
@@ -44,7 +44,8 @@ import torch
 from torch import Tensor
 
 from ..model.height import height_from_normals
-from ..model.rendering import TILE_PIXELS, render
+from ..model.registry import render_chosen
+from ..model.rendering import TILE_PIXELS
 from ..model.visibility import frame_visibility
 from ..statistics import predicts_better
 from .records import StackRun
@@ -69,7 +70,7 @@ __all__ = [
 
 SHADOW_SHARE = 0.005
 """``auto`` tries shadows where at least this share of the usable samples (finite, not saturated)
-is masked as a shadow (below ``FitConfig.shadow`` of its pixel's median)."""
+is masked as a shadow (below ``FitConfig.masks.shadow`` of its pixel's median)."""
 SHADOWED_SHARE = 0.002
 """``auto`` refits with a visibility only where the first height hides (``V < 0.5``) at least this
 share of the samples."""
@@ -125,10 +126,12 @@ def visibility_of(height: Tensor, run: StackRun) -> Tensor:
 
 def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None) -> Tensor:
     """``(K, C, H, W)`` ``fit``'s physical maps rendered under ``run``'s frames as the fit lights
-    its pixels (near lights: as seen from each block's centre), times ``seen (K, H, W)`` when given."""
+    its pixels (near lights: as seen from each block's centre), each pixel with its model's lobe
+    (:func:`torchspec.model.registry.render_chosen`), times ``seen (K, H, W)`` when given."""
     job = run.job
     k, c, h, w = run.stack.shape
     svbrdf = fit.svbrdf.to(run.stack.dtype).flatten()
+    code = fit.model.reshape(-1).to(run.stack.device)
     lights, ctx = job.lights, light_context(job.lights)
     tiling = tiling_of(h, w, TILE_PIXELS, job.positions)
     out = run.stack.new_empty((h * w, k, c))
@@ -136,7 +139,7 @@ def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None) -> Tenso
     for first, stop in tiling.ranges:
         index = order[first:stop].to(run.stack.device)
         tile_lights, _ = tiling.lights(lights, ctx, first, stop)
-        out[index] = render(svbrdf[index], tile_lights, job.view)
+        out[index] = render_chosen(svbrdf[index], code[index], tile_lights, job.view)
     out = out.permute(1, 2, 0).reshape(k, c, h, w)
     return out if seen is None else out * seen[:, None]
 

@@ -8,7 +8,7 @@ the capture comes from the maps' ``svbrdf.json`` (``fit.scene``, which a fit rec
 :func:`torchspec.pipeline.assembly.scene_record`), else from the capture (given, or the one the
 fit names when it is still there, or the folder holding a ``truth/``). Maps fitted with cast
 shadows (``height.exr``) are rendered times each light's visibility over that height
-(:func:`torchspec.visibility.frame_visibility`).
+(:func:`torchspec.model.visibility.frame_visibility`).
 
 Each new light has the irradiance ``irradiance`` (one value, or one per channel) and exposure 1;
 by default the median over the fitted frames of ``exposure x irradiance x gain`` per channel
