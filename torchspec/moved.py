@@ -84,11 +84,14 @@ def warn(old: str, new: str, stacklevel: int = 3) -> None:
 class _Aliases(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     """Finds ``torchspec.<old>`` and gives the module at its new name (the same module object)."""
 
+    def __init__(self):
+        self.real: dict[str, object] = {}  # alias name -> the module's own spec, between create and exec
+
     def find_spec(self, fullname, path=None, target=None):
         if not fullname.startswith("torchspec."):
             return None
-        old = fullname[len("torchspec.") :]
-        if old in ("moved",) or new_name(old) is None or new_name(old) == old:
+        new = new_name(fullname[len("torchspec.") :])
+        if new is None:  # not a moved name (a new name never is one: no moved name is a prefix of it)
             return None
         return importlib.util.spec_from_loader(fullname, self)
 
@@ -97,11 +100,11 @@ class _Aliases(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         new = new_name(old)
         warn(old, new, stacklevel=6)
         module = importlib.import_module(f"torchspec.{new}")
-        self._spec = module.__spec__  # importlib sets the alias's spec on it: put the real one back
+        self.real[spec.name] = module.__spec__  # importlib sets the alias's spec on it: put the real one back
         return module
 
     def exec_module(self, module):
-        module.__spec__ = self._spec
+        module.__spec__ = self.real.pop(module.__spec__.name)  # by the alias's name: imports may interleave
 
 
 def install() -> None:
