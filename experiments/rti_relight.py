@@ -60,7 +60,7 @@ from torchspec.model.lights import Lights
 from torchspec.model.rendering import render_image
 from torchspec.model.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
 from torchspec.model.visibility import frame_visibility
-from torchspec.relight import render_near
+from torchspec.relight import indirect_light, render_near
 
 SRGB = Transfer("srgb")
 LUMA = (0.2126, 0.7152, 0.0722)
@@ -161,7 +161,7 @@ def torchspec_predict(
     along their directions, block by block: :func:`torchspec.relight.render_near`): ``(linear
     (K, C, H, W) of the physical maps, the same with the fit's residual term (``None`` without
     one), seconds, fit)``; a fit with cast shadows (``shadows``, ``FitConfig.shadows``) renders both
-    times each light's visibility over its height, as ``torchspec render`` does."""
+    times each light's visibility over its height plus its indirect light, as ``torchspec render`` does."""
     config = torchspec.FitConfig.from_dict(
         {
             "model": model,
@@ -181,7 +181,8 @@ def torchspec_predict(
     positions = None if radius is None else radius * lights.directions
     seen = 1.0
     if fit.height is not None:  # (H, W, K, 1) the visibility over the fit's height
-        seen = frame_visibility(fit.height.to(torch.float64), lights, positions)[..., None]
+        softness = math.radians(fit.stats["height"]["softness_deg"])
+        seen = frame_visibility(fit.height.to(torch.float64), lights, positions, softness=softness)[..., None]
     if radius is not None:
         values = render_near(svbrdf, lights, positions, view)
         termed = None if fit.term is None else render_near(svbrdf, lights, positions, view, term=fit.term)
@@ -192,6 +193,10 @@ def torchspec_predict(
             termed = fit.term.apply(values, lights)
     values = values * seen
     termed = None if termed is None else termed * seen
+    if fit.indirect is not None:  # the light the lit surroundings reflect into the shadows
+        bounce = indirect_light(svbrdf, fit.indirect.to(torch.float64), lights, view, positions)
+        values = values + bounce
+        termed = None if termed is None else termed + bounce
     return values.permute(2, 3, 0, 1), None if termed is None else termed.permute(2, 3, 0, 1), seconds, fit
 
 

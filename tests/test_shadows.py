@@ -13,10 +13,11 @@ from torchspec.model.brdf import SVBRDF
 from torchspec.model.geometry import from_plane
 from torchspec.model.lights import Kernel, Lights
 from torchspec.model.rendering import render
+from torchspec.model.visibility import sky_view
 from torchspec.pipeline import ComputeConfig, FitConfig, TermConfig, fit, write_fit
-from torchspec.pipeline.shadows import shadows_tried
+from torchspec.pipeline.shadows import SOFTNESSES_DEG, shadows_tried
 from torchspec.pipeline.start import light_context
-from torchspec.pipeline.tile import FitInputs, TileInputs, fit_tile, seen_through
+from torchspec.pipeline.tile import EXPLAINED, VISIBLE, FitInputs, TileInputs, fit_tile, seen_through
 from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
 from torchspec.simulate.relief import ReliefConfig
 from torchspec.simulate.synth import PaintingConfig
@@ -81,13 +82,18 @@ def test_fixed_visibility_recovers_the_truth_and_unit_visibility_is_bitwise_toda
 
 
 def test_seen_through_leaves_out_hidden_samples_and_uses_explained_shadows():
-    y = torch.ones(1, 4, 1, dtype=F64)
-    shadowed = torch.tensor([[True], [True], [False], [False]])
-    none = torch.zeros(4, 1, dtype=torch.bool)
-    v = torch.tensor([[0.1, 0.4, 0.8, 1.0]], dtype=F64)
+    y = torch.ones(1, 5, 1, dtype=F64)
+    shadowed = torch.tensor([[True], [True], [True], [False], [False]])
+    none = torch.zeros(5, 1, dtype=torch.bool)
+    low, edge = VISIBLE / 2, VISIBLE + 0.5 * (1 - VISIBLE)
+    explained = min(max(VISIBLE, EXPLAINED - 1e-3), 1.0)  # seen, and dark enough to explain a shadow if any is
+    v = torch.tensor([[low, explained, 1.0, low, edge]], dtype=F64)
     values, valid, kept = seen_through(y, Masks(nonfinite=none, saturated=none, shadowed=shadowed), v)
-    assert valid.tolist() == [[False, True, True, True]] and kept.tolist() == [[False, True, True, True]]
-    assert torch.allclose(values[0, 1:, 0], 1.0 / v[0, 1:])
+    # hidden: out of both; a shadow V explains (V < EXPLAINED): in; one it does not: out of the fit
+    assert valid.tolist() == [[False, explained < EXPLAINED, False, False, True]]
+    assert kept.tolist() == [[False, True, True, False, True]]  # the term's samples: every seen one
+    seen = v[0] >= VISIBLE
+    assert torch.allclose(values[0, seen, 0], 1.0 / v[0, seen]) and torch.equal(values[0, ~seen, 0], y[0, ~seen, 0])
 
 
 def _simulation(relief, size=24, side=6):
@@ -121,6 +127,14 @@ def test_relief_is_fitted_better_with_shadows(tmp_path):
 
     maps = read_svbrdf(tmp_path / "maps")
     assert torch.equal(maps.extra["height"], shadowed.height.float()) and maps.meta["height"]["unit"] == "pixel"
+    assert maps.meta["height"]["softness_deg"] in SOFTNESSES_DEG  # the penumbra the left-out frames chose
+    # this relief reflects no light into its shadows: no indirect light, or little, within the hidden sky
+    if shadowed.indirect is None:
+        assert "indirect" not in maps.extra and record["indirect"]["p99"] == 0.0
+    else:
+        assert torch.equal(maps.extra["indirect"], shadowed.indirect.float())
+        hidden = 1.0 - sky_view(shadowed.height.double())
+        assert bool((shadowed.indirect.double() <= hidden + 1e-6).all()) and float(shadowed.indirect.mean()) < 0.05
 
 
 def test_flat_painting_keeps_todays_fit(tmp_path):

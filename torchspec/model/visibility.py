@@ -51,12 +51,18 @@ __all__ = [
     "shadow_reach",
     "marched_distances",
     "marched_horizon",
+    "sky_view",
     "CHUNK_ELEMENTS",
+    "FOOTPRINT",
     "SOFTNESS",
 ]
 
 SOFTNESS = math.radians(1.0)
 """The default penumbra width in elevation, radians (1 degree)."""
+
+FOOTPRINT = 2
+""":func:`frame_visibility` averages each pixel's visibility over ``FOOTPRINT x FOOTPRINT`` points
+of its footprint."""
 
 CHUNK_ELEMENTS = 1 << 23
 """The most height samples (pixels x lights x steps) one chunk of :func:`horizon` takes at once."""
@@ -307,19 +313,52 @@ def marched_horizon(
     return out
 
 
-def frame_visibility(height: Tensor, lights: Lights, positions: Tensor | None = None) -> Tensor:
+def sky_view(height: Tensor, count: int = 64) -> Tensor:
+    """``(H, W)`` each pixel's cosine-weighted visible share of the hemisphere over ``height (H, W)``
+    (pixels): the mean visibility (:func:`visibility`) of ``count``
+    directions spread evenly in cosine-weighted solid angle (a Fibonacci spiral). 1 on a flat surface."""
+    i = torch.arange(count, dtype=height.dtype, device=height.device) + 0.5
+    u = i / count
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    r = u.sqrt()
+    directions = torch.stack([r * phi.cos(), r * phi.sin(), (1.0 - u).sqrt()], -1)
+    return visibility(height, directions).mean(-1)
+
+
+def frame_visibility(
+    height: Tensor,
+    lights: Lights,
+    positions: Tensor | None = None,
+    footprint: int = FOOTPRINT,
+    softness: float = SOFTNESS,
+) -> Tensor:
     """``(H, W, K)`` the visibility of a capture's frames over ``height (H, W)`` (pixels), as a fit
     with cast shadows and ``torchspec render`` take it: distant lights through their kernel
     (:func:`kernel_visibility`, its ``probit`` rule; a kernel of ``unknown`` shape as a point);
     near lights at ``positions (K, 3)`` (object units, :mod:`torchspec.model.near_lights`) by each pixel's
-    own direction to the light (their kernel left out). In the height's dtype and on its device."""
+    own direction to the light (their kernel left out). Averaged over each pixel's footprint: the
+    height resampled ``footprint`` times finer (bicubic), the visibility computed there and
+    box-averaged back (a pixel a shadow's edge crosses is partly lit, as its photograph is; 1: at
+    the pixels' centres only). ``softness``: the penumbra's width in elevation, radians
+    (:func:`visibility`). In the height's dtype and on its device."""
+    if footprint < 1:
+        raise TorchspecError(f"footprint must be a whole number >= 1; got {footprint!r}.")
     lights = lights.to(device=height.device, dtype=height.dtype)
+    h, w = height.shape
+    fine = height
+    if footprint > 1:  # heights in pixels: a finer pixel is 1 / footprint of one
+        grid = (height * footprint)[None, None]
+        fine = F.interpolate(grid, scale_factor=footprint, mode="bicubic", align_corners=False)[0, 0]
     if positions is not None:
-        h, w = height.shape
         points = image_points(h, w, dtype=height.dtype, device=height.device).reshape(h, w, 1, 3)
         directions = positions.to(height)[None, None] - points  # (H, W, K, 3)
         length = torch.linalg.vector_norm(directions, dim=-1, keepdim=True).clamp(min=1e-12)
-        return visibility(height, directions / length)
-    if lights.kernel.kind == "unknown":
-        return visibility(height, lights.directions)
-    return kernel_visibility(height, lights)
+        directions = (directions / length).repeat_interleave(footprint, 0).repeat_interleave(footprint, 1)
+        seen = visibility(fine, directions, softness=softness)
+    elif lights.kernel.kind == "unknown":
+        seen = visibility(fine, lights.directions, softness=softness)
+    else:
+        seen = kernel_visibility(fine, lights, softness=softness)
+    if footprint == 1:
+        return seen
+    return F.avg_pool2d(seen.permute(2, 0, 1)[None], footprint)[0].permute(1, 2, 0)

@@ -58,6 +58,9 @@ class Fit:
             (:class:`torchspec.model.residual_term.ResidualTerm`; ``FitConfig.term.order``, else ``None``).
         height: ``(H, W)`` the height field (pixels) whose cast shadows the maps were fitted with
             (``FitConfig.shadows``, :mod:`torchspec.pipeline.shadows`), else ``None``.
+        indirect: ``(H, W)`` with ``height``, each pixel's indirect share: the light its lit
+            surroundings reflect into its shadows, over the mean plane's direct light
+            (:mod:`torchspec.model.indirect`), else ``None``.
     """
 
     svbrdf: SVBRDF
@@ -74,6 +77,7 @@ class Fit:
     checks: dict[str, Tensor]
     term: ResidualTerm | None = None
     height: Tensor | None = None
+    indirect: Tensor | None = None
 
 
 def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None:
@@ -126,4 +130,6 @@ def write_fit(path: str | Path, result: Fit, *, overwrite: bool = False) -> None
     if result.height is not None:  # cast shadows: the height their visibility came from
         extra["height"] = result.height.float()
         meta["height"] = result.stats.get("height") or {"unit": "pixel", "pitch": 1.0}
+    if result.indirect is not None:  # cast shadows' indirect light: y = V r + b D
+        extra["indirect"] = result.indirect.float()
     write_svbrdf(path, result.svbrdf.to(torch.float32), meta=meta, extra=extra, overwrite=True)

@@ -17,13 +17,19 @@ The alternation (:func:`fit_with_shadows`), judged by left-out frames as the mod
    normal weighted by ``1 / std_normal^2``: :func:`height_of`), the visibility of every frame
    computed over it (:func:`visibility_of`: :func:`torchspec.model.visibility.kernel_visibility` for
    distant lights, a direction per pixel for near ones);
-3. the same frames are fitted with that visibility fixed and the left-out frames predicted times
-   their visibility; where that predicts better than the best so far by more than the noise would
-   make it (:func:`torchspec.statistics.predicts_better` with ``FitConfig.ladder.predict_z``, the whole
-   image as one pixel, every left-out sample in the statistic, the shadowed ones too), the height
+3. the same frames are fitted with that visibility fixed (from the second round on, less the
+   indirect light of the previous round's maps: :mod:`torchspec.model.indirect`), the indirect share
+   of the new maps fitted (:func:`indirect_of`), and the left-out frames predicted times their
+   visibility (each penumbra width of :data:`SOFTNESSES_DEG`, the best kept) plus their indirect
+   light (kept where it predicts better than none); where that predicts better than the best so
+   far by more than the noise would make it (:func:`torchspec.statistics.predicts_better` with
+   ``FitConfig.ladder.predict_z``, the whole image as one pixel, every left-out sample in the
+   statistic, the shadowed ones too; predictions clipped to the brightest value recorded), the height
    is integrated again from the new normals and the next round begins (at most :data:`ROUNDS`);
-4. all frames are fitted, with the visibility of the best height if any round predicted better
-   (its height is the fit's ``height``, written as ``height.exr``), else without: today's fit.
+4. all frames are fitted, with the visibility of the best height and less the best round's
+   indirect light if any round predicted better (its height is the fit's ``height``, written as
+   ``height.exr``; the final maps' indirect share is ``indirect``, ``indirect.exr``), else
+   without: today's fit.
 
 ``auto`` tries this on captures imported from photographs (``source`` in ``capture.json``) and
 where the photographs hold shadows: at least :data:`SHADOW_SHARE` of the usable samples masked as
@@ -36,17 +42,20 @@ of four fifths of the frames, then the fit.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
+from ..model.brdf import SVBRDF
 from ..model.height import height_from_normals
+from ..model.indirect import bound, flat_maps, indirect_share
 from ..model.registry import render_chosen
 from ..model.rendering import TILE_PIXELS
-from ..model.visibility import frame_visibility
+from ..model.visibility import SOFTNESS, frame_visibility, sky_view
 from ..statistics import predicts_better
 from .records import StackRun
 from .result import Fit
@@ -60,8 +69,11 @@ __all__ = [
     "ROUNDS",
     "SHADOWED_SHARE",
     "SHADOW_SHARE",
+    "SOFTNESSES_DEG",
     "fit_with_shadows",
+    "flat_frames",
     "height_of",
+    "indirect_of",
     "predict_frames",
     "shadow_share",
     "shadows_tried",
@@ -74,6 +86,9 @@ is masked as a shadow (below ``FitConfig.masks.shadow`` of its pixel's median)."
 SHADOWED_SHARE = 0.002
 """``auto`` refits with a visibility only where the first height hides (``V < 0.5``) at least this
 share of the samples."""
+SOFTNESSES_DEG = (1.0, 2.0, 4.0)
+"""The penumbra widths (degrees of elevation) each round tries on the left-out frames: a shadow's
+edge is soft by the light's size, its distance to the occluder, and the height's own error."""
 ROUNDS = 2
 """The most refits with a visibility (each from the previous round's height)."""
 MIN_FRAMES = 20
@@ -117,21 +132,55 @@ def height_of(fit: Fit) -> Tensor:
     return height_from_normals(normal, weight, tol=1e-4)  # the heights to 1e-4 of their scale: enough for shadows
 
 
-def visibility_of(height: Tensor, run: StackRun) -> Tensor:
+def visibility_of(height: Tensor, run: StackRun, softness: float = SOFTNESS) -> Tensor:
     """``(K, H, W)`` the visibility of ``run``'s frames over ``height (H, W)`` (pixels), in the
-    frames' dtype (:func:`torchspec.model.visibility.frame_visibility`)."""
-    seen = frame_visibility(height, run.job.lights, run.job.positions)
+    frames' dtype, with the penumbra ``softness`` (radians;
+    :func:`torchspec.model.visibility.frame_visibility`)."""
+    seen = frame_visibility(height, run.job.lights, run.job.positions, softness=softness)
     return seen.permute(2, 0, 1).to(run.stack)
 
 
-def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None) -> Tensor:
+def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None, share: Tensor | None = None) -> Tensor:
     """``(K, C, H, W)`` ``fit``'s physical maps rendered under ``run``'s frames as the fit lights
     its pixels (near lights: as seen from each block's centre), each pixel with its model's lobe
-    (:func:`torchspec.model.registry.render_chosen`), times ``seen (K, H, W)`` when given."""
+    (:func:`torchspec.model.registry.render_chosen`), times ``seen (K, H, W)`` when given, plus
+    the indirect light of ``share (H, W)`` when given (:mod:`torchspec.model.indirect`)."""
+    direct = _render(fit.svbrdf, fit.model, run)
+    direct = direct if seen is None else direct * seen[:, None]
+    return direct if share is None else direct + share.to(direct) * flat_frames(fit, run)
+
+
+def flat_frames(fit: Fit, run: StackRun) -> Tensor:
+    """``(K, C, H, W)`` the flat diffuse ``D`` of ``fit``'s maps under ``run``'s frames
+    (:func:`torchspec.model.indirect.flat_maps`), lit as :func:`predict_frames` lights them."""
+    return _render(flat_maps(fit.svbrdf), None, run)
+
+
+def indirect_of(fit: Fit, run: StackRun, seen: Tensor, sky: Tensor) -> Tensor:
+    """``(H, W)`` the indirect share of ``fit``'s maps on ``run``'s frames under their visibility
+    ``seen (K, H, W)`` (:func:`torchspec.model.indirect.indirect_share` of the usable samples:
+    finite, not saturated, the shadowed ones too: they hold most of it), at most
+    :func:`torchspec.model.indirect.bound` of the pixels' ``sky (H, W)``
+    (:func:`torchspec.model.visibility.sky_view`)."""
+    usable = ~(run.masks.nonfinite | run.masks.saturated)
+    y = torch.where(usable[:, None], run.stack, torch.zeros_like(run.stack))
+    residual = y - predict_frames(fit, run, seen)
+    return indirect_share(residual, flat_frames(fit, run), usable, bound(sky.to(y)))
+
+
+def _without(run: StackRun, fit: Fit, share: Tensor) -> StackRun:
+    """``run`` with the indirect light of ``fit``'s maps and ``share (H, W)`` taken from its frames:
+    what the maps times the visibility are to explain."""
+    return replace(run, stack=run.stack - share.to(run.stack) * flat_frames(fit, run))
+
+
+def _render(svbrdf: SVBRDF, model: Tensor | None, run: StackRun) -> Tensor:
+    """``(K, C, H, W)`` maps ``svbrdf (H, W)`` (each pixel's model code ``model``, ``None``: Ward's
+    lobe) under ``run``'s frames, tile by tile as the fit lights them."""
     job = run.job
     k, c, h, w = run.stack.shape
-    svbrdf = fit.svbrdf.to(run.stack.dtype).flatten()
-    code = fit.model.reshape(-1).to(run.stack.device)
+    svbrdf = svbrdf.to(run.stack.dtype).flatten()
+    code = None if model is None else model.reshape(-1).to(run.stack.device)
     lights, ctx = job.lights, light_context(job.lights)
     tiling = tiling_of(h, w, TILE_PIXELS, job.positions)
     out = run.stack.new_empty((h * w, k, c))
@@ -139,22 +188,41 @@ def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None) -> Tenso
     for first, stop in tiling.ranges:
         index = order[first:stop].to(run.stack.device)
         tile_lights, _ = tiling.lights(lights, ctx, first, stop)
-        out[index] = render_chosen(svbrdf[index], code[index], tile_lights, job.view)
-    out = out.permute(1, 2, 0).reshape(k, c, h, w)
-    return out if seen is None else out * seen[:, None]
+        out[index] = render_chosen(svbrdf[index], None if code is None else code[index], tile_lights, job.view)
+    return out.permute(1, 2, 0).reshape(k, c, h, w)
 
 
-def _errors(predicted: Tensor, run: StackRun, noise: tuple[float, float], floor: float) -> Tensor:
-    """``(1, 1, N, 1)`` the left-out samples' residuals in noise units (every finite, unsaturated
-    sample: shadowed ones too), the sensor's ``sqrt(a y + b)`` floored at ``floor`` times the
-    pixel's mean value; the whole image as one pixel of :func:`torchspec.statistics.predicts_better`."""
+def _errors(predicted: Tensor, run: StackRun, noise: tuple[float, float], floor: float, ceiling: Tensor) -> Tensor:
+    """``(K, C, H, W)`` the left-out samples' residuals in noise units (every finite, unsaturated
+    sample: shadowed ones too; 0 at the others), the sensor's ``sqrt(a y + b)`` floored at
+    ``floor`` times the pixel's mean value. The predictions are clipped to ``[0, ceiling]``
+    (:func:`_ceiling`): a camera records nothing brighter, and one failed pixel (a lobe whose peak
+    no fitted sample saw, flagged untrusted) must not outweigh the image."""
     y = run.stack
+    predicted = predicted.clamp(min=0).minimum(ceiling)
     usable = ~(run.masks.nonfinite | run.masks.saturated)[:, None].expand_as(y)
     clean = torch.where(usable, y, torch.zeros_like(y))
     level = clean.sum((0, 1)) / usable.sum((0, 1)).clamp(min=1)  # (H, W)
     sigma = (noise[0] * clean.clamp(min=0) + noise[1]).clamp(min=0).sqrt()
     sigma = torch.maximum(sigma, floor * level).clamp(min=torch.finfo(y.dtype).tiny)
-    return ((predicted - clean) / sigma)[usable].reshape(1, 1, -1, 1)
+    return torch.where(usable, (predicted - clean) / sigma, torch.zeros_like(y))
+
+
+def _image(errors: Tensor) -> Tensor:
+    """``(1, 1, K C H W, 1)``: :func:`_errors` as one pixel of :func:`torchspec.statistics.predicts_better`."""
+    return errors.reshape(1, 1, -1, 1)
+
+
+def _rms(errors: Tensor, run: StackRun) -> float:
+    """The RMS of :func:`_errors` over the usable samples (one host sync)."""
+    usable = ~(run.masks.nonfinite | run.masks.saturated)
+    return float((errors.square().sum() / (usable.sum() * errors.shape[1]).clamp(min=1)).sqrt())
+
+
+def _ceiling(run: StackRun) -> Tensor:
+    """The brightest usable (finite, unsaturated) value ``run``'s frames recorded (0-dim tensor)."""
+    usable = ~(run.masks.nonfinite | run.masks.saturated)[:, None].expand_as(run.stack)
+    return torch.where(usable, run.stack, torch.zeros_like(run.stack)).amax()
 
 
 def _noise(fit: Fit) -> tuple[float, float]:
@@ -175,51 +243,107 @@ def fit_with_shadows(
     """The alternation of the module's docstring on ``run``'s frames; ``fit_stack(run, visibility=,
     folder=, resume=, progress=)`` fits the tiles once (:func:`torchspec.pipeline.in_process.fit_stack`).
     The result's ``height`` is the height its visibility came from (``None`` where shadows did not
-    predict better) and ``stats["shadows"]`` records the rounds: each one's left-out RMS residual in
-    noise units, the share of samples it hid, and whether it predicted better."""
+    predict better), ``indirect`` the indirect share (``None`` where none predicted better),
+    ``stats["height"]["softness_deg"]`` the penumbra chosen, and ``stats["shadows"]`` records the
+    rounds: each one's left-out RMS residual in noise units, the share of samples it hid, its
+    softness and indirect share, and whether it predicted better."""
     clock = time.perf_counter()
     config = run.job.config
     k = run.stack.shape[0]
     test = [i for i in range(k) if i % LEFT_OUT == 2]
     train = [i for i in range(k) if i % LEFT_OUT != 2]
     record = {"tried": True, "used": False, "left_out": [run.job.picked[i] for i in test], "rounds": []}
-    best_height = None
+    best_height = best_share = best_maps = best_sky = best_kept = best_softness = None
+    kept = None
     if len(train) >= 4 and test:
         fitted, judged = run.frames(train), run.frames(test)
         plain = fit_stack(fitted)
-        noise, floor = _noise(plain), config.start.noise_floor
-        best = _errors(predict_frames(plain, judged), judged, noise, floor)
-        record["plain_rms"] = float(best.square().mean().sqrt())
-        height = height_of(plain)
+        noise, floor, ceiling = _noise(plain), config.start.noise_floor, _ceiling(fitted)
+        best = _errors(predict_frames(plain, judged), judged, noise, floor, ceiling)
+        record["plain_rms"] = _rms(best, judged)
+        height, maps, softness = height_of(plain), plain, SOFTNESS
         for round_ in range(ROUNDS):
-            seen = visibility_of(height.to(run.stack.device), fitted)
+            seen = visibility_of(height.to(run.stack.device), fitted, softness)
             hidden = float((seen < 0.5).double().mean())
             if round_ == 0 and config.shadows == "auto" and hidden < SHADOWED_SHARE:
                 record["rounds"].append({"hidden_share": hidden, "refitted": False})
                 break
-            candidate = fit_stack(fitted, visibility=seen)
-            errors = _errors(
-                predict_frames(candidate, judged, visibility_of(height.to(run.stack.device), judged)),
-                judged,
-                noise,
-                floor,
-            )
-            better = bool(predicts_better(errors, best, config.ladder.predict_z)[0])
-            rms = float(errors.square().mean().sqrt())
-            record["rounds"].append({"hidden_share": hidden, "refitted": True, "rms": rms, "better": better})
+            sky = sky_view(height.to(run.stack.device))
+            # the first refit has no indirect light: maps fitted without shadows darken their shadows' pixels
+            mine = fitted if maps is plain else _without(fitted, maps, indirect_of(maps, fitted, seen, sky) * kept)
+            candidate = fit_stack(mine, visibility=seen)
+            share = indirect_of(candidate, fitted, seen, sky)
+            judge = _Judge(judged, noise, floor, ceiling, config.ladder.predict_z)
+            errors, kept, softness = judge.round(candidate, height, share)
+            share = share * kept
+            better = bool(predicts_better(_image(errors), _image(best), config.ladder.predict_z)[0])
+            record["rounds"].append(
+                {"hidden_share": hidden, "refitted": True, "rms": _rms(errors, judged), "better": better,
+                 "softness_deg": math.degrees(softness), "indirect": _summary(share),
+                 "indirect_pixels": float(kept.double().mean())}
+            )  # fmt: skip
             if not better:
                 break
-            best, best_height = errors, height
-            height = height_of(candidate)
+            best, best_height, best_share, best_maps, best_sky, best_kept = errors, height, share, candidate, sky, kept
+            best_softness = softness
+            height, maps = height_of(candidate), candidate
     judging = time.perf_counter() - clock
-    seen = None if best_height is None else visibility_of(best_height.to(run.stack.device), run)
-    final = fit_stack(run, visibility=seen, folder=folder, resume=resume, progress=progress)
+    if best_height is None:
+        final = fit_stack(run, folder=folder, resume=resume, progress=progress)
+        share = None
+    else:
+        seen = visibility_of(best_height.to(run.stack.device), run, best_softness)
+        whole = _without(run, best_maps, best_share)
+        final = fit_stack(whole, visibility=seen, folder=folder, resume=resume, progress=progress)
+        share = indirect_of(final, run, seen, best_sky) * best_kept
     record["used"] = best_height is not None
     record["seconds"] = judging
+    if share is not None:
+        record["indirect"] = _summary(share)
     stats = dict(final.stats)
     stats["shadows"] = record
     stats["seconds"] = {**stats["seconds"], "shadows": judging}
     if best_height is not None:
-        stats["height"] = {"unit": "pixel", "pitch": 1.0}
+        stats["height"] = {"unit": "pixel", "pitch": 1.0, "softness_deg": math.degrees(best_softness)}
     height = None if best_height is None else best_height.to(final.svbrdf.normal)
-    return replace(final, stats=stats, height=height)
+    indirect = None if share is None or not bool(best_kept.any()) else share.to(final.svbrdf.normal)
+    return replace(final, stats=stats, height=height, indirect=indirect)
+
+
+@dataclass(frozen=True)
+class _Judge:
+    """The left-out frames ``run`` and how their residuals are weighed (:func:`_errors`)."""
+
+    run: StackRun
+    noise: tuple[float, float]
+    floor: float
+    ceiling: Tensor
+    z: float
+
+    def round(self, fit: Fit, height: Tensor, share: Tensor) -> tuple[Tensor, Tensor, float]:
+        """A round's candidate ``fit`` with its ``height`` and indirect ``share`` on the left-out
+        frames: each softness of :data:`SOFTNESSES_DEG`, and the indirect light where it predicts
+        the left-out samples better than none (the image as one pixel, as a model is chosen: a
+        pixel's few left-out samples rarely show one parameter's gain); returns the errors of the
+        softness that predicts best (:func:`_errors`), where the indirect light is kept ``(H, W)``
+        and that softness (radians)."""
+        direct = predict_frames(fit, self.run)
+        bounce = share * flat_frames(fit, self.run)
+        chosen = None
+        for degrees in SOFTNESSES_DEG:
+            softness = math.radians(degrees)
+            shaded = direct * visibility_of(height.to(direct.device), self.run, softness)[:, None]
+            without = _errors(shaded, self.run, self.noise, self.floor, self.ceiling)
+            bounced = _errors(shaded + bounce, self.run, self.noise, self.floor, self.ceiling)
+            kept = predicts_better(_image(bounced), _image(without), self.z).expand(share.shape)
+            errors = torch.where(kept, bounced, without)
+            total = errors.square().sum()
+            if chosen is None or bool(total < chosen[0]):
+                chosen = (total, errors, kept, softness)
+        return chosen[1], chosen[2], chosen[3]
+
+
+def _summary(share: Tensor) -> dict:
+    """The indirect share's median and 99th percentile (one host sync)."""
+    q = torch.quantile(share.double().flatten(), torch.tensor([0.5, 0.99], dtype=torch.float64, device=share.device))
+    return {"median": float(q[0]), "p99": float(q[1])}

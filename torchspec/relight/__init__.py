@@ -21,12 +21,13 @@ from ..errors import TorchspecError
 from ..io import Capture, CaptureError, Maps, read_capture, read_svbrdf, write_capture
 from ..io.scale import capture_at
 from ..model.brdf import SVBRDF
+from ..model.indirect import flat_maps
 from ..model.lights import Lights
 from ..model.near_lights import lights_at
 from ..model.quadrature import Quadrature
 from ..model.rendering import TILE_PIXELS, render, render_image
 from ..model.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm
-from ..model.visibility import frame_visibility
+from ..model.visibility import SOFTNESS, frame_visibility
 from ..outputs import check_apart, check_output
 from ..pipeline.plan import device_of
 from ..pipeline.tiling import tiling_of
@@ -39,7 +40,9 @@ __all__ = [
     "psnr",
     "render_capture",
     "render_near",
+    "indirect_light",
     "residual_term_of",
+    "softness_of",
 ]
 
 
@@ -75,6 +78,34 @@ def render_near(
         out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
         out[index] = values
     return out.reshape(height, width, *out.shape[1:])
+
+
+def indirect_light(
+    svbrdf: SVBRDF,
+    share: torch.Tensor,
+    lights: Lights,
+    view: torch.Tensor,
+    positions: torch.Tensor | None = None,
+    *,
+    quadrature: Quadrature = Quadrature(),
+) -> torch.Tensor:
+    """``(H, W, K, C)`` the indirect light of maps fitted with cast shadows: each pixel's indirect
+    share ``share (H, W)`` (``indirect.exr``) times its flat diffuse under ``lights``
+    (:mod:`torchspec.model.indirect`), near lights at ``positions (K, 3)`` block by block as
+    :func:`render_near` lights them."""
+    flat = flat_maps(svbrdf)
+    if positions is not None:
+        values = render_near(flat, lights, positions, view, quadrature=quadrature)
+    else:
+        values = render_image(flat, lights, view, quadrature=quadrature)
+    return values * share.to(values)[..., None, None]
+
+
+def softness_of(maps: Maps) -> float:
+    """The penumbra's width (radians) the fit chose for the cast shadows of ``maps``' height
+    (``svbrdf.json``'s ``height.softness_deg``; absent: :data:`torchspec.model.visibility.SOFTNESS`)."""
+    found = (maps.meta.get("height") or {}).get("softness_deg")
+    return SOFTNESS if found is None else math.radians(float(found))
 
 
 def capture_places(name: str, maps_folder: str | Path) -> list[Path]:
@@ -235,7 +266,11 @@ def render_capture(
     height = maps.extra.get("height") if shadows else None
     if height is not None:  # cast shadows: the visibility over the fit's height, as the fit saw it
         near = None if positions is None else positions.to(where, dtype)
-        values = values * frame_visibility(height.to(where, dtype), lights, near)[..., None]
+        values = values * frame_visibility(height.to(where, dtype), lights, near, softness=softness_of(maps))[..., None]
+        share = maps.extra.get("indirect")
+        if share is not None:  # the light the lit surroundings reflect into the shadows
+            bounce = indirect_light(svbrdf.to(dtype), share.to(where), lights, view, near, quadrature=quadrature)
+            values = values + bounce
     if found is not None:  # a smooth term can dip below black (a cast shadow); a frame holds no negative light
         values = values.clamp(min=0)
     predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored

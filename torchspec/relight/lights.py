@@ -54,7 +54,15 @@ from ..model.visibility import frame_visibility
 from ..outputs import check_output
 from ..pipeline.assembly import scene_record
 from ..pipeline.plan import device_of
-from . import capture_for, capture_places, fitted_scales, render_near, residual_term_of
+from . import (
+    capture_for,
+    capture_places,
+    fitted_scales,
+    indirect_light,
+    render_near,
+    residual_term_of,
+    softness_of,
+)
 
 __all__ = ["FORMATS", "LIGHTS_JSON", "LIGHTS_LP", "NewLight", "Scene", "parse_light", "read_new_lights",
            "render_lights", "scene_of"]  # fmt: skip
@@ -324,6 +332,8 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
     found = residual_term_of(maps, svbrdf_dir, where) if term else None
     shape = maps.extra.get("height")  # cast shadows (height.exr): each light's visibility over it
     shape = None if shape is None else shape.to(where, dtype)
+    share = maps.extra.get("indirect") if shape is not None else None  # its indirect light (indirect.exr)
+    share = None if share is None else share.to(where, dtype)
     view = torch.tensor(scene.view, dtype=dtype, device=where)
     directions = torch.tensor([light.direction for light in lights], dtype=dtype, device=where)
     scale = torch.tensor(values, dtype=dtype, device=where)
@@ -340,7 +350,9 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
             rendered = rendered if found is None else found.apply(rendered, here)
         if shape is not None:
             near = None if scene.distance is None else scene.distance * part
-            rendered = rendered * frame_visibility(shape, here, near)[..., None]
+            rendered = rendered * frame_visibility(shape, here, near, softness=softness_of(maps))[..., None]
+            if share is not None:  # the light the lit surroundings reflect into the shadows
+                rendered = rendered + indirect_light(svbrdf, share, here, view, near, quadrature=quadrature)
         out[first : first + count] = rendered.permute(2, 3, 0, 1).float().cpu()
     return out
 

@@ -21,9 +21,10 @@ from ..config import ConfigError
 from ..io import Capture, Frame, LightSpec, Maps, write_capture
 from ..model.brdf import SVBRDF
 from ..model.geometry import from_plane
+from ..model.indirect import flat_maps
 from ..model.lights import Kernel, Lights
 from ..model.rendering import render_image
-from ..model.visibility import kernel_visibility
+from ..model.visibility import kernel_visibility, sky_view
 from . import relief as reliefs  # the module: torchspec.simulate.relief stays the module, not its function
 from .relief import ReliefConfig
 from .synth import MirrorConfig, PaintingConfig, SensorConfig, mirror, painting, sense
@@ -103,7 +104,8 @@ class SimulationConfig:
 class Simulation:
     """A simulated capture before it is written: manifest, frames ``(K, C, H, W)`` float32 as
     recorded, the saturation mask, the truth and its region map, the light, and the relief's
-    height ``(H, W)`` in pixels (``None`` without ``scene.relief``)."""
+    height ``(H, W)`` in pixels (``None`` without ``scene.relief``) and its true indirect share
+    ``(H, W)`` (:mod:`torchspec.model.indirect`; ``None`` without ``scene.relief.indirect``)."""
 
     capture: Capture
     frames: Tensor
@@ -112,6 +114,7 @@ class Simulation:
     regions: Tensor
     light: dict
     height: Tensor | None = None
+    indirect: Tensor | None = None
 
 
 def layout(config: LayoutConfig) -> Tensor:
@@ -188,6 +191,10 @@ def simulate(
     if shape is not None and config.scene.relief.shadows:
         softness = math.radians(config.scene.relief.softness_deg)
         values = values * kernel_visibility(shape.height, lights, 1.0, softness)[..., None]
+    share = None
+    if shape is not None and config.scene.relief.shadows and config.scene.relief.indirect > 0:
+        share = config.scene.relief.indirect * (1.0 - sky_view(shape.height))  # (H, W)
+        values = values + share[..., None, None] * render_image(flat_maps(truth), lights, view)
     recorded, saturated = sense(values.permute(2, 3, 0, 1), config.sensor)  # (K, C, H, W)
     light = {"kernel": config.light.kernel, "domain": config.light.domain, "sigma": config.light.sigma}
     if config.light.kernel == "supergaussian":
@@ -217,7 +224,10 @@ def simulate(
     )
     recorded, saturated, regions = recorded.float().cpu(), saturated.cpu(), regions.cpu()
     height_map = None if shape is None else shape.height.float().cpu()
-    return Simulation(capture, recorded, saturated, truth.to(torch.float32).to("cpu"), regions, light, height_map)
+    indirect = None if share is None else share.float().cpu()
+    return Simulation(
+        capture, recorded, saturated, truth.to(torch.float32).to("cpu"), regions, light, height_map, indirect
+    )
 
 
 def write_simulation(path: Path | str, simulation: Simulation, *, overwrite: bool = False) -> Capture:
@@ -231,6 +241,8 @@ def write_simulation(path: Path | str, simulation: Simulation, *, overwrite: boo
     if simulation.height is not None:
         extra["height"] = simulation.height
         meta["height"] = {"unit": "pixel", "pitch": 1.0}
+    if simulation.indirect is not None:
+        extra["indirect"] = simulation.indirect
     maps = Maps(simulation.truth, meta, extra)
     capture = Capture(**{**simulation.capture.__dict__, "root": path})
     written = write_capture(path, capture, simulation.frames, truth=maps, overwrite=overwrite)

@@ -35,6 +35,10 @@ class ReliefConfig:
         seed: the seed of every draw.
         shadows: ``torchspec simulate`` casts the relief's shadows (else the normals alone change).
         softness_deg: the penumbra's width in elevation, degrees (:func:`torchspec.model.visibility.visibility`).
+        indirect: with ``shadows``, the indirect share (:mod:`torchspec.model.indirect`) of a pixel
+            that sees none of the sky: each pixel's is ``indirect (1 - sky)``, ``sky`` its
+            cosine-weighted visible share of the hemisphere
+            (:func:`torchspec.model.visibility.sky_view`); 0: no indirect light.
     """
 
     bumps: int = 5
@@ -45,6 +49,7 @@ class ReliefConfig:
     seed: int = 0
     shadows: bool = True
     softness_deg: float = 1.0
+    indirect: float = 0.0
 
     def __post_init__(self):
         if self.bumps < 0:
@@ -57,6 +62,8 @@ class ReliefConfig:
             raise TorchspecError(
                 f"ReliefConfig.bump_radius and ridge_width must be > 0; got {self.bump_radius}, {self.ridge_width}."
             )
+        if not 0.0 <= self.indirect <= 1.0:
+            raise TorchspecError(f"ReliefConfig.indirect must be in [0, 1]; got {self.indirect}.")
         if not self.softness_deg > 0:
             raise TorchspecError(f"ReliefConfig.softness_deg must be > 0; got {self.softness_deg}.")
 
