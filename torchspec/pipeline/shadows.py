@@ -86,9 +86,12 @@ is masked as a shadow (below ``FitConfig.masks.shadow`` of its pixel's median)."
 SHADOWED_SHARE = 0.002
 """``auto`` refits with a visibility only where the first height hides (``V < 0.5``) at least this
 share of the samples."""
-SOFTNESSES_DEG = (1.0, 2.0, 4.0)
-"""The penumbra widths (degrees of elevation) each round tries on the left-out frames: a shadow's
-edge is soft by the light's size, its distance to the occluder, and the height's own error."""
+SOFTNESSES_DEG = (1.0, 2.0)
+"""The penumbra widths (degrees of elevation, :func:`torchspec.model.visibility.visibility`'s
+``softness``) each round tries on the left-out frames: a shadow's edge is soft by the light's size
+and the height's own error. Not wider: the sigmoid's 10-90 % ramp is 4.4 softnesses, so at 4
+degrees a light 8 degrees above a flat horizon is dimmed by an eighth (a flat painting under
+grazing lights then loses lit samples to the fit's ``VISIBLE`` cut)."""
 ROUNDS = 2
 """The most refits with a visibility (each from the previous round's height)."""
 MIN_FRAMES = 20
