@@ -59,8 +59,7 @@ from torchspec.io.rti import find_light_file, import_rti, match_images, read_lig
 from torchspec.model.lights import Lights
 from torchspec.model.rendering import render_image
 from torchspec.model.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
-from torchspec.model.visibility import frame_visibility
-from torchspec.relight import indirect_light, render_near
+from torchspec.relight import render_near, shadow_terms
 
 SRGB = Transfer("srgb")
 LUMA = (0.2126, 0.7152, 0.0722)
@@ -179,10 +178,11 @@ def torchspec_predict(
     radius = (fit.stats.get("lights") or {}).get("radius")
     svbrdf = fit.svbrdf.to(torch.float64)
     positions = None if radius is None else radius * lights.directions
-    seen = 1.0
-    if fit.height is not None:  # (H, W, K, 1) the visibility over the fit's height
+    seen, bounce = 1.0, None
+    if fit.height is not None:  # the visibility over the fit's height, and the indirect light
         softness = math.radians(fit.stats["height"]["softness_deg"])
-        seen = frame_visibility(fit.height.to(torch.float64), lights, positions, softness=softness)[..., None]
+        share = None if fit.indirect is None else fit.indirect.to(torch.float64)
+        seen, bounce = shadow_terms(svbrdf, fit.height.to(torch.float64), share, softness, lights, view, positions)
     if radius is not None:
         values = render_near(svbrdf, lights, positions, view)
         termed = None if fit.term is None else render_near(svbrdf, lights, positions, view, term=fit.term)
@@ -193,8 +193,7 @@ def torchspec_predict(
             termed = fit.term.apply(values, lights)
     values = values * seen
     termed = None if termed is None else termed * seen
-    if fit.indirect is not None:  # the light the lit surroundings reflect into the shadows
-        bounce = indirect_light(svbrdf, fit.indirect.to(torch.float64), lights, view, positions)
+    if bounce is not None:  # the light the lit surroundings reflect into the shadows
         values = values + bounce
         termed = None if termed is None else termed + bounce
     return values.permute(2, 3, 0, 1), None if termed is None else termed.permute(2, 3, 0, 1), seconds, fit

@@ -79,7 +79,7 @@ def fit(
     clock = time.perf_counter()
     config = job.config
     masks = sample_masks(stack, saturation=config.masks.saturation, grow=config.masks.grow, shadow=config.masks.shadow)
-    job, calibration = calibrated(job, stack, ~(masks.nonfinite | masks.saturated))
+    job, calibration = calibrated(job, stack, masks.usable)
     mask_seconds = time.perf_counter() - clock
 
     run = StackRun(job=job, stack=stack, masks=masks, calibration=calibration,

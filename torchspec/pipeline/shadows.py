@@ -104,7 +104,7 @@ LEFT_OUT = 5
 def shadow_share(masks) -> float:
     """The share of the usable samples (finite, not saturated) that ``masks``
     (:class:`torchspec.start.photometric.Masks`) mark as shadows (one host sync)."""
-    usable = ~(masks.nonfinite | masks.saturated)
+    usable = masks.usable
     return float((masks.shadowed & usable).sum()) / max(int(usable.sum()), 1)
 
 
@@ -143,14 +143,12 @@ def visibility_of(height: Tensor, run: StackRun, softness: float = SOFTNESS) -> 
     return seen.permute(2, 0, 1).to(run.stack)
 
 
-def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None, share: Tensor | None = None) -> Tensor:
+def predict_frames(fit: Fit, run: StackRun, seen: Tensor | None = None) -> Tensor:
     """``(K, C, H, W)`` ``fit``'s physical maps rendered under ``run``'s frames as the fit lights
     its pixels (near lights: as seen from each block's centre), each pixel with its model's lobe
-    (:func:`torchspec.model.registry.render_chosen`), times ``seen (K, H, W)`` when given, plus
-    the indirect light of ``share (H, W)`` when given (:mod:`torchspec.model.indirect`)."""
+    (:func:`torchspec.model.registry.render_chosen`), times ``seen (K, H, W)`` when given."""
     direct = _render(fit.svbrdf, fit.model, run)
-    direct = direct if seen is None else direct * seen[:, None]
-    return direct if share is None else direct + share.to(direct) * flat_frames(fit, run)
+    return direct if seen is None else direct * seen[:, None]
 
 
 def flat_frames(fit: Fit, run: StackRun) -> Tensor:
@@ -165,7 +163,7 @@ def indirect_of(fit: Fit, run: StackRun, seen: Tensor, sky: Tensor) -> Tensor:
     finite, not saturated, the shadowed ones too: they hold most of it), at most
     :func:`torchspec.model.indirect.bound` of the pixels' ``sky (H, W)``
     (:func:`torchspec.model.visibility.sky_view`)."""
-    usable = ~(run.masks.nonfinite | run.masks.saturated)
+    usable = run.masks.usable
     y = torch.where(usable[:, None], run.stack, torch.zeros_like(run.stack))
     residual = y - predict_frames(fit, run, seen)
     return indirect_share(residual, flat_frames(fit, run), usable, bound(sky.to(y)))
@@ -203,7 +201,7 @@ def _errors(predicted: Tensor, run: StackRun, noise: tuple[float, float], floor:
     no fitted sample saw, flagged untrusted) must not outweigh the image."""
     y = run.stack
     predicted = predicted.clamp(min=0).minimum(ceiling)
-    usable = ~(run.masks.nonfinite | run.masks.saturated)[:, None].expand_as(y)
+    usable = run.masks.usable[:, None].expand_as(y)
     clean = torch.where(usable, y, torch.zeros_like(y))
     level = clean.sum((0, 1)) / usable.sum((0, 1)).clamp(min=1)  # (H, W)
     sigma = (noise[0] * clean.clamp(min=0) + noise[1]).clamp(min=0).sqrt()
@@ -218,13 +216,13 @@ def _image(errors: Tensor) -> Tensor:
 
 def _rms(errors: Tensor, run: StackRun) -> float:
     """The RMS of :func:`_errors` over the usable samples (one host sync)."""
-    usable = ~(run.masks.nonfinite | run.masks.saturated)
+    usable = run.masks.usable
     return float((errors.square().sum() / (usable.sum() * errors.shape[1]).clamp(min=1)).sqrt())
 
 
 def _ceiling(run: StackRun) -> Tensor:
     """The brightest usable (finite, unsaturated) value ``run``'s frames recorded (0-dim tensor)."""
-    usable = ~(run.masks.nonfinite | run.masks.saturated)[:, None].expand_as(run.stack)
+    usable = run.masks.usable[:, None].expand_as(run.stack)
     return torch.where(usable, run.stack, torch.zeros_like(run.stack)).amax()
 
 
@@ -257,7 +255,7 @@ def fit_with_shadows(
     train = [i for i in range(k) if i % LEFT_OUT != 2]
     record = {"tried": True, "used": False, "left_out": [run.job.picked[i] for i in test], "rounds": []}
     best_height = best_share = best_maps = best_sky = best_kept = best_softness = None
-    kept = None
+    kept = False
     if len(train) >= 4 and test:
         fitted, judged = run.frames(train), run.frames(test)
         plain = fit_stack(fitted)
@@ -272,18 +270,19 @@ def fit_with_shadows(
                 record["rounds"].append({"hidden_share": hidden, "refitted": False})
                 break
             sky = sky_view(height.to(run.stack.device))
-            # the first refit has no indirect light: maps fitted without shadows darken their shadows' pixels
-            mine = fitted if maps is plain else _without(fitted, maps, indirect_of(maps, fitted, seen, sky) * kept)
+            # the first refit has no indirect light (maps fitted without shadows darken their shadows' pixels),
+            # later ones the previous round's where it was kept
+            mine = _without(fitted, maps, indirect_of(maps, fitted, seen, sky)) if kept else fitted
             candidate = fit_stack(mine, visibility=seen)
             share = indirect_of(candidate, fitted, seen, sky)
             judge = _Judge(judged, noise, floor, ceiling, config.ladder.predict_z)
             errors, kept, softness = judge.round(candidate, height, share)
-            share = share * kept
+            share = share * float(kept)
             better = bool(predicts_better(_image(errors), _image(best), config.ladder.predict_z)[0])
             record["rounds"].append(
                 {"hidden_share": hidden, "refitted": True, "rms": _rms(errors, judged), "better": better,
                  "softness_deg": math.degrees(softness), "indirect": _summary(share),
-                 "indirect_pixels": float(kept.double().mean())}
+                 "indirect_pixels": float(kept)}
             )  # fmt: skip
             if not better:
                 break
@@ -296,9 +295,9 @@ def fit_with_shadows(
         share = None
     else:
         seen = visibility_of(best_height.to(run.stack.device), run, best_softness)
-        whole = _without(run, best_maps, best_share)
+        whole = _without(run, best_maps, best_share) if best_kept else run
         final = fit_stack(whole, visibility=seen, folder=folder, resume=resume, progress=progress)
-        share = indirect_of(final, run, seen, best_sky) * best_kept
+        share = indirect_of(final, run, seen, best_sky) if best_kept else torch.zeros_like(best_share)
     record["used"] = best_height is not None
     record["seconds"] = judging
     if share is not None:
@@ -309,7 +308,7 @@ def fit_with_shadows(
     if best_height is not None:
         stats["height"] = {"unit": "pixel", "pitch": 1.0, "softness_deg": math.degrees(best_softness)}
     height = None if best_height is None else best_height.to(final.svbrdf.normal)
-    indirect = None if share is None or not bool(best_kept.any()) else share.to(final.svbrdf.normal)
+    indirect = None if share is None or not best_kept else share.to(final.svbrdf.normal)
     return replace(final, stats=stats, height=height, indirect=indirect)
 
 
@@ -323,13 +322,13 @@ class _Judge:
     ceiling: Tensor
     z: float
 
-    def round(self, fit: Fit, height: Tensor, share: Tensor) -> tuple[Tensor, Tensor, float]:
+    def round(self, fit: Fit, height: Tensor, share: Tensor) -> tuple[Tensor, bool, float]:
         """A round's candidate ``fit`` with its ``height`` and indirect ``share`` on the left-out
         frames: each softness of :data:`SOFTNESSES_DEG`, and the indirect light where it predicts
         the left-out samples better than none (the image as one pixel, as a model is chosen: a
         pixel's few left-out samples rarely show one parameter's gain); returns the errors of the
-        softness that predicts best (:func:`_errors`), where the indirect light is kept ``(H, W)``
-        and that softness (radians)."""
+        softness that predicts best (:func:`_errors`), whether the indirect light is kept, and
+        that softness (radians)."""
         direct = predict_frames(fit, self.run)
         bounce = share * flat_frames(fit, self.run)
         chosen = None
@@ -338,8 +337,8 @@ class _Judge:
             shaded = direct * visibility_of(height.to(direct.device), self.run, softness)[:, None]
             without = _errors(shaded, self.run, self.noise, self.floor, self.ceiling)
             bounced = _errors(shaded + bounce, self.run, self.noise, self.floor, self.ceiling)
-            kept = predicts_better(_image(bounced), _image(without), self.z).expand(share.shape)
-            errors = torch.where(kept, bounced, without)
+            kept = bool(predicts_better(_image(bounced), _image(without), self.z)[0])
+            errors = bounced if kept else without
             total = errors.square().sum()
             if chosen is None or bool(total < chosen[0]):
                 chosen = (total, errors, kept, softness)

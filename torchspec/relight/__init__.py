@@ -42,6 +42,7 @@ __all__ = [
     "render_near",
     "indirect_light",
     "residual_term_of",
+    "shadow_terms",
     "softness_of",
 ]
 
@@ -99,6 +100,28 @@ def indirect_light(
     else:
         values = render_image(flat, lights, view, quadrature=quadrature)
     return values * share.to(values)[..., None, None]
+
+
+def shadow_terms(
+    svbrdf: SVBRDF,
+    height: torch.Tensor,
+    share: torch.Tensor | None,
+    softness: float,
+    lights: Lights,
+    view: torch.Tensor,
+    positions: torch.Tensor | None = None,
+    *,
+    quadrature: Quadrature = Quadrature(),
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What maps fitted with cast shadows add to their rendering ``r (H, W, K, C)`` under
+    ``lights``, ``r V + b D``: the visibility ``V (H, W, K, 1)`` over ``height`` (``height.exr``)
+    with the penumbra ``softness`` (radians, :func:`softness_of`), and the indirect light ``b D (H,
+    W, K, C)`` of ``share`` (``indirect.exr``; ``None``: none, and ``None`` returned), near lights at
+    ``positions (K, 3)`` as :func:`render_near` lights them."""
+    seen = frame_visibility(height, lights, positions, softness=softness)[..., None]
+    if share is None:
+        return seen, None
+    return seen, indirect_light(svbrdf, share, lights, view, positions, quadrature=quadrature)
 
 
 def softness_of(maps: Maps) -> float:
@@ -266,11 +289,13 @@ def render_capture(
     height = maps.extra.get("height") if shadows else None
     if height is not None:  # cast shadows: the visibility over the fit's height, as the fit saw it
         near = None if positions is None else positions.to(where, dtype)
-        values = values * frame_visibility(height.to(where, dtype), lights, near, softness=softness_of(maps))[..., None]
-        share = maps.extra.get("indirect")
-        if share is not None:  # the light the lit surroundings reflect into the shadows
-            bounce = indirect_light(svbrdf.to(dtype), share.to(where), lights, view, near, quadrature=quadrature)
-            values = values + bounce
+        share = maps.extra.get("indirect")  # the light the lit surroundings reflect into the shadows
+        share = None if share is None else share.to(where, dtype)
+        softness = softness_of(maps)
+        seen, bounce = shadow_terms(
+            svbrdf.to(dtype), height.to(where, dtype), share, softness, lights, view, near, quadrature=quadrature
+        )
+        values = values * seen if bounce is None else values * seen + bounce
     if found is not None:  # a smooth term can dip below black (a cast shadow); a frame holds no negative light
         values = values.clamp(min=0)
     predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored

@@ -50,7 +50,6 @@ from ..io.rti import find_light_file, read_lights
 from ..model.lights import Lights
 from ..model.quadrature import Quadrature
 from ..model.rendering import render_image
-from ..model.visibility import frame_visibility
 from ..outputs import check_output
 from ..pipeline.assembly import scene_record
 from ..pipeline.plan import device_of
@@ -58,9 +57,9 @@ from . import (
     capture_for,
     capture_places,
     fitted_scales,
-    indirect_light,
     render_near,
     residual_term_of,
+    shadow_terms,
     softness_of,
 )
 
@@ -334,6 +333,7 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
     shape = None if shape is None else shape.to(where, dtype)
     share = maps.extra.get("indirect") if shape is not None else None  # its indirect light (indirect.exr)
     share = None if share is None else share.to(where, dtype)
+    softness = softness_of(maps)  # the penumbra the fit chose
     view = torch.tensor(scene.view, dtype=dtype, device=where)
     directions = torch.tensor([light.direction for light in lights], dtype=dtype, device=where)
     scale = torch.tensor(values, dtype=dtype, device=where)
@@ -350,9 +350,8 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
             rendered = rendered if found is None else found.apply(rendered, here)
         if shape is not None:
             near = None if scene.distance is None else scene.distance * part
-            rendered = rendered * frame_visibility(shape, here, near, softness=softness_of(maps))[..., None]
-            if share is not None:  # the light the lit surroundings reflect into the shadows
-                rendered = rendered + indirect_light(svbrdf, share, here, view, near, quadrature=quadrature)
+            seen, bounce = shadow_terms(svbrdf, shape, share, softness, here, view, near, quadrature=quadrature)
+            rendered = rendered * seen if bounce is None else rendered * seen + bounce
         out[first : first + count] = rendered.permute(2, 3, 0, 1).float().cpu()
     return out
 

@@ -76,6 +76,11 @@ class Masks:
         """Any of the three, in the masks' shape (``(K, H, W)``)."""
         return self.nonfinite | self.saturated | self.shadowed
 
+    @property
+    def usable(self) -> Tensor:
+        """The samples that hold a measurement: finite and not saturated (shadowed ones too)."""
+        return ~(self.nonfinite | self.saturated)
+
     def counts(self) -> dict[str, int]:
         """Samples flagged per kind (one host sync per kind), in the fields' order."""
         return {f.name: int(getattr(self, f.name).sum()) for f in fields(self)}
