@@ -8,6 +8,8 @@ coordinates; areas there relate to solid angle by ``dl = w_z dw``.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -46,6 +48,17 @@ def from_plane(l: Tensor) -> Tensor:
     safe = torch.where(z2 > 0, z2, torch.ones_like(z2))
     z = torch.where(z2 > 0, torch.sqrt(safe), torch.zeros_like(z2))
     return torch.cat([l, z], dim=-1)
+
+
+def spiral_plane(count: int, radius: float = 1.0, *, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
+    """``(count, 2)`` l-plane points of a Fibonacci spiral spread evenly over the disk of ``radius``
+    (point ``k`` at radius ``radius sqrt((k + 1/2) / count)``, golden-angle turns): through
+    :func:`from_plane`, directions spread evenly in cosine-weighted solid angle out to the zenith
+    angle ``asin(radius)``; deterministic; of ``dtype`` on ``device``."""
+    k = torch.arange(count, dtype=dtype, device=device) + 0.5
+    r = radius * (k / count).sqrt()
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * phi.cos(), r * phi.sin()], -1)
 
 
 def to_plane(w: Tensor) -> Tensor:

@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import TorchspecError
+from .geometry import from_plane, spiral_plane
 from .lights import Lights, nodes
 from .near_lights import image_points
 
@@ -315,13 +316,9 @@ def marched_horizon(
 
 def sky_view(height: Tensor, count: int = 64) -> Tensor:
     """``(H, W)`` each pixel's cosine-weighted visible share of the hemisphere over ``height (H, W)``
-    (pixels): the mean visibility (:func:`visibility`) of ``count``
-    directions spread evenly in cosine-weighted solid angle (a Fibonacci spiral). 1 on a flat surface."""
-    i = torch.arange(count, dtype=height.dtype, device=height.device) + 0.5
-    u = i / count
-    phi = i * math.pi * (3.0 - math.sqrt(5.0))
-    r = u.sqrt()
-    directions = torch.stack([r * phi.cos(), r * phi.sin(), (1.0 - u).sqrt()], -1)
+    (pixels): the mean visibility (:func:`visibility`) of ``count`` directions spread evenly in
+    cosine-weighted solid angle (:func:`torchspec.model.geometry.spiral_plane`). 1 on a flat surface."""
+    directions = from_plane(spiral_plane(count, dtype=height.dtype, device=height.device))
     return visibility(height, directions).mean(-1)
 
 

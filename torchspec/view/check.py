@@ -15,7 +15,7 @@ import torch
 from ..errors import TorchspecError
 from ..io import Maps
 from ..model.brdf import SVBRDF
-from ..model.geometry import normal_from_angles
+from ..model.geometry import from_plane, normal_from_angles, spiral_plane
 from ..model.lights import Kernel, Lights
 from ..model.lobe import lobe_frame, lobe_moments
 from ..model.near_lights import image_points, near_light
@@ -169,12 +169,9 @@ def render_each_pixel(
 
 def hemisphere_lights(count: int = 20, max_zenith_deg: float = 80.0) -> np.ndarray:
     """``(count, 3)`` unit directions spread over the hemisphere (a Fibonacci spiral in the
-    l-plane, out to ``max_zenith_deg`` from the zenith)."""
-    k = np.arange(count) + 0.5
-    radius = math.sin(math.radians(max_zenith_deg)) * np.sqrt(k / count)
-    phi = k * math.pi * (3.0 - math.sqrt(5.0))
-    x, y = radius * np.cos(phi), radius * np.sin(phi)
-    return np.stack([x, y, np.sqrt(1.0 - x * x - y * y)], -1)
+    l-plane, out to ``max_zenith_deg`` from the zenith: :func:`torchspec.model.geometry.spiral_plane`)."""
+    plane = spiral_plane(count, math.sin(math.radians(max_zenith_deg)))  # CPU on purpose: returned as numpy
+    return from_plane(plane).numpy()
 
 
 def lobe_width(svbrdf: SVBRDF, view=(0.0, 0.0, 1.0)) -> np.ndarray:
