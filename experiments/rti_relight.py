@@ -20,7 +20,7 @@ least-squares photometric stereo on the same frames' luminance.
   the fitted lights' directions, ``w`` twice the mean distance from a fitted light to its nearest
   neighbour, weights by ridge regression (``ridge`` 0.1 on the diagonal) on the codes.
 - torchspec: :func:`torchspec.fit` on the fitted frames with each ``models`` entry (``auto``, or a
-  forced model), the maps rendered under the left-out lights by :func:`torchspec.model.rendering.render_image`:
+  forced model), the maps rendered under the left-out lights by :func:`torchspec.relight.shaded_render`:
   ``torchspec MODEL`` the physical maps alone (``torchspec render --no-term``), ``+ term`` with the
   fit's residual term (what ``torchspec render`` renders; the default fit of an imported capture);
   the share of pixels given a lobe (``Fit.lobe``), the transfer and the lights are reported.
@@ -57,9 +57,8 @@ from torchspec.config import load_config
 from torchspec.io.images import Transfer, read_photo
 from torchspec.io.rti import find_light_file, import_rti, match_images, read_lights
 from torchspec.model.lights import Lights
-from torchspec.model.rendering import render_image
 from torchspec.model.residual_term import hsh_basis  # order 3, 9 terms: the RTI fitters' HSH
-from torchspec.relight import render_near, shadow_terms
+from torchspec.relight import shaded_render, shadow_terms
 
 SRGB = Transfer("srgb")
 LUMA = (0.2126, 0.7152, 0.0722)
@@ -178,24 +177,15 @@ def torchspec_predict(
     radius = (fit.stats.get("lights") or {}).get("radius")
     svbrdf = fit.svbrdf.to(torch.float64)
     positions = None if radius is None else radius * lights.directions
-    seen, bounce = 1.0, None
+    seen = bounce = None
     if fit.height is not None:  # the visibility over the fit's height, and the indirect light
         softness = math.radians(fit.stats["height"]["softness_deg"])
         share = None if fit.indirect is None else fit.indirect.to(torch.float64)
         seen, bounce = shadow_terms(svbrdf, fit.height.to(torch.float64), share, softness, lights, view, positions)
-    if radius is not None:
-        values = render_near(svbrdf, lights, positions, view)
-        termed = None if fit.term is None else render_near(svbrdf, lights, positions, view, term=fit.term)
-    else:
-        values = render_image(svbrdf, lights, view)  # (H, W, K, C)
-        termed = None
-        if fit.term is not None:  # as torchspec render does: the maps rendered, then the term applied
-            termed = fit.term.apply(values, lights)
-    values = values * seen
-    termed = None if termed is None else termed * seen
-    if bounce is not None:  # the light the lit surroundings reflect into the shadows
-        values = values + bounce
-        termed = None if termed is None else termed + bounce
+    values = shaded_render(svbrdf, lights, view, positions, seen=seen, bounce=bounce)  # (H, W, K, C)
+    termed = None  # as torchspec render does: the maps rendered, shadowed, the term applied, the indirect light added
+    if fit.term is not None:
+        termed = shaded_render(svbrdf, lights, view, positions, seen=seen, bounce=bounce, term=fit.term)
     return values.permute(2, 3, 0, 1), None if termed is None else termed.permute(2, 3, 0, 1), seconds, fit
 
 

@@ -91,7 +91,7 @@ def test_seen_through_leaves_out_hidden_samples_and_uses_explained_shadows():
     values, valid, kept = seen_through(y, Masks(nonfinite=none, saturated=none, shadowed=shadowed), v)
     # hidden: out of both; a shadow V explains (V < EXPLAINED): in; one it does not: out of the fit
     assert valid.tolist() == [[False, explained < EXPLAINED, False, False, True]]
-    assert kept.tolist() == [[False, True, True, False, True]]  # the term's samples: every seen one
+    assert kept.tolist() == [[True] * 5]  # the term's samples: every finite one (fitted on y against V r)
     seen = v[0] >= VISIBLE
     assert torch.allclose(values[0, seen, 0], 1.0 / v[0, seen]) and torch.equal(values[0, ~seen, 0], y[0, ~seen, 0])
 
@@ -180,3 +180,54 @@ def test_shadows_setting_and_cli_flag():
 
     args = build_parser().parse_args(["fit", "capture", "-o", "out", "--shadows", "on"])
     assert args.shadows == "on"
+
+
+def test_residual_term_with_a_visibility_is_fitted_on_the_recorded_values_against_the_shadowed_model():
+    """With V = 1 the term is today's, bitwise; with a visibility it is fitted on the recorded
+    values, the hidden samples too, against the maps' rendering times V (as shaded_render applies it)."""
+    lights, truth = _lights(), _pixels()
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    g = torch.Generator().manual_seed(2)
+    v = torch.where(torch.rand(12, 36, generator=g, dtype=F64) < 0.3, 0.1, 1.0)
+    glow = 0.02 * (1 + lights.directions[:, 0])[None, :, None]  # what no map explains: smooth in the light
+    y = render(truth, lights, view) * v[..., None] + glow
+    config = FitConfig(model="diffuse", compute=ComputeConfig(dtype="float64", threads=1), term=TermConfig(order=3))
+    shared = _shared(lights, config)
+    blind = fit_tile(_tile(y, lights), shared)
+    ones = fit_tile(_tile(y, lights, torch.ones(36, 12, dtype=F64)), shared)
+    assert torch.equal(ones.term.coefficients, blind.term.coefficients)
+    assert torch.equal(ones.term.chosen, blind.term.chosen)
+    seen = fit_tile(_tile(y, lights, v.T), shared)
+    term = seen.term
+    assert bool(term.chosen.any())
+    shadowed = render(seen.svbrdf, lights, view) * v[..., None]
+    predicted = term.apply(shadowed, lights)
+    # the term brings the shadowed prediction to the recorded values, hidden samples included
+    hidden = v < VISIBLE
+    before = (shadowed - y).abs()[hidden].mean()
+    after = (predicted - y).abs()[hidden].mean()
+    assert float(after) < 0.5 * float(before)
+
+
+def test_shaded_render_applies_the_term_after_the_visibility_and_adds_the_indirect_light():
+    from torchspec.model.residual_term import ResidualTerm
+    from torchspec.relight import render_near, shaded_render
+
+    lights = _lights(4)
+    view = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    maps = _pixels(12).reshape(3, 4)
+    g = torch.Generator().manual_seed(3)
+    k = lights.directions.shape[0]
+    seen = torch.rand(3, 4, k, 1, generator=g, dtype=F64)
+    bounce = 0.01 * torch.rand(3, 4, k, 3, generator=g, dtype=F64)
+    term = ResidualTerm(coefficients=0.01 * torch.randn(3, 4, 9, 3, generator=g, dtype=F64),
+                        chosen=torch.rand(3, 4, generator=g) < 0.7)  # fmt: skip
+    plain = shaded_render(maps, lights, view)
+    got = shaded_render(maps, lights, view, seen=seen, bounce=bounce, term=term)
+    assert torch.allclose(got, term.apply(plain * seen, lights) + bounce, atol=1e-12)
+    positions = 3.0 * lights.directions  # near lights: block by block, the visibility before the term
+    near = render_near(maps, lights, positions, view)
+    assert torch.allclose(shaded_render(maps, lights, view, positions, seen=seen), near * seen, atol=1e-12)
+    with_term = shaded_render(maps, lights, view, positions, seen=seen, bounce=bounce, term=term)
+    blocks = render_near(maps, lights, positions, view, term=term, seen=seen)
+    assert torch.allclose(with_term - bounce, blocks, atol=1e-12)

@@ -64,12 +64,16 @@ class TilePixels:
             then holds the recorded values over it (:func:`seen_through`), and the stages fit the
             maps without shadows to them, each sample's weight times its visibility
             (:class:`~torchspec.pipeline.samples.TileSamples`).
+        recorded: ``(n, K, C)`` with a visibility, the recorded values themselves: the residual
+            term is fitted on them against the maps' rendering times the visibility, the hidden
+            samples too (:func:`residual_term`); else ``None`` (``y`` holds them).
     """
 
     y: Tensor
     valid: Tensor
     kept: Tensor
     visibility: Tensor | None = None
+    recorded: Tensor | None = None
 
     @classmethod
     def of(cls, tile: TileInputs) -> TilePixels:
@@ -80,8 +84,8 @@ class TilePixels:
         if tile.visibility is None:
             return cls(y=y, valid=~masks.invalid.T, kept=~masks.nonfinite.T)
         seen = tile.visibility.T.to(y)  # (n, K)
-        y, valid, kept = seen_through(y, masks, seen)
-        return cls(y=y, valid=valid, kept=kept, visibility=seen)
+        over, valid, kept = seen_through(y, masks, seen)
+        return cls(y=over, valid=valid, kept=kept, visibility=seen, recorded=y)
 
 
 def fit_pixels(pixels: TilePixels, lights: Lights, ctx: LightContext, shared: FitInputs) -> TileResult:
@@ -169,12 +173,16 @@ def residual_term(choice, sensor: Tensor, pixels: TilePixels, data: TileSamples,
     varies with the light's direction, which a render under lights as written (new or left-out
     ones, whose gain no photograph gave) needs. ``shared.domain``: the encoding it is fitted and
     judged in (:class:`torchspec.model.residual_term.TermDomain`; default sRGB)."""
-    y, config, gains, domain = pixels.y, shared.config, shared.gains, shared.domain
+    config, gains, domain = shared.config, shared.gains, shared.domain
+    y = pixels.y if pixels.recorded is None else pixels.recorded
     kept = pixels.kept & y.isfinite().all(-1)
     values = torch.where(kept[..., None], y, torch.zeros_like(y))
     folds = light_folds(data.lights.directions, config.ladder.folds, config.ladder.fold_regions)
     model = render_chosen(choice.svbrdf, choice.code, data.lights, data.view, quadrature=config.rule)
     predicted = held_out_values(choice, model, sensor, folds, data, config)
+    if pixels.visibility is not None:  # the prediction with its shadows
+        seen = pixels.visibility.to(model)[..., None]  # (n, K, 1)
+        model, predicted = model * seen, predicted * seen[:, None]
     lights = data.lights
     if gains is not None:  # the model under the lights as written
         gains = gains.to(model)
@@ -272,14 +280,16 @@ visibility explains its darkness."""
 
 def seen_through(y: Tensor, masks: Masks, visibility: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """A tile's ``y (n, K, C)`` over the lights' visibility ``(n, K)``, the samples to fit and the
-    residual term's (:func:`fit_tile`), ``(y / V, valid, kept)``: a sample is left out where
-    ``V < VISIBLE``, non-finite, saturated, or masked as a shadow that ``V`` does not explain
-    (``V >= EXPLAINED``). With ``V = 1`` everywhere, ``y`` itself and the masks' samples, exactly."""
+    residual term's (:func:`fit_tile`), ``(y / V, valid, kept)``: a sample is left out of the fit
+    where ``V < VISIBLE``, non-finite, saturated, or masked as a shadow that ``V`` does not explain
+    (``V >= EXPLAINED``); out of the term's only where non-finite (the term is fitted on ``y``
+    against the prediction times ``V``: :func:`residual_term`). With ``V = 1`` everywhere, ``y``
+    itself and the masks' samples, exactly."""
     v = visibility.to(y)
     seen = v >= VISIBLE
     unexplained = masks.shadowed.T & (v >= EXPLAINED)
     valid = ~(masks.nonfinite.T | masks.saturated.T | unexplained) & seen
-    kept = ~masks.nonfinite.T & seen
+    kept = ~masks.nonfinite.T
     values = torch.where(seen[..., None], y / torch.where(seen, v, torch.ones_like(v))[..., None], y)
     return values, valid, kept
 

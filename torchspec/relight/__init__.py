@@ -40,6 +40,7 @@ __all__ = [
     "psnr",
     "render_capture",
     "render_near",
+    "shaded_render",
     "indirect_light",
     "residual_term_of",
     "shadow_terms",
@@ -56,11 +57,15 @@ def render_near(
     quadrature: Quadrature = Quadrature(),
     lobe: str = "ward",
     term: ResidualTerm | None = None,
+    seen: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``(H, W, K, C)``: maps of leading dims ``(H, W)`` under near lights at ``positions (K, 3)``
     (:mod:`torchspec.model.near_lights`), in the square blocks a fit of them uses
     (:func:`torchspec.pipeline.tiling.tiling_of`), each under the lights as seen from its centre,
-    with the fit's residual ``term`` (leading dims ``(H, W)``) applied under the same lights."""
+    times the lights' visibility ``seen (H, W, K, 1)`` where given (cast shadows:
+    :func:`shadow_terms`), with the fit's residual ``term`` (leading dims ``(H, W)``) applied
+    under the same lights (after the visibility: the term of a fit with cast shadows corrects
+    the prediction with its shadows, :func:`torchspec.pipeline.tile.residual_term`)."""
     height, width = svbrdf.shape
     positions = positions.to(svbrdf.normal)
     tiling = tiling_of(height, width, TILE_PIXELS, positions)
@@ -72,6 +77,8 @@ def render_near(
         centre = tiling.points[tiling.order[first:stop].to(tiling.points.device)].mean(0)
         near = lights_at(lights, positions, centre)
         values = render(flat[index], near, view, quadrature=quadrature, lobe=lobe)
+        if seen is not None:
+            values = values * seen.reshape(height * width, *seen.shape[2:])[index]
         if term is not None:
             weight = None if term.weight is None else term.weight.reshape(-1)[index]
             part = ResidualTerm(coefficients[index], term.chosen.reshape(-1)[index], weight=weight, domain=term.domain)
@@ -79,6 +86,35 @@ def render_near(
         out = values.new_empty((height * width, *values.shape[1:])) if out is None else out
         out[index] = values
     return out.reshape(height, width, *out.shape[1:])
+
+
+def shaded_render(
+    svbrdf: SVBRDF,
+    lights: Lights,
+    view: torch.Tensor,
+    positions: torch.Tensor | None = None,
+    *,
+    seen: torch.Tensor | None = None,
+    bounce: torch.Tensor | None = None,
+    term: ResidualTerm | None = None,
+    quadrature: Quadrature = Quadrature(),
+    lobe: str = "ward",
+    progress: bool = False,
+) -> torch.Tensor:
+    """``(H, W, K, C)``: maps under ``lights`` as a fit predicts its frames: rendered (near
+    lights at ``positions (K, 3)`` block by block, :func:`render_near`), times the visibility
+    ``seen (H, W, K, 1)``, with the residual ``term`` applied, plus the indirect light ``bounce
+    (H, W, K, C)`` (:func:`shadow_terms`; ``None``: no shadows, no indirect light). The term comes
+    after the visibility because a fit with cast shadows fits it on the recorded values against
+    the rendering times the visibility, and on the values less the indirect light
+    (:func:`torchspec.pipeline.tile.residual_term`)."""
+    if positions is not None:
+        values = render_near(svbrdf, lights, positions, view, quadrature=quadrature, lobe=lobe, term=term, seen=seen)
+    else:
+        values = render_image(svbrdf, lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
+        values = values if seen is None else values * seen
+        values = values if term is None else term.apply(values, lights)
+    return values if bounce is None else values + bounce
 
 
 def indirect_light(
@@ -278,24 +314,18 @@ def render_capture(
     quadrature = Quadrature(path=path)
     found = residual_term_of(maps, svbrdf_dir, where) if term else None
     positions = fit_positions(capture, maps.meta)[0]
-    if positions is not None:  # near lights: block by block, as the fit saw them
-        values = render_near(
-            svbrdf.to(dtype), lights, positions.to(where, dtype), view, quadrature=quadrature, lobe=lobe, term=found
-        )
-    else:
-        values = render_image(svbrdf.to(dtype), lights, view, quadrature=quadrature, lobe=lobe, progress=progress)
-        if found is not None:
-            values = found.apply(values, lights)
+    near = None if positions is None else positions.to(where, dtype)
+    seen = bounce = None
     height = maps.extra.get("height") if shadows else None
     if height is not None:  # cast shadows: the visibility over the fit's height, as the fit saw it
-        near = None if positions is None else positions.to(where, dtype)
         share = maps.extra.get("indirect")  # the light the lit surroundings reflect into the shadows
         share = None if share is None else share.to(where, dtype)
         softness = softness_of(maps)
         seen, bounce = shadow_terms(
             svbrdf.to(dtype), height.to(where, dtype), share, softness, lights, view, near, quadrature=quadrature
         )
-        values = values * seen if bounce is None else values * seen + bounce
+    values = shaded_render(svbrdf.to(dtype), lights, view, near, seen=seen, bounce=bounce, term=found,
+                           quadrature=quadrature, lobe=lobe, progress=progress)  # fmt: skip
     if found is not None:  # a smooth term can dip below black (a cast shadow); a frame holds no negative light
         values = values.clamp(min=0)
     predicted = values.permute(2, 3, 0, 1).cpu().contiguous()  # (K, C, H, W), on the CPU: written and scored

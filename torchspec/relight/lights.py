@@ -49,7 +49,6 @@ from ..io.lp import light_entry
 from ..io.rti import find_light_file, read_lights
 from ..model.lights import Lights
 from ..model.quadrature import Quadrature
-from ..model.rendering import render_image
 from ..outputs import check_output
 from ..pipeline.assembly import scene_record
 from ..pipeline.plan import device_of
@@ -57,8 +56,8 @@ from . import (
     capture_for,
     capture_places,
     fitted_scales,
-    render_near,
     residual_term_of,
+    shaded_render,
     shadow_terms,
     softness_of,
 )
@@ -343,15 +342,12 @@ def _render(maps, svbrdf_dir, scene, kernel, lights, values, where, dtype, term,
         part = directions[first : first + group]
         count = part.shape[0]
         here = Lights(part, kernel, scale.expand(count, -1), torch.ones(count, dtype=dtype, device=where))
-        if scene.distance is not None:  # near lights: as the capture's, at their distance along the new directions
-            rendered = render_near(svbrdf, here, scene.distance * part, view, quadrature=quadrature, term=found)
-        else:
-            rendered = render_image(svbrdf, here, view, quadrature=quadrature, progress=progress)
-            rendered = rendered if found is None else found.apply(rendered, here)
+        near = None if scene.distance is None else scene.distance * part  # as the capture's, at their distance
+        seen = bounce = None
         if shape is not None:
-            near = None if scene.distance is None else scene.distance * part
             seen, bounce = shadow_terms(svbrdf, shape, share, softness, here, view, near, quadrature=quadrature)
-            rendered = rendered * seen if bounce is None else rendered * seen + bounce
+        rendered = shaded_render(svbrdf, here, view, near, seen=seen, bounce=bounce, term=found,
+                                 quadrature=quadrature, progress=progress)  # fmt: skip
         out[first : first + count] = rendered.permute(2, 3, 0, 1).float().cpu()
     return out
 
