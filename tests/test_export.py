@@ -210,7 +210,7 @@ def _check_gltf(path: Path) -> dict:
     (buffer,) = doc["buffers"]
     data = (path.parent / buffer["uri"]).read_bytes()
     assert buffer["byteLength"] == len(data)
-    sizes = {5123: 2, 5126: 4}
+    sizes = {5123: 2, 5125: 4, 5126: 4}
     counts = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
     for accessor in doc["accessors"]:
         view = doc["bufferViews"][accessor["bufferView"]]
@@ -222,7 +222,10 @@ def _check_gltf(path: Path) -> dict:
     assert {"min", "max"} <= set(position)
     for name in ("NORMAL", "TANGENT", "TEXCOORD_0"):
         assert doc["accessors"][primitive["attributes"][name]]["count"] == position["count"]
-    indices = np.frombuffer(data, "<u2", count=6, offset=doc["bufferViews"][0]["byteOffset"])
+    index = doc["accessors"][primitive["indices"]]
+    kind = "<u2" if index["componentType"] == 5123 else "<u4"
+    offset = doc["bufferViews"][index["bufferView"]]["byteOffset"]
+    indices = np.frombuffer(data, kind, count=index["count"], offset=offset)
     assert indices.max() < position["count"]
     for texture in doc["textures"]:
         image = doc["images"][texture["source"]]
@@ -434,3 +437,98 @@ def test_a_second_lobe_is_left_out_with_a_warning(tmp_path, to):
     with warnings.catch_warnings():
         warnings.simplefilter("error", ExportWarning)
         export(maps, tmp_path / "one", to=to)  # the same maps without it: no warning
+
+
+def test_mitsuba_height_field_renders_the_maps_and_casts_the_relief_shadows(tmp_path):
+    """With a height (height.exr of a fit with cast shadows) the shape is the height field's mesh:
+    a flat one renders as the rectangle does, pixel for pixel; a wall shadows the texels that
+    torchspec's visibility over the same height hides (torchspec.model.visibility), and lights
+    the others as torchspec renders them."""
+    from torchspec.export import MESH
+    from torchspec.model.visibility import frame_visibility
+
+    mi = _mitsuba()
+    svbrdf = _maps(12, 16, seed=3)
+    up = math.radians(20)  # towards +x, 20 degrees above the horizon
+    direction = torch.tensor([[math.cos(up), 0.0, math.sin(up)]], dtype=F64)
+    irradiance = torch.tensor([[1.5, 0.7, 2.0]], dtype=F64)
+    lights = Lights(direction, Kernel("point"), irradiance, torch.ones(1, dtype=F64))
+    expected = render(svbrdf.flatten(), lights, torch.tensor([0.0, 0.0, 1.0], dtype=F64),
+                      quadrature=Quadrature(path="point"), lobe="beckmann").reshape(12, 16, 3)  # fmt: skip
+    light = {"light": direction[0].tolist(), "irradiance": irradiance[0].tolist()}
+    flat = _render_mitsuba(mi, export_mitsuba(svbrdf, tmp_path / "flat", height=np.zeros((12, 16)), **light))
+    assert (tmp_path / "flat" / MESH).is_file()
+    assert ((flat - expected).abs().max() / expected.abs().max()).item() < 1e-4
+    wall = np.zeros((12, 16))
+    wall[:, 10:12] = 8.0  # pixels: everything left of it is in its shadow (8 / tan 20 deg = 22 pixels)
+    got = _render_mitsuba(mi, export_mitsuba(svbrdf, tmp_path / "wall", height=wall, **light), spp=4)
+    seen = frame_visibility(torch.from_numpy(wall), lights, None, softness=1e-3)[..., 0]  # (H, W)
+    hidden, lit = seen < 1e-3, seen > 1 - 1e-3
+    # away from the wall (the mesh's corner heights are means: it slopes over the texels beside it)
+    hidden[:, 8:], lit[:, :13] = False, False
+    assert hidden[:, :8].all() and lit[:, 14:].all()
+    assert float(got[hidden].abs().max()) < 1e-6
+    assert ((got[lit] - expected[lit]).abs().max() / expected.abs().max()).item() < 1e-4
+
+
+def test_mitsuba_export_takes_the_maps_height_and_rejects_a_wrong_one(tmp_path):
+    from torchspec.export import MESH
+    from torchspec.io import write_svbrdf
+
+    svbrdf = _maps()
+    write_svbrdf(tmp_path / "maps", svbrdf, extra={"height": torch.ones(5, 7, dtype=F64)})
+    scene = export_mitsuba(tmp_path / "maps", tmp_path / "scene")
+    assert ET.parse(scene).getroot().find("shape").get("type") == "ply" and (tmp_path / "scene" / MESH).is_file()
+    plain = export_mitsuba(svbrdf, tmp_path / "plain")
+    assert ET.parse(plain).getroot().find("shape").get("type") == "rectangle"
+    assert not (tmp_path / "plain" / MESH).exists()
+    with pytest.raises(ExportError, match=r"\(H, W\) = \(5, 7\)"):
+        export_mitsuba(svbrdf, tmp_path / "bad", height=np.zeros((7, 5)))
+    with pytest.raises(ExportError, match="finite"):
+        export_mitsuba(svbrdf, tmp_path / "bad", height=np.full((5, 7), np.nan), overwrite=True)
+
+
+def test_relief_mesh_spans_the_rectangle_at_the_texel_corners():
+    """relief_mesh: a vertex at each texel corner of the rectangle (longer side 1), the corner
+    heights the texels' means (a plane's exactly, inside), triangles counter-clockwise from +z
+    covering each texel twice, texel coordinates from the top-left."""
+    from torchspec.export.arrays import relief_mesh
+
+    rows, cols = 4, 6
+    i, j = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    plane = 0.5 * j - 0.25 * i  # pixels
+    mesh = relief_mesh(plane)
+    assert mesh.position.shape == ((rows + 1) * (cols + 1), 3) and mesh.triangles.shape == (2 * rows * cols, 3)
+    corners = mesh.position.reshape(rows + 1, cols + 1, 3)
+    assert np.allclose(corners[0, 0, :2], [-0.5, rows / cols / 2])
+    assert np.allclose(corners[-1, -1, :2], [0.5, -rows / cols / 2])
+    ci, cj = np.meshgrid(np.arange(rows + 1) - 0.5, np.arange(cols + 1) - 0.5, indexing="ij")
+    inside = (slice(1, -1), slice(1, -1))
+    assert np.allclose(corners[..., 2][inside], ((0.5 * cj - 0.25 * ci) / cols)[inside], atol=1e-7)
+    texel = mesh.texel.reshape(rows + 1, cols + 1, 2)
+    assert np.allclose(texel[0, 0], [0, 0]) and np.allclose(texel[-1, -1], [1, 1])
+    flat = relief_mesh(np.zeros((rows, cols)))
+    p = flat.position[flat.triangles].astype(np.float64)
+    area = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])[:, 2] / 2
+    assert (area > 0).all() and np.isclose(area.sum(), rows / cols)
+
+
+def test_gltf_height_field_mesh(tmp_path):
+    """With a height the glTF quad is the height field's mesh (32-bit indices), valid glTF."""
+    from torchspec.export.arrays import relief_mesh
+
+    height = np.linspace(0, 3, 35).reshape(5, 7)
+    path = export_gltf(_maps(), tmp_path, height=height)
+    doc = _check_gltf(path)
+    (primitive,) = doc["meshes"][0]["primitives"]
+    position = doc["accessors"][primitive["attributes"]["POSITION"]]
+    assert position["count"] == 6 * 8 and doc["accessors"][primitive["indices"]]["componentType"] == 5125
+    view = doc["bufferViews"][position["bufferView"]]
+    data = (tmp_path / "scene.bin").read_bytes()
+    got = np.frombuffer(data, "<f4", count=3 * 48, offset=view["byteOffset"]).reshape(48, 3)
+    assert np.array_equal(got, relief_mesh(height).position) and np.isclose(position["max"][2], 3 / 7, atol=1e-6)
+    pygltflib = pytest.importorskip("pygltflib")
+    from pygltflib.validator import validate
+
+    with pytest.warns(UserWarning, match="provisional"):
+        assert validate(pygltflib.GLTF2().load(str(path))) == []

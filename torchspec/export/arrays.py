@@ -21,6 +21,9 @@ __all__ = [
     "MapArrays",
     "checked_svbrdf",
     "map_arrays",
+    "height_array",
+    "relief_mesh",
+    "ReliefMesh",
     "rgb",
     "srgb",
     "code8",
@@ -144,3 +147,56 @@ def write_png(path: Path, image: np.ndarray, bitdepth: int) -> None:
     writer = png.Writer(width, height, greyscale=count <= 2, alpha=count in (2, 4), bitdepth=bitdepth, compression=9)
     with atomic_path(path) as tmp, open(tmp, "wb") as file:
         writer.write(file, image.reshape(height, width * count).tolist())
+
+
+def height_array(maps, size: tuple[int, int], height=None) -> np.ndarray | None:
+    """The height field ``(H, W)`` (pixel pitches) an export gives its shape: ``height`` (an array
+    or tensor) where given, else the maps' ``height.exr`` (a folder or
+    :class:`~torchspec.io.Maps` fitted with cast shadows), else ``None`` (a flat rectangle).
+    Raises :class:`ExportError` for a height of another size than the maps' ``size`` or not finite."""
+    if height is None:
+        if isinstance(maps, (str, Path)):
+            maps = read_svbrdf(maps)
+        height = maps.extra.get("height") if isinstance(maps, Maps) else None
+        if height is None:
+            return None
+    values = np.asarray(height.detach().cpu() if hasattr(height, "detach") else height, dtype=np.float64)
+    if values.shape != tuple(size):
+        raise ExportError(f"the height must be (H, W) = {tuple(size)} like the maps; got {values.shape}.")
+    if not np.isfinite(values).all():
+        raise ExportError(f"the height must be finite; got {int((~np.isfinite(values)).sum())} NaN or Inf value(s).")
+    return values
+
+
+@dataclass(frozen=True)
+class ReliefMesh:
+    """A height field as a triangle mesh over the exports' rectangle (the longer side 1, centred).
+
+    Attributes:
+        position: ``(V, 3)`` float32, ``V = (H + 1)(W + 1)`` vertices at the texel corners, row by
+            row from the top; ``z`` the mean height of the (up to four) texels around each corner,
+            over ``max(H, W)`` (one pixel pitch in the rectangle's units).
+        texel: ``(V, 2)`` float32, each vertex's column and row over ``W`` and ``H`` (``(0, 0)``: the
+            maps' top-left corner).
+        triangles: ``(2 H W, 3)`` int64, two per texel, counter-clockwise seen from ``+z``.
+    """
+
+    position: np.ndarray
+    texel: np.ndarray
+    triangles: np.ndarray
+
+
+def relief_mesh(height: np.ndarray) -> ReliefMesh:
+    """The :class:`ReliefMesh` of ``height (H, W)`` (pixel pitches)."""
+    rows, cols = height.shape
+    side = max(rows, cols)
+    padded = np.pad(height, 1, mode="edge")
+    corner = 0.25 * (padded[:-1, :-1] + padded[:-1, 1:] + padded[1:, :-1] + padded[1:, 1:])  # (H + 1, W + 1)
+    i, j = np.meshgrid(np.arange(rows + 1), np.arange(cols + 1), indexing="ij")
+    u, v = j / cols, i / rows
+    x, y = (u - 0.5) * cols / side, (0.5 - v) * rows / side
+    position = np.stack([x, y, corner / side], -1).reshape(-1, 3).astype(np.float32)
+    at = (i * (cols + 1) + j)[:-1, :-1].reshape(-1)  # each texel's top-left corner
+    a, b, c, d = at, at + 1, at + cols + 1, at + cols + 2  # top-left, top-right, bottom-left, bottom-right
+    triangles = np.stack([np.stack([c, d, b], -1), np.stack([c, b, a], -1)], 1).reshape(-1, 3)
+    return ReliefMesh(position, np.stack([u, v], -1).reshape(-1, 2).astype(np.float32), triangles)

@@ -1,5 +1,5 @@
 """The glTF 2.0 export (:func:`export_gltf`): ``scene.gltf``, ``scene.bin`` and 8-bit PNG textures
-of a textured quad."""
+of a textured quad (or of the maps' height field, a mesh that casts the relief's shadows)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,25 @@ from ..atomic import atomic_path, write_json
 from ..io import Maps
 from ..model.brdf import SVBRDF
 from ..outputs import check_output
-from .arrays import ISOTROPIC, ExportWarning, MapArrays, code8, map_arrays, rgb, srgb, write_png
+from .arrays import (
+    ISOTROPIC,
+    ExportWarning,
+    MapArrays,
+    code8,
+    height_array,
+    map_arrays,
+    relief_mesh,
+    rgb,
+    srgb,
+    write_png,
+)
 
 __all__ = ["export_gltf"]
 
 
-def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwrite: bool = False) -> Path:
+def export_gltf(
+    maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwrite: bool = False, height: np.ndarray | None = None
+) -> Path:
     """Write a glTF 2.0 textured quad of the maps: ``scene.gltf``, ``scene.bin`` and 8-bit PNG
     textures in ``textures/``.
 
@@ -37,9 +50,18 @@ def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwri
       degrees when ``alpha_y > alpha_x``), ``strength^2 = (alpha_max - alpha_min) / (1 - alpha_min)``;
     - the normal map in glTF's convention (tangent space, ``+y`` up, ``RGB = (n + 1) / 2``).
 
+    With a height (``height``, ``(H, W)`` in pixel pitches; default: the maps' ``height.exr``
+    where a folder or :class:`~torchspec.io.Maps` has one, written by a fit with cast shadows) the
+    quad is the height field's mesh (:func:`~torchspec.export.arrays.relief_mesh`: a vertex at
+    each texel corner, ``z`` = height over ``max(W, H)``, 32-bit indices), its ``NORMAL`` and
+    ``TANGENT`` still ``+z`` and ``+x`` so the normal map keeps the surface frame: a renderer that
+    casts shadows casts the relief's.
+
     Args:
         maps: see :func:`export`.
         output: the folder to write.
+        overwrite: replace what ``output`` holds.
+        height: see above.
 
     Returns:
         The path of ``scene.gltf``.
@@ -58,7 +80,8 @@ def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwri
     """
     check_output(output, overwrite=overwrite)
     arrays = map_arrays(maps)
-    height, width = arrays.size
+    relief = height_array(maps, arrays.size, height)
+    rows, cols = arrays.size
     material = _material(arrays)
     folder = Path(output)
     manifest = folder / "scene.gltf"
@@ -66,7 +89,11 @@ def export_gltf(maps: Maps | SVBRDF | str | Path, output: str | Path, *, overwri
     manifest.unlink(missing_ok=True)
     for name, image in material.images.items():
         write_png(folder / "textures" / f"{name}.png", image, 8)
-    buffer, views, accessors = _quad(width / max(width, height), height / max(width, height))
+    if relief is None:
+        buffer, views, accessors = _quad(cols / max(cols, rows), rows / max(cols, rows))
+    else:
+        mesh = relief_mesh(relief)
+        buffer, views, accessors = _buffer(mesh.position, mesh.texel, mesh.triangles.reshape(-1).astype(np.uint32))
     with atomic_path(folder / "scene.bin") as tmp:
         tmp.write_bytes(buffer)
     document = _document(material)
@@ -202,16 +229,24 @@ def _quad(width: float, height: float) -> tuple[bytes, list[dict], list[dict]]:
     x, y = width / 2, height / 2
     # top-left, bottom-left, bottom-right, top-right; glTF's uv (0, 0) is the image's top-left.
     position = np.array([[-x, y, 0], [-x, -y, 0], [x, -y, 0], [x, y, 0]], np.float32)
-    normal = np.tile(np.array([0, 0, 1], np.float32), (4, 1))
-    tangent = np.tile(np.array([1, 0, 0, 1], np.float32), (4, 1))  # bitangent = n x t = +y
     uv = np.array([[0, 0], [0, 1], [1, 1], [1, 0]], np.float32)
     indices = np.array([0, 1, 2, 0, 2, 3], np.uint16)  # counter-clockwise seen from +z
+    return _buffer(position, uv, indices)
+
+
+def _buffer(position: np.ndarray, uv: np.ndarray, indices: np.ndarray) -> tuple[bytes, list[dict], list[dict]]:
+    """The binary buffer, buffer views and accessors of a mesh facing ``+z`` (``NORMAL`` ``+z``,
+    ``TANGENT`` ``+x`` at every vertex): indices (16- or 32-bit), POSITION, NORMAL, TANGENT,
+    TEXCOORD_0 (accessors 0 to 4)."""
+    count = len(position)
+    normal = np.tile(np.array([0, 0, 1], np.float32), (count, 1))
+    tangent = np.tile(np.array([1, 0, 0, 1], np.float32), (count, 1))  # bitangent = n x t = +y
     parts = [
-        (indices, 5123, "SCALAR", 34963),
-        (position, 5126, "VEC3", 34962),
+        (indices, 5123 if indices.dtype == np.uint16 else 5125, "SCALAR", 34963),
+        (position.astype(np.float32), 5126, "VEC3", 34962),
         (normal, 5126, "VEC3", 34962),
         (tangent, 5126, "VEC4", 34962),
-        (uv, 5126, "VEC2", 34962),
+        (uv.astype(np.float32), 5126, "VEC2", 34962),
     ]
     buffer, views, accessors = b"", [], []
     for k, (data, component, kind, target) in enumerate(parts):

@@ -1,5 +1,5 @@
 """The Mitsuba 3 export (:func:`export_mitsuba`): ``scene.xml`` and EXR textures of a rectangle
-under an orthographic camera."""
+(or of the maps' height field, a mesh that casts the relief's shadows) under an orthographic camera."""
 
 from __future__ import annotations
 
@@ -15,9 +15,12 @@ from ..atomic import atomic_path
 from ..io import Maps, write_exr
 from ..model.brdf import SVBRDF
 from ..outputs import check_output
-from .arrays import ISOTROPIC, ExportError, ExportWarning, MapArrays, map_arrays, rgb
+from .arrays import ISOTROPIC, ExportError, ExportWarning, MapArrays, height_array, map_arrays, relief_mesh, rgb
 
-__all__ = ["export_mitsuba", "MIN_ALPHA"]
+__all__ = ["export_mitsuba", "height_ply", "MESH", "MIN_ALPHA"]
+
+MESH = "height.ply"
+"""The height field's mesh beside ``scene.xml`` (maps with a height)."""
 
 MIN_ALPHA = 1e-4
 """Mitsuba's own floor on a microfacet alpha; a lobe with ``alpha = 0`` is exported with it."""
@@ -33,6 +36,7 @@ def export_mitsuba(
     spp: int = 16,
     shadowing: bool = False,
     overwrite: bool = False,
+    height: np.ndarray | None = None,
 ) -> Path:
     """Write a Mitsuba 3 scene of the maps (for the RGB variants, e.g. ``scalar_rgb``).
 
@@ -57,6 +61,13 @@ def export_mitsuba(
             grazing light). Off, the material is exactly ``k_d / pi + k_s Beckmann``; on, it is
             what Mitsuba renders by default for a normal-mapped surface (the development captures
             are rendered so).
+        height: ``(H, W)`` the surface's height in pixel pitches (``height.exr``, written by a fit
+            with cast shadows); default: the maps' own, where a folder or :class:`~torchspec.io.Maps`
+            has one. With a height the shape is ``height.ply``, the height field as a triangle
+            mesh (a vertex at each texel corner, the mean height of the texels around it, times
+            ``1 / M``: one pixel pitch), its shading normals ``(0, 0, 1)`` so the normal map
+            keeps the surface frame; the orthographic camera sees each texel at its pixel, and
+            Mitsuba casts the relief's shadows.
 
     Returns:
         The path of ``scene.xml``.
@@ -79,6 +90,7 @@ def export_mitsuba(
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
         raise ExportError(f"spp must be an integer >= 1; got {spp!r}.")
     emitter = None if light is None else _emitter(light, irradiance, arrays.channels)
+    relief = height_array(maps, arrays.size, height)
     alpha_u, alpha_v = _quarter_turns(arrays)
     lobe = arrays.lobe
     # alpha = 0 is the format's "no lobe": any alpha renders k_s = 0 as 0, and 1 keeps it finite.
@@ -93,7 +105,11 @@ def export_mitsuba(
     write_exr(textures / "specular_x2.exr", 2.0 * rgb(arrays.specular), ["R", "G", "B"])
     write_exr(textures / "alpha_u.exr", alpha_u, ["Y"])
     write_exr(textures / "alpha_v.exr", alpha_v, ["Y"])
-    text = _scene_xml(arrays.size, spp, emitter, shadowing)
+    (folder / MESH).unlink(missing_ok=True)
+    if relief is not None:
+        with atomic_path(folder / MESH) as tmp:
+            tmp.write_bytes(height_ply(relief))
+    text = _scene_xml(arrays.size, spp, emitter, shadowing, relief is not None)
     with atomic_path(scene) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return scene
@@ -117,7 +133,30 @@ def _indent(text: str, spaces: int) -> str:
     return "\n".join(" " * spaces + line for line in text.splitlines())
 
 
-def _scene_xml(size: tuple[int, int], spp: int, emitter: tuple[np.ndarray, np.ndarray] | None, shadowing: bool) -> str:
+def height_ply(height: np.ndarray) -> bytes:
+    """A binary PLY of the height field ``height (H, W)`` (pixel pitches) over the rectangle of
+    :func:`export_mitsuba` (:func:`~torchspec.export.arrays.relief_mesh`: a vertex at each texel
+    corner, two triangles per texel), shading normals ``(0, 0, 1)``, ``(u, v)`` as Mitsuba's
+    rectangle has them (``v = 0`` at the bottom)."""
+    mesh = relief_mesh(height)
+    count = len(mesh.position)
+    vertex = np.zeros(count, dtype=[(name, "<f4") for name in ("x", "y", "z", "nx", "ny", "nz", "u", "v")])
+    for k, name in enumerate("xyz"):
+        vertex[name] = mesh.position[:, k]
+    vertex["nz"], vertex["u"], vertex["v"] = 1.0, mesh.texel[:, 0], 1.0 - mesh.texel[:, 1]
+    face = np.zeros(len(mesh.triangles), dtype=[("count", "u1"), ("index", "<i4", (3,))])
+    face["count"], face["index"] = 3, mesh.triangles
+    header = "\n".join([
+        "ply", "format binary_little_endian 1.0", f"comment torchspec {__version__}: height field",
+        f"element vertex {count}", *(f"property float {name}" for name in vertex.dtype.names),
+        f"element face {len(face)}", "property list uchar int vertex_indices", "end_header",
+    ]) + "\n"  # fmt: skip
+    return header.encode("ascii") + vertex.tobytes() + face.tobytes()
+
+
+def _scene_xml(
+    size: tuple[int, int], spp: int, emitter: tuple[np.ndarray, np.ndarray] | None, shadowing: bool, mesh: bool = False
+) -> str:
     height, width = size
     half_w, half_h = width / (2 * max(size)), height / (2 * max(size))
     if emitter is None:
@@ -136,6 +175,19 @@ def _scene_xml(size: tuple[int, int], spp: int, emitter: tuple[np.ndarray, np.nd
         if shadowing
         else "normalmap use_shadowing_function false: the BRDF is exactly the above."
     )
+    if mesh:  # the height field (height.ply), already in world units
+        shape = (
+            '    <shape type="ply">\n'
+            f'        <string name="filename" value="{MESH}"/>\n'
+            '        <boolean name="face_normals" value="false"/>'
+        )
+    else:
+        shape = (
+            '    <shape type="rectangle">\n'
+            '        <transform name="to_world">\n'
+            f'            <scale x="{half_w:.9g}" y="{half_h:.9g}" z="1"/>\n'
+            "        </transform>"
+        )
     return f"""<?xml version="1.0" encoding="utf-8"?>
 <!-- Written by torchspec {__version__} (torchspec export; mappings in docs/export.md).
      World axes = the maps' surface frame: x right, y up, z towards the camera. Material:
@@ -162,10 +214,7 @@ def _scene_xml(size: tuple[int, int], spp: int, emitter: tuple[np.ndarray, np.nd
             <rfilter type="box"/>
         </film>
     </sensor>
-    <shape type="rectangle">
-        <transform name="to_world">
-            <scale x="{half_w:.9g}" y="{half_h:.9g}" z="1"/>
-        </transform>
+{shape}
         <bsdf type="normalmap">
             <boolean name="use_shadowing_function" value="{str(bool(shadowing)).lower()}"/>
 {_indent(_bitmap("normalmap", "normal.exr"), 12)}
