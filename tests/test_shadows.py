@@ -15,7 +15,7 @@ from torchspec.model.lights import Kernel, Lights
 from torchspec.model.rendering import render
 from torchspec.model.visibility import sky_view
 from torchspec.pipeline import ComputeConfig, FitConfig, TermConfig, fit, write_fit
-from torchspec.pipeline.shadows import SOFTNESSES_DEG, shadows_tried
+from torchspec.pipeline.shadows import DEPTHS, SOFTNESSES_DEG, shadows_tried
 from torchspec.pipeline.start import light_context
 from torchspec.pipeline.tile import EXPLAINED, VISIBLE, FitInputs, TileInputs, fit_tile, seen_through
 from torchspec.simulate import LayoutConfig, SceneConfig, SimulationConfig, simulate, write_simulation
@@ -128,6 +128,7 @@ def test_relief_is_fitted_better_with_shadows(tmp_path):
     maps = read_svbrdf(tmp_path / "maps")
     assert torch.equal(maps.extra["height"], shadowed.height.float()) and maps.meta["height"]["unit"] == "pixel"
     assert maps.meta["height"]["softness_deg"] in SOFTNESSES_DEG  # the penumbra the left-out frames chose
+    assert maps.meta["height"]["depth"] in DEPTHS  # and the depth
     # this relief reflects no light into its shadows: no indirect light, or little, within the hidden sky
     if shadowed.indirect is None:
         assert "indirect" not in maps.extra and record["indirect"]["p99"] == 0.0

@@ -20,15 +20,17 @@ The alternation (:func:`fit_with_shadows`), judged by left-out frames as the mod
 3. the same frames are fitted with that visibility fixed (from the second round on, less the
    indirect light of the previous round's maps: :mod:`torchspec.model.indirect`), the indirect share
    of the new maps fitted (:func:`indirect_of`), and the left-out frames predicted times their
-   visibility (each penumbra width of :data:`SOFTNESSES_DEG`, the best kept) plus their indirect
+   visibility (each penumbra width of :data:`SOFTNESSES_DEG` over the height scaled by each of
+   :data:`DEPTHS`, the best pair kept) plus their indirect
    light (kept where it predicts better than none); where that predicts better than the best so
    far by more than the noise would make it (:func:`torchspec.statistics.predicts_better` with
    ``FitConfig.ladder.predict_z``, the whole image as one pixel, every left-out sample in the
    statistic, the shadowed ones too; predictions clipped to the brightest value recorded), the height
-   is integrated again from the new normals and the next round begins (at most :data:`ROUNDS`);
+   is integrated again from the new normals (and refitted at the depth chosen) and the next round
+   begins (at most :data:`ROUNDS`);
 4. all frames are fitted, with the visibility of the best height and less the best round's
-   indirect light if any round predicted better (its height is the fit's ``height``, written as
-   ``height.exr``; the final maps' indirect share is ``indirect``, ``indirect.exr``), else
+   indirect light if any round predicted better (its height, at its depth, is the fit's ``height``,
+   written as ``height.exr``; the final maps' indirect share is ``indirect``, ``indirect.exr``), else
    without: today's fit.
 
 ``auto`` tries this on captures imported from photographs (``source`` in ``capture.json``) and
@@ -70,6 +72,7 @@ __all__ = [
     "SHADOWED_SHARE",
     "SHADOW_SHARE",
     "SOFTNESSES_DEG",
+    "DEPTHS",
     "fit_with_shadows",
     "flat_frames",
     "height_of",
@@ -92,6 +95,14 @@ SOFTNESSES_DEG = (1.0, 2.0)
 and the height's own error. Not wider: the sigmoid's 10-90 % ramp is 4.4 softnesses, so at 4
 degrees a light 8 degrees above a flat horizon is dimmed by an eighth (a flat painting under
 grazing lights then loses lit samples to the fit's ``VISIBLE`` cut)."""
+DEPTHS = (1.0, 1.25, 1.5, 2.0)
+"""The scales of the integrated height (the relief's depth) each round tries on the left-out frames
+with each penumbra: a pixel that averages a steep wall has a normal flatter than its mean slope
+(the mean of unit normals, renormalised), so the height integrated from the normals of a
+reduced or sharp relief underestimates its steps and its shadows fall short. With the true
+normals of SynthRTI's object3 reduced 4 x 4, Lambert times the visibility plus the indirect light
+predicts the Test lights best at a depth of 1.25, and worse at 1 and 2 than at 1.5
+(``python experiments/shadow_depth.py``)."""
 ROUNDS = 2
 """The most refits with a visibility (each from the previous round's height)."""
 MIN_FRAMES = 20
@@ -254,7 +265,7 @@ def fit_with_shadows(
     test = [i for i in range(k) if i % LEFT_OUT == 2]
     train = [i for i in range(k) if i % LEFT_OUT != 2]
     record = {"tried": True, "used": False, "left_out": [run.job.picked[i] for i in test], "rounds": []}
-    best_height = best_share = best_maps = best_sky = best_kept = best_softness = None
+    best_height = best_share = best_maps = best_kept = best_softness = best_depth = None
     kept = False
     if len(train) >= 4 and test:
         fitted, judged = run.frames(train), run.frames(test)
@@ -262,32 +273,35 @@ def fit_with_shadows(
         noise, floor, ceiling = _noise(plain), config.start.noise_floor, _ceiling(fitted)
         best = _errors(predict_frames(plain, judged), judged, noise, floor, ceiling)
         record["plain_rms"] = _rms(best, judged)
-        height, maps, softness = height_of(plain), plain, SOFTNESS
+        height, maps, softness, depth = height_of(plain), plain, SOFTNESS, 1.0
         for round_ in range(ROUNDS):
-            seen = visibility_of(height.to(run.stack.device), fitted, softness)
+            scaled = height * depth  # at the depth the previous round chose (DEPTHS)
+            seen = visibility_of(scaled.to(run.stack.device), fitted, softness)
             hidden = float((seen < 0.5).double().mean())
             if round_ == 0 and config.shadows == "auto" and hidden < SHADOWED_SHARE:
                 record["rounds"].append({"hidden_share": hidden, "refitted": False})
                 break
-            sky = sky_view(height.to(run.stack.device))
+            sky = sky_view(scaled.to(run.stack.device))
             # the first refit has no indirect light (maps fitted without shadows darken their shadows' pixels),
             # later ones the previous round's where it was kept
             mine = _without(fitted, maps, indirect_of(maps, fitted, seen, sky)) if kept else fitted
             candidate = fit_stack(mine, visibility=seen)
             share = indirect_of(candidate, fitted, seen, sky)
             judge = _Judge(judged, noise, floor, ceiling, config.ladder.predict_z)
-            errors, kept, softness = judge.round(candidate, height, share)
+            verdict = judge.round(candidate, height, share)
+            errors, kept, softness, depth = verdict.errors, verdict.kept, verdict.softness, verdict.depth
             share = share * float(kept)
             better = bool(predicts_better(_image(errors), _image(best), config.ladder.predict_z)[0])
             record["rounds"].append(
                 {"hidden_share": hidden, "refitted": True, "rms": _rms(errors, judged), "better": better,
-                 "softness_deg": math.degrees(softness), "indirect": _summary(share),
+                 "softness_deg": math.degrees(softness), "depth": depth, "indirect": _summary(share),
                  "indirect_pixels": float(kept)}
             )  # fmt: skip
             if not better:
                 break
-            best, best_height, best_share, best_maps, best_sky, best_kept = errors, height, share, candidate, sky, kept
-            best_softness = softness
+            best, best_share, best_maps, best_kept = errors, share, candidate, kept
+            best_height = height * depth
+            best_softness, best_depth = softness, depth
             height, maps = height_of(candidate), candidate
     judging = time.perf_counter() - clock
     if best_height is None:
@@ -297,7 +311,8 @@ def fit_with_shadows(
         seen = visibility_of(best_height.to(run.stack.device), run, best_softness)
         whole = _without(run, best_maps, best_share) if best_kept else run
         final = fit_stack(whole, visibility=seen, folder=folder, resume=resume, progress=progress)
-        share = indirect_of(final, run, seen, best_sky) if best_kept else torch.zeros_like(best_share)
+        sky = sky_view(best_height.to(run.stack.device)) if best_kept else None
+        share = indirect_of(final, run, seen, sky) if best_kept else torch.zeros_like(best_share)
     record["used"] = best_height is not None
     record["seconds"] = judging
     if share is not None:
@@ -306,7 +321,8 @@ def fit_with_shadows(
     stats["shadows"] = record
     stats["seconds"] = {**stats["seconds"], "shadows": judging}
     if best_height is not None:
-        stats["height"] = {"unit": "pixel", "pitch": 1.0, "softness_deg": math.degrees(best_softness)}
+        stats["height"] = {"unit": "pixel", "pitch": 1.0, "softness_deg": math.degrees(best_softness),
+                           "depth": best_depth}  # fmt: skip
     height = None if best_height is None else best_height.to(final.svbrdf.normal)
     indirect = None if share is None or not best_kept else share.to(final.svbrdf.normal)
     return replace(final, stats=stats, height=height, indirect=indirect)
@@ -322,27 +338,39 @@ class _Judge:
     ceiling: Tensor
     z: float
 
-    def round(self, fit: Fit, height: Tensor, share: Tensor) -> tuple[Tensor, bool, float]:
+    def round(self, fit: Fit, height: Tensor, share: Tensor) -> _Verdict:
         """A round's candidate ``fit`` with its ``height`` and indirect ``share`` on the left-out
-        frames: each softness of :data:`SOFTNESSES_DEG`, and the indirect light where it predicts
-        the left-out samples better than none (the image as one pixel, as a model is chosen: a
-        pixel's few left-out samples rarely show one parameter's gain); returns the errors of the
-        softness that predicts best (:func:`_errors`), whether the indirect light is kept, and
-        that softness (radians)."""
+        frames: each depth of :data:`DEPTHS` (the height scaled) with each softness of
+        :data:`SOFTNESSES_DEG`, and the indirect light where it predicts the left-out samples
+        better than none (the image as one pixel, as a model is chosen: a pixel's few left-out
+        samples rarely show one parameter's gain); the :class:`_Verdict` of the pair that
+        predicts best."""
         direct = predict_frames(fit, self.run)
         bounce = share * flat_frames(fit, self.run)
         chosen = None
-        for degrees in SOFTNESSES_DEG:
-            softness = math.radians(degrees)
-            shaded = direct * visibility_of(height.to(direct.device), self.run, softness)[:, None]
-            without = _errors(shaded, self.run, self.noise, self.floor, self.ceiling)
-            bounced = _errors(shaded + bounce, self.run, self.noise, self.floor, self.ceiling)
-            kept = bool(predicts_better(_image(bounced), _image(without), self.z)[0])
-            errors = bounced if kept else without
-            total = errors.square().sum()
-            if chosen is None or bool(total < chosen[0]):
-                chosen = (total, errors, kept, softness)
-        return chosen[1], chosen[2], chosen[3]
+        for depth in DEPTHS:
+            for degrees in SOFTNESSES_DEG:
+                softness = math.radians(degrees)
+                shaded = direct * visibility_of((height * depth).to(direct.device), self.run, softness)[:, None]
+                without = _errors(shaded, self.run, self.noise, self.floor, self.ceiling)
+                bounced = _errors(shaded + bounce, self.run, self.noise, self.floor, self.ceiling)
+                kept = bool(predicts_better(_image(bounced), _image(without), self.z)[0])
+                errors = bounced if kept else without
+                total = errors.square().sum()
+                if chosen is None or bool(total < chosen[0]):
+                    chosen = (total, _Verdict(errors, kept, softness, depth))
+        return chosen[1]
+
+
+@dataclass(frozen=True)
+class _Verdict:
+    """What :meth:`_Judge.round` chose: the left-out ``errors`` (:func:`_errors`), whether the
+    indirect light is ``kept``, the penumbra's ``softness`` (radians) and the height's ``depth``."""
+
+    errors: Tensor
+    kept: bool
+    softness: float
+    depth: float
 
 
 def _summary(share: Tensor) -> dict:
