@@ -12,7 +12,7 @@ import numpy as np
 
 from .._version import __version__
 from ..atomic import atomic_path, write_json
-from ..io import Maps
+from ..io import Maps, read_svbrdf
 from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .arrays import (
@@ -79,6 +79,7 @@ def export_gltf(
         PosixPath('fit-gltf/scene.gltf')
     """
     check_output(output, overwrite=overwrite)
+    maps = read_svbrdf(maps) if isinstance(maps, (str, Path)) else maps  # read once: the maps and their height
     arrays = map_arrays(maps)
     relief = height_array(maps, arrays.size, height)
     rows, cols = arrays.size

@@ -12,7 +12,7 @@ import numpy as np
 
 from .._version import __version__
 from ..atomic import atomic_path
-from ..io import Maps, write_exr
+from ..io import Maps, read_svbrdf, write_exr
 from ..model.brdf import SVBRDF
 from ..outputs import check_output
 from .arrays import ISOTROPIC, ExportError, ExportWarning, MapArrays, height_array, map_arrays, relief_mesh, rgb
@@ -86,6 +86,7 @@ def export_mitsuba(
         PosixPath('scene/scene.xml')
     """
     check_output(output, overwrite=overwrite)
+    maps = read_svbrdf(maps) if isinstance(maps, (str, Path)) else maps  # read once: the maps and their height
     arrays = map_arrays(maps)
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1:
         raise ExportError(f"spp must be an integer >= 1; got {spp!r}.")
