@@ -212,29 +212,46 @@ def _rti_folder(folder, directions, normals):
     (folder / "dirs.lp").write_text("\n".join(lines) + "\n")
 
 
-def test_rti_relight_runs(tmp_path):
-    """PTM, HSH and torchspec on a tiny relief, as a real capture and as a SynthRTI one (Dome/, Test/,
-    normals.png): HSH and torchspec predict a Lambertian relief's left-out lights, the normals are found."""
+def _relief_normals(ax: float, ay: float):
+    """``(8, 8, 3)`` the unit normals of a small periodic relief of slopes ``ax``, ``ay``."""
     import math
 
     import numpy as np
-    from PIL import Image
 
     y, x = np.mgrid[0:8, 0:8] / 8.0
-    slope = np.stack([0.3 * np.sin(2 * math.pi * x), 0.2 * np.cos(2 * math.pi * y), np.ones_like(x)], -1)
-    normals = slope / np.linalg.norm(slope, axis=-1, keepdims=True)
+    slope = np.stack([ax * np.sin(2 * math.pi * x), ay * np.cos(2 * math.pi * y), np.ones_like(x)], -1)
+    return slope / np.linalg.norm(slope, axis=-1, keepdims=True)
 
-    def ring(count, elevation, turn):
-        return [
-            (math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation))
-            for a in np.linspace(turn, turn + 2 * math.pi, count, endpoint=False)
-        ]
 
-    dome = ring(6, 0.5, 0.0) + ring(6, 1.0, 0.3)
+def _ring(count: int, elevation: float, turn: float) -> list[tuple[float, float, float]]:
+    """``count`` light directions at ``elevation`` (radians), evenly around from azimuth ``turn``."""
+    import math
+
+    import numpy as np
+
+    return [
+        (math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation))
+        for a in np.linspace(turn, turn + 2 * math.pi, count, endpoint=False)
+    ]
+
+
+def _synth_folder(folder, dome, test, normals):
+    """A SynthRTI-like capture: ``Dome/`` and ``Test/`` (:func:`_rti_folder`), ``Dome/normals.png``."""
+    import numpy as np
+    from PIL import Image
+
+    _rti_folder(folder / "Dome", dome, normals)
+    _rti_folder(folder / "Test", test, normals)
+    Image.fromarray(((normals + 1) / 2 * 255).round().astype(np.uint8)).save(folder / "Dome" / "normals.png")
+
+
+def test_rti_relight_runs(tmp_path):
+    """PTM, HSH and torchspec on a tiny relief, as a real capture and as a SynthRTI one (Dome/, Test/,
+    normals.png): HSH and torchspec predict a Lambertian relief's left-out lights, the normals are found."""
+    normals = _relief_normals(0.3, 0.2)
+    dome = _ring(6, 0.5, 0.0) + _ring(6, 1.0, 0.3)
     _rti_folder(tmp_path / "data" / "real", dome, normals)
-    _rti_folder(tmp_path / "data" / "synth" / "Dome", dome, normals)
-    _rti_folder(tmp_path / "data" / "synth" / "Test", ring(4, 0.8, 0.7), normals)
-    Image.fromarray(((normals + 1) / 2 * 255).round().astype(np.uint8)).save(tmp_path / "data/synth/Dome/normals.png")
+    _synth_folder(tmp_path / "data" / "synth", dome, _ring(4, 0.8, 0.7), normals)
     result = _main(
         "rti_relight",
         tmp_path,
@@ -547,24 +564,8 @@ def test_shadow_depth_runs(tmp_path):
     shallow Lambertian relief casts no shadow at these elevations, so Lambert with the true normals
     predicts the Test lights alike at every depth, to the precision of normals.png's 8-bit codes
     (measured 38.4 dB)."""
-    import math
-
-    import numpy as np
-    from PIL import Image
-
-    y, x = np.mgrid[0:8, 0:8] / 8.0
-    slope = np.stack([0.2 * np.sin(2 * math.pi * x), 0.1 * np.cos(2 * math.pi * y), np.ones_like(x)], -1)
-    normals = slope / np.linalg.norm(slope, axis=-1, keepdims=True)
-
-    def ring(count, elevation, turn):
-        return [
-            (math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation))
-            for a in np.linspace(turn, turn + 2 * math.pi, count, endpoint=False)
-        ]
-
-    _rti_folder(tmp_path / "data" / "synth" / "Dome", ring(6, 0.7, 0.0) + ring(6, 1.1, 0.3), normals)
-    _rti_folder(tmp_path / "data" / "synth" / "Test", ring(4, 0.9, 0.7), normals)
-    Image.fromarray(((normals + 1) / 2 * 255).round().astype(np.uint8)).save(tmp_path / "data/synth/Dome/normals.png")
+    normals = _relief_normals(0.2, 0.1)
+    _synth_folder(tmp_path / "data" / "synth", _ring(6, 0.7, 0.0) + _ring(6, 1.1, 0.3), _ring(4, 0.9, 0.7), normals)
     result = _main(
         "shadow_depth", tmp_path, f"data: {tmp_path / 'data'}\ncaptures: [synth]\ndownsample: 1\ndepths: [1.0, 2.0]\n"
     )
