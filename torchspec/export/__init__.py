@@ -35,7 +35,7 @@ from ..io import Maps
 from ..model.brdf import SVBRDF
 from .arrays import ExportError, ExportWarning
 from .gltf import export_gltf
-from .mitsuba import MESH, MIN_ALPHA, export_mitsuba, height_ply
+from .mitsuba import MESH, MIN_ALPHA, export_mitsuba
 from .openlime import export_openlime
 from .png16 import export_png16
 from .rti import export_rti
@@ -49,7 +49,6 @@ __all__ = [
     "export",
     "export_gltf",
     "export_mitsuba",
-    "height_ply",
     "MESH",
     "export_openlime",
     "export_png16",

@@ -149,14 +149,13 @@ def write_png(path: Path, image: np.ndarray, bitdepth: int) -> None:
         writer.write(file, image.reshape(height, width * count).tolist())
 
 
-def height_array(maps, size: tuple[int, int], height=None) -> np.ndarray | None:
+def height_array(maps: Maps | SVBRDF, size: tuple[int, int], height=None) -> np.ndarray | None:
     """The height field ``(H, W)`` (pixel pitches) an export gives its shape: ``height`` (an array
-    or tensor) where given, else the maps' ``height.exr`` (a folder or
-    :class:`~torchspec.io.Maps` fitted with cast shadows), else ``None`` (a flat rectangle).
+    or tensor) where given, else the height (``height.exr``) of ``maps`` (a
+    :class:`~torchspec.io.Maps` fitted with cast shadows; an export reads a folder once, for the
+    maps and their height), else ``None`` (a flat rectangle).
     Raises :class:`ExportError` for a height of another size than the maps' ``size`` or not finite."""
     if height is None:
-        if isinstance(maps, (str, Path)):
-            maps = read_svbrdf(maps)
         height = maps.extra.get("height") if isinstance(maps, Maps) else None
         if height is None:
             return None

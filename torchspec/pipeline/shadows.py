@@ -265,7 +265,7 @@ def fit_with_shadows(
     test = [i for i in range(k) if i % LEFT_OUT == 2]
     train = [i for i in range(k) if i % LEFT_OUT != 2]
     record = {"tried": True, "used": False, "left_out": [run.job.picked[i] for i in test], "rounds": []}
-    best_height = best_share = best_maps = best_kept = best_softness = best_depth = None
+    best_height = best_share = best_maps = best_kept = best_softness = best_depth = best_sky = None
     kept = False
     if len(train) >= 4 and test:
         fitted, judged = run.frames(train), run.frames(test)
@@ -275,7 +275,8 @@ def fit_with_shadows(
         record["plain_rms"] = _rms(best, judged)
         height, maps, softness, depth = height_of(plain), plain, SOFTNESS, 1.0
         for round_ in range(ROUNDS):
-            scaled = height * depth  # at the depth the previous round chose (DEPTHS)
+            shown = depth  # the depth the previous round chose (DEPTHS): this round's visibility and sky
+            scaled = height * shown
             seen = visibility_of(scaled.to(run.stack.device), fitted, softness)
             hidden = float((seen < 0.5).double().mean())
             if round_ == 0 and config.shadows == "auto" and hidden < SHADOWED_SHARE:
@@ -300,6 +301,7 @@ def fit_with_shadows(
             if not better:
                 break
             best, best_share, best_maps, best_kept = errors, share, candidate, kept
+            best_sky = sky if depth == shown else None  # this round's sky, where the depth stayed
             best_height = height * depth
             best_softness, best_depth = softness, depth
             height, maps = height_of(candidate), candidate
@@ -311,8 +313,11 @@ def fit_with_shadows(
         seen = visibility_of(best_height.to(run.stack.device), run, best_softness)
         whole = _without(run, best_maps, best_share) if best_kept else run
         final = fit_stack(whole, visibility=seen, folder=folder, resume=resume, progress=progress)
-        sky = sky_view(best_height.to(run.stack.device)) if best_kept else None
-        share = indirect_of(final, run, seen, sky) if best_kept else torch.zeros_like(best_share)
+        if best_kept:
+            sky = best_sky if best_sky is not None else sky_view(best_height.to(run.stack.device))
+            share = indirect_of(final, run, seen, sky)
+        else:
+            share = torch.zeros_like(best_share)
     record["used"] = best_height is not None
     record["seconds"] = judging
     if share is not None:
