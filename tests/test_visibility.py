@@ -133,3 +133,14 @@ def test_marched_distances():
 def test_bad_shapes_are_refused(height, dirs, match):
     with pytest.raises(TorchspecError, match=match):
         horizon(height, dirs)
+
+
+def test_a_ray_along_the_images_border_does_not_leave_it_by_a_rounding_error():
+    height = torch.zeros(12, 6, dtype=torch.float64)
+    height[9, :] = 4.0  # a ridge across the image, below the middle
+    phi = math.radians(270.0)  # straight down the image: cos(phi) is -1.8e-16, not 0
+    rounded = torch.tensor([[math.cos(phi), math.sin(phi), 0.3]], dtype=torch.float64)
+    exact = torch.tensor([[0.0, -1.0, 0.3]], dtype=torch.float64)
+    assert rounded[0, 0] < 0
+    for found in (horizon(height, rounded), horizon(height, exact), marched_horizon(height, rounded)):
+        assert torch.allclose(found[5, :, 0], torch.atan(torch.tensor(1.0, dtype=torch.float64)), atol=1e-6)

@@ -65,6 +65,11 @@ FOOTPRINT = 2
 """:func:`frame_visibility` averages each pixel's visibility over ``FOOTPRINT x FOOTPRINT`` points
 of its footprint."""
 
+EDGE = 1e-6
+"""Pixels beyond the image's border a ray's sample still counts as inside: a light along an image
+axis (``cos(270 degrees)`` is ``-1.8e-16``, not 0) would otherwise leave the border's rays in or
+out by the sign of a rounding error."""
+
 CHUNK_ELEMENTS = 1 << 23
 """The most height samples (pixels x lights x steps) one chunk of :func:`horizon` takes at once."""
 
@@ -137,6 +142,7 @@ def horizon(
     *,
     step: float = 0.5,
     reach: float | None = None,
+    distances: Tensor | None = None,
 ) -> Tensor:
     """The horizon elevation of every pixel along every light's azimuth (module docstring).
 
@@ -147,6 +153,9 @@ def horizon(
         pitch: the pixel pitch, in the height's unit (heights in pixels: 1).
         step: the largest distance between samples along the ray, and the nearest one, pixels.
         reach: how far the ray goes, pixels (default: the image's diagonal).
+        distances: the distances (pixels, increasing, ``> 0``) at which each ray samples the
+            height, in place of :func:`marched_distances` of ``step`` and ``reach`` (the viewer's
+            sparser schedule, :func:`torchspec.view.shadows.view_distances`).
 
     Returns:
         ``(H, W, K)`` radians in ``[-pi/2, pi/2)``, the height's dtype and device; differentiable in
@@ -167,7 +176,8 @@ def horizon(
     rows, cols = height.shape
     h = height / pitch
     reach = math.hypot(rows, cols) if reach is None else float(reach)
-    distances = marched_distances(step, reach).to(dtype=h.dtype, device=h.device)
+    distances = marched_distances(step, reach) if distances is None else distances
+    distances = distances.to(dtype=h.dtype, device=h.device)
     samples = distances.shape[0]
     directions = directions.to(h)
     per_pixel = directions.dim() == 4
@@ -192,7 +202,8 @@ def horizon(
         for s0 in range(0, samples, sample_chunk):
             t = distances[s0 : s0 + sample_chunk]
             at = base + t[None, None, :, None] * d  # (P, k, s, 2) in (col, row)
-            inside = (at[..., 0] >= 0) & (at[..., 0] <= cols - 1) & (at[..., 1] >= 0) & (at[..., 1] <= rows - 1)
+            col, row = at[..., 0], at[..., 1]  # a ray along the border stays in: its rounding decides nothing
+            inside = (col >= -EDGE) & (col <= cols - 1 + EDGE) & (row >= -EDGE) & (row <= rows - 1 + EDGE)
             grid = (at * scale - 1.0).reshape(1, pixels, -1, 2)
             value = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
             rise = (value.reshape(pixels, -1, t.shape[0]) - here) / t  # (P, k, s)
@@ -302,7 +313,7 @@ def marched_horizon(
                 torch.arange(top, min(height_rows, top + rows), **like), torch.arange(cols, **like), indexing="ij"
             )
             pc, pr = c[..., None] + t * u[0], r[..., None] + t * u[1]
-            inside = (pc >= 0) & (pc <= cols - 1) & (pr >= 0) & (pr <= height_rows - 1)
+            inside = (pc >= -EDGE) & (pc <= cols - 1 + EDGE) & (pr >= -EDGE) & (pr <= height_rows - 1 + EDGE)
             pc, pr = pc.clamp(0, cols - 1), pr.clamp(0, height_rows - 1)
             c0, r0 = pc.floor().long().clamp(max=cols - 2), pr.floor().long().clamp(max=height_rows - 2)
             fc, fr = pc - c0, pr - r0
