@@ -1,3 +1,5 @@
+import contextlib
+import threading
 from pathlib import Path
 
 import pytest
@@ -74,3 +76,32 @@ def gltf_exports_are_valid(request):
     if files and validator()[1] is not None:
         bad = [report for report in validate(files) if report["numErrors"]]
         assert not bad, f"glTF-Validator errors: {bad}"
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium with WebGL2 (:class:`torchspec.view.browser.Browser`, 640 x 480); skips,
+    saying why, where there is none."""
+    from torchspec.view.browser import Browser, find_chromium
+
+    chromium, why = find_chromium()
+    if chromium is None:
+        pytest.skip(f"no headless Chromium: {why}")
+    with Browser(640, 480) as opened:
+        if not opened.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
+            pytest.skip(f"{chromium} has no WebGL2 here (no GPU and no SwiftShader)")
+        yield opened
+
+
+@contextlib.contextmanager
+def served_page(browser, site):
+    """``site`` (:class:`torchspec.view.Site`) served on 127.0.0.1 and open in ``browser``."""
+    from torchspec.view import serve
+
+    server = serve(site)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        browser.open(f"http://127.0.0.1:{server.server_address[1]}/")
+        yield browser
+    finally:
+        server.shutdown()

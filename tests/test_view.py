@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import http.server
 import io
@@ -18,6 +17,7 @@ import urllib.request
 import numpy as np
 import pytest
 import torch
+from conftest import served_page
 
 from torchspec.cli import main
 from torchspec.errors import TorchspecError
@@ -32,7 +32,7 @@ from torchspec.outputs import OutputError
 from torchspec.pipeline.tiling import BLOCK_ANGLE, LEAST_BLOCK, near_block
 from torchspec.relight import render_capture, render_near
 from torchspec.view import TEXTURES, TILE, Pyramid, export_web, open_site, serve
-from torchspec.view.browser import Browser, find_chromium
+from torchspec.view.browser import find_chromium
 from torchspec.view.check import MODEL_TYPES, hemisphere_lights, lobe_width, model_maps, reference_srgb, with_term
 from torchspec.view.light import MAX_NODES, light_quadrature, near_lights
 from torchspec.view.tiles import levels_for, read_photo_jpeg
@@ -188,33 +188,11 @@ def test_the_view_command_serves_on_localhost(tmp_path, quiet):
         process.wait(timeout=10)
 
 
-@pytest.fixture(scope="module")
-def browser():
-    if CHROMIUM is None:
-        pytest.skip(f"no headless Chromium: {WHY}")
-    with Browser(640, 480) as opened:
-        if not opened.evaluate("!!document.createElement('canvas').getContext('webgl2')"):
-            pytest.skip(f"{CHROMIUM} has no WebGL2 here (no GPU and no SwiftShader)")
-        yield opened
-
-
-@contextlib.contextmanager
-def _page(browser, site):
-    """``site`` served on 127.0.0.1 and open in ``browser``."""
-    server = serve(site)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        browser.open(f"http://127.0.0.1:{server.server_address[1]}/")
-        yield browser
-    finally:
-        server.shutdown()
-
-
 @needs_browser
 @pytest.mark.parametrize("model", MODEL_TYPES)
 def test_the_page_relights_as_render_does(browser, model):
     maps = model_maps(model, 48, 64, seed=3)
-    with _page(browser, open_site(maps)):
+    with served_page(browser, open_site(maps)):
         for light in hemisphere_lights(3, 75.0):
             browser.show(origin=True, light=light.tolist(), layer="relit")
             page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
@@ -248,7 +226,7 @@ def test_the_static_export_works_from_a_plain_web_server(browser, tmp_path):
 @needs_browser
 def test_layers_show_the_maps(browser):
     maps = model_maps("ward-aniso", 32, 40, seed=4)
-    with _page(browser, open_site(maps)):
+    with served_page(browser, open_site(maps)):
         browser.show(origin=True, layer="normal")
         page = browser.read(0, 0, 40, 32)[..., :3].astype(int)
         expected = np.round((maps.svbrdf.normal.numpy() * 0.5 + 0.5) * 255)
@@ -265,7 +243,7 @@ def test_layers_show_the_maps(browser):
 @needs_browser
 def test_the_origin_is_placed_in_the_canvas_as_laid_out_now(browser):
     maps = model_maps("ward-iso", 16, 24, seed=2)
-    with _page(browser, open_site(maps)):
+    with served_page(browser, open_site(maps)):
         browser.evaluate("torchspecView.settle()")
         browser.evaluate("document.getElementById('bar').style.paddingTop = '37px'")  # the canvas shrinks, no frame yet
         browser.show(origin=True, layer="normal")
@@ -285,7 +263,7 @@ def test_with_a_capture_the_light_snaps_and_the_photograph_shows(browser, tmp_pa
     maps = model_maps("ward-iso", 24, 32, seed=5)
     capture = _capture(tmp_path / "c", maps)
     site = open_site(maps, capture)
-    with _page(browser, site):
+    with served_page(browser, site):
         target = capture.directions()[7]
         state = browser.show(origin=True, light=(target[:2] + 0.02).tolist(), layer="relit")
         assert state["frame"] == 7 and np.allclose(state["light"], target.tolist())
@@ -299,7 +277,7 @@ def test_with_a_capture_the_light_snaps_and_the_photograph_shows(browser, tmp_pa
 @needs_browser
 def test_dragging_on_the_hemisphere_moves_the_light_and_a_click_reads_a_pixel(browser):
     maps = model_maps("ward-dual", 24, 32, seed=6)
-    with _page(browser, open_site(maps)):
+    with served_page(browser, open_site(maps)):
         browser.show(origin=True)
         box = browser.evaluate("(() => { const r = document.getElementById('hemi').getBoundingClientRect(); "
                                "return [r.left, r.top, r.width]; })()")  # fmt: skip
@@ -359,7 +337,7 @@ def test_the_page_relights_under_the_captures_kernel_as_render_does(browser, tmp
     # lobe's product with the kernel, so these match too.
     narrow = lobe_width(maps.svbrdf) / 2 < site.manifest["kernel_spacing"]
     assert narrow.mean() > 0.2
-    with _page(browser, site):
+    with served_page(browser, site):
         for light in hemisphere_lights(4, 60.0):
             state = browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False)
             assert state["extended"]
@@ -392,7 +370,7 @@ def test_the_page_sums_other_kernels_on_their_fixed_nodes(browser, kernel):
     rule = light_quadrature(kernel)
     site.manifest.update(rule.describe())  # as a capture with this kernel gives it
     assert rule.lobe_rule.size == 0 and (lobe_width(maps.svbrdf) / 2 > rule.spacing).all()
-    with _page(browser, site):
+    with served_page(browser, site):
         for light in hemisphere_lights(2, 60.0):  # render of a tabulated kernel takes a second
             browser.show(origin=True, light=light.tolist(), layer="relit")
             page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
@@ -432,7 +410,7 @@ def test_the_page_adds_the_residual_term_as_render_does(browser, order):
     maps = with_term(model_maps("ward-dual" if order == 3 else "ward-aniso", 48, 64, seed=11), order, seed=2)
     term = _term(maps)
     lights = hemisphere_lights(20 if order == 3 else 4, 80.0)
-    with _page(browser, open_site(maps)):
+    with served_page(browser, open_site(maps)):
         for light in lights:
             browser.show(origin=True, light=light.tolist(), layer="relit")
             page = browser.read(0, 0, 64, 48)[..., :3].astype(int)
@@ -463,7 +441,7 @@ def test_the_page_adds_a_term_in_the_photographs_encoding_as_render_does(browser
     term = _term(maps)
     assert term.domain.curve is not None
     srgb = ResidualTerm(term.coefficients, term.chosen, term.weight)  # the same term added in sRGB
-    with _page(browser, open_site(maps)):
+    with served_page(browser, open_site(maps)):
         assert browser.evaluate("torchspecView.viewer.m.term_encoding.transfer") == "response"
         for light in hemisphere_lights(6, 75.0):
             browser.show(origin=True, light=light.tolist(), layer="relit")
@@ -479,7 +457,7 @@ def test_under_a_kernel_the_term_is_taken_at_its_effective_direction(browser, tm
     maps = with_term(model_maps("ward-iso", 24, 32, seed=12, alpha=(0.2, 0.45)), 3, seed=3)
     capture = _capture(tmp_path / "c", maps, sigma=DEMO_SIGMA)
     kernel, term = capture.lights().kernel, _term(maps)
-    with _page(browser, open_site(maps, capture)):
+    with served_page(browser, open_site(maps, capture)):
         for light in hemisphere_lights(4, 60.0):  # as the kernel's test above: lower, the maps alone differ by 2
             state = browser.show(origin=True, light=light.tolist(), layer="relit", snap=False, compare=False)
             assert state["extended"]
@@ -496,7 +474,7 @@ def test_under_a_kernel_without_a_table_the_term_is_taken_at_the_nodes_mean(brow
     site = open_site(maps)
     site.manifest.update(light_quadrature(kernel).describe())  # as a capture with this kernel gives it
     assert site.manifest["kernel_diffuse"] == []  # no table of effective directions: the nodes' sum
-    with _page(browser, site):
+    with served_page(browser, site):
         for light in hemisphere_lights(2, 60.0):  # render of a tabulated kernel takes a second
             browser.show(origin=True, light=light.tolist(), layer="relit")
             page = browser.read(0, 0, 24, 16)[..., :3].astype(int)
@@ -577,7 +555,7 @@ def test_the_page_relights_under_a_near_light_as_render_does(browser, model):
     assert site.manifest["near_block"] is None  # no capture: the page takes render's block of its own light
     blocks = [_block(45, 69, position) for position in NEAR_POSITIONS]
     assert max(blocks) > LEAST_BLOCK and 69 % max(blocks) and 45 % max(blocks)  # narrower last blocks
-    with _page(browser, site):
+    with served_page(browser, site):
         for position, block in zip(NEAR_POSITIONS, blocks, strict=True):
             at = np.array(position)
             direction, distance = at / np.linalg.norm(at), float(np.linalg.norm(at))
@@ -615,7 +593,7 @@ def test_under_a_near_light_the_kernel_and_the_term_follow_each_blocks_direction
     positions = ([0.3, 0.2, 1.0], [0.6, 0.4, 1.2], [0.0, -0.6, 1.9])
     directions, _ = near_light(torch.tensor(positions, dtype=torch.float64), image_points(24, 32))
     assert float(torch.rad2deg(torch.acos(directions[..., 2])).max()) < 60.0
-    with _page(browser, site):
+    with served_page(browser, site):
         for position in positions:
             direction = (np.array(position) / np.linalg.norm(position)).tolist()
             state = browser.show(origin=True, light=direction, distance=float(np.linalg.norm(position)), snap=False,
@@ -636,7 +614,7 @@ def test_on_a_near_capture_the_light_snaps_to_a_frames_position(browser, tmp_pat
     write_svbrdf(tmp_path / "maps", maps)
     predicted = render_capture(tmp_path / "maps", capture.root, None, dtype=torch.float64)["predicted"]
     site = open_site(maps, capture)
-    with _page(browser, site):
+    with served_page(browser, site):
         target = capture.directions()[7]
         state = browser.show(origin=True, light=(target[:2] + 0.02).tolist(), layer="relit")
         assert state["distance"] == site.manifest["near_radius"] != np.linalg.norm(state["position"])
@@ -690,7 +668,7 @@ def test_the_pages_block_for_its_own_light_is_renders(browser, tmp_path):
     for height, width in ((45, 69), (69, 45)):
         maps = model_maps("ward-iso", height, width, seed=2)
         blocks = []
-        with _page(browser, open_site(maps)):
+        with served_page(browser, open_site(maps)):
             for position in free:
                 at = np.array(position)
                 shown = {
@@ -709,7 +687,7 @@ def test_the_pages_block_for_its_own_light_is_renders(browser, tmp_path):
         assert blocks[0] == LEAST_BLOCK and blocks[-1] == math.isqrt(TILE_PIXELS)  # the least, a tile's side
         assert len({block for block in blocks if LEAST_BLOCK < block < math.isqrt(TILE_PIXELS)}) >= 2  # between
     distant = _capture(tmp_path / "c", maps)  # 69 x 45, directions without positions
-    with _page(browser, open_site(maps, distant)):
+    with served_page(browser, open_site(maps, distant)):
         state = browser.show(light=distant.directions()[3].tolist(), distance=30.0, snap=True, pixel=False)
         assert state["frame"] == 3 and np.allclose(state["position"], 30.0 * distant.directions()[3].numpy())
         assert state["block"] == _block(69, 45, state["position"]) > LEAST_BLOCK
@@ -784,7 +762,7 @@ def test_the_page_asks_again_for_a_tile_not_yet_made(browser, tmp_path):
     site = open_site(tmp_path / "maps")  # levels (40, 300) and (20, 150)
     site.pyramid.made[1].wait()
     site.pyramid.made[1].clear()  # as while the background pass runs
-    with _page(browser, site):
+    with served_page(browser, site):
         browser.show(layer="normal", zoom=0.5, centre=[150, 20])  # level 1
         # the tiles' states once one was answered 503 (to be asked again), polled: the answer takes the
         # server's 0.5 s wait plus however long a loaded machine needs (at most 30 s here)

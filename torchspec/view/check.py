@@ -21,14 +21,16 @@ from ..model.lobe import lobe_frame, lobe_moments
 from ..model.near_lights import image_points, near_light
 from ..model.rendering import render, render_image
 from ..model.residual_term import MAP_NAME, TERMS, WEIGHT_MAP, ResidualTerm, encode
+from ..model.visibility import frame_visibility
 from ..pipeline.flags import FLAGS, UNTRUSTED, bit
 from ..pipeline.settings import MODEL_CODES
-from ..relight import render_near
+from ..relight import indirect_light, render_near
 
 __all__ = [
     "MODEL_TYPES",
     "model_maps",
     "with_term",
+    "with_height",
     "reference_srgb",
     "render_each_pixel",
     "hemisphere_lights",
@@ -103,6 +105,26 @@ def with_term(maps: Maps, order: int = 3, seed: int = 0, size: float = 0.1, enco
     return Maps(maps.svbrdf, meta, {**maps.extra, MAP_NAME: term.to_map(), WEIGHT_MAP: weight})
 
 
+def with_height(maps: Maps, seed: int = 0, softness_deg: float = 2.0, peak: float = 8.0) -> Maps:
+    """``maps`` with a smooth relief as a fit with cast shadows writes it: ``height`` (pixels), a
+    sum of four Gaussian bumps (one ``peak`` pixels high, the others lower, widths 3 to 6 pixels,
+    seeded), ``indirect`` uniform in ``[0, 0.3]`` and ``svbrdf.json``'s ``height`` block with the
+    penumbra ``softness_deg``."""
+    height, width = maps.svbrdf.shape
+    g = torch.Generator().manual_seed(seed)  # on the CPU: a seeded generator, the relief reproducible
+    like = dict(dtype=torch.float64, device="cpu")  # as the generator
+    rows, cols = torch.meshgrid(torch.arange(height, **like), torch.arange(width, **like), indexing="ij")
+    relief = torch.zeros(height, width, **like)
+    for k in range(4):
+        centre = torch.rand(2, generator=g, **like) * torch.tensor([height, width], **like)
+        size = 3.0 + 3.0 * float(torch.rand(1, generator=g))
+        top = peak * (1.0 if k == 0 else 0.3 + 0.5 * float(torch.rand(1, generator=g)))
+        relief += top * torch.exp(-((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2) / (2.0 * size**2))
+    share = 0.3 * torch.rand(height, width, generator=g)
+    meta = {**maps.meta, "height": {"unit": "pixel", "pitch": 1.0, "depth": 1.0, "softness_deg": softness_deg}}
+    return Maps(maps.svbrdf, meta, {**maps.extra, "height": relief.float(), "indirect": share})
+
+
 def reference_srgb(
     svbrdf: SVBRDF,
     light,
@@ -114,6 +136,8 @@ def reference_srgb(
     term: ResidualTerm | None = None,
     position=None,
     each_pixel: bool = False,
+    shadows: tuple | None = None,
+    footprint: int = 1,
 ) -> np.ndarray:
     """``(H, W, 3)`` uint8: :func:`torchspec.model.rendering.render_image` of ``svbrdf`` under a light
     centred at ``light (3,)`` of unit irradiance (a point, or ``kernel``), with the residual
@@ -122,18 +146,34 @@ def reference_srgb(
     replicated to 3 channels). With ``position (3,)`` (image widths; ``light`` is then unused), a
     near light of unit irradiance at the image's centre, rendered as ``torchspec render`` renders
     it (:func:`torchspec.relight.render_near`: block by block) or, ``each_pixel``, at each pixel
-    (:func:`render_each_pixel`)."""
+    (:func:`render_each_pixel`). ``shadows``: ``(height, share, softness)``, the cast shadows of
+    maps with a height (``(H, W)`` pixels), an indirect share (``(H, W)`` or ``None``) and the
+    penumbra (radians), as :func:`torchspec.relight.shaded_render` adds them, the visibility at
+    the pixels' centres (:func:`torchspec.model.visibility.frame_visibility`, ``footprint=1``, as
+    the page takes it; ``footprint=2``: as ``torchspec render`` does)."""
     device = svbrdf.normal.device
     one = torch.ones(1, 1, dtype=dtype, device=device)
     view = torch.tensor(view, dtype=dtype, device=device)
+    at = None if position is None else torch.tensor([position], dtype=dtype, device=device)
+    centre = torch.tensor([light], dtype=dtype, device=device) if position is None else at / at.norm()
+    lights = Lights(centre, kernel or Kernel("point"), one, one[0])
+    seen = bounce = None
+    if shadows is not None:
+        height, share, softness = shadows
+        seen = frame_visibility(height.to(device, dtype), lights, at, footprint=footprint, softness=softness)[..., None]
+        if share is not None:
+            bounce = indirect_light(svbrdf.to(dtype), share.to(device, dtype), lights, view, at)
     if position is None:
-        lights = Lights(torch.tensor([light], dtype=dtype, device=device), kernel or Kernel("point"), one, one[0])
         value = render_image(svbrdf.to(dtype), lights, view)
+        value = value if seen is None else value * seen
         value = value if term is None else term.apply(value, lights)
+    elif each_pixel:
+        if seen is not None:
+            raise TorchspecError("reference_srgb: each_pixel takes no shadows.")
+        value = render_each_pixel(svbrdf.to(dtype), lights, at, view, term=term)
     else:
-        at = torch.tensor([position], dtype=dtype, device=device)
-        lights = Lights(at / at.norm(), kernel or Kernel("point"), one, one[0])
-        value = (render_each_pixel if each_pixel else render_near)(svbrdf.to(dtype), lights, at, view, term=term)
+        value = render_near(svbrdf.to(dtype), lights, at, view, term=term, seen=seen)
+    value = value if bounce is None else value + bounce
     value = (value[:, :, 0] * exposure).clamp(0.0, 1.0)
     value = value.expand(*value.shape[:2], 3) if value.shape[-1] == 1 else value[..., :3]
     return torch.round(encode(value) * 255.0).to(torch.uint8).cpu().numpy()

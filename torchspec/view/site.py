@@ -40,9 +40,11 @@ from ..model.lights import Kernel
 from ..model.residual_term import MAP_NAME, TermDomain
 from ..outputs import check_output
 from ..progress import bar
+from ..relight import softness_of
 from ..report import MODEL_COLOURS, model_colours
 from .cache import Stopped
 from .light import light_quadrature, near_lights
+from .shadows import shadow_manifest
 from .tiles import EXTRA_MAPS, KEEP_TEXELS, PHOTO_QUALITY, Pyramid, frame_pyramid, photo_tile
 
 __all__ = ["STATIC", "Site", "open_site", "export_web", "serve"]
@@ -91,6 +93,15 @@ def _kernel(capture: Capture | None) -> Kernel | None:
     if capture is None:
         return None
     return Kernel("unknown") if capture.light.kernel == "unknown" else capture.lights().kernel
+
+
+def _shadows(pyramid: Pyramid, head: Maps, capture: Capture | None) -> dict | None:
+    """The manifest's ``shadows`` (:func:`~torchspec.view.shadows.shadow_manifest`) of maps with a
+    height, else ``None``: the reach their horizons were made with (the pyramid's), the fit's
+    penumbra, the capture's kernel."""
+    if "height" not in head.extra:
+        return None
+    return shadow_manifest(softness_of(head), _kernel(capture), pyramid.shadow_reach)
 
 
 class NotMade(Exception):
@@ -256,6 +267,7 @@ def open_site(
         **near_lights(capture, meta, height, width),
         "term": terms,
         "term_encoding": term_encoding(meta) if terms else None,
+        "shadows": _shadows(pyramid, bands[0], capture),
         **light_quadrature(_kernel(capture)).describe(),
         **pyramid.describe(),
         "photo": {

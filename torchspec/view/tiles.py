@@ -13,6 +13,8 @@ texel. The coarser levels are made in the background (:class:`Pyramid`).
 Maps with a residual term (``residual_term.exr``, :mod:`torchspec.model.residual_term`) add the
 textures of :func:`term_textures`: its weight ``w`` and its coefficients per basis function and
 channel (RGB, grey replicated), float16, packed four planes a texture (:func:`term_planes`).
+Maps with a height (``height.exr``) add the cast shadows' textures last: the horizon maps and
+the indirect share (:mod:`torchspec.view.shadows`), float16.
 
 A photograph's pyramid holds the frame divided by its exposure and irradiance (the value under a
 unit light, comparable with the relit maps at the same exposure); its tiles are JPEGs of their own
@@ -39,6 +41,7 @@ from ..errors import TorchspecError
 from ..io import Maps, read_svbrdf
 from ..model.residual_term import MAP_NAME, WEIGHT_MAP, ResidualTerm, decode, encode
 from .cache import LevelCache, Stopped
+from .shadows import SHADOW_TEXTURES, read_height, shadow_planes, view_reach
 
 __all__ = [
     "TILE",
@@ -69,7 +72,7 @@ TEXTURES = (
 """The textures of a map tile: name, dtype, the four planes (RGBA)."""
 
 EXTRA_MAPS = ("quality", "model", "flags", "std_normal_deg", "std_diffuse", "std_specular", "std_roughness",
-              MAP_NAME, WEIGHT_MAP)  # fmt: skip
+              MAP_NAME, WEIGHT_MAP, "height", "indirect")  # fmt: skip
 """The extra maps of a fit that the tiles hold (the others are not read)."""
 
 NEAREST = ("rotation", "model", "flags")
@@ -150,12 +153,14 @@ def term_planes(maps: Maps) -> dict[str, torch.Tensor]:
 
 
 def textures_of(maps: Maps) -> tuple:
-    """A tile's textures for ``maps``: :data:`TEXTURES`, and the term's when the maps have one."""
-    if MAP_NAME not in maps.extra:
-        return TEXTURES
-    value = maps.extra[MAP_NAME]
-    count = value.shape[-1] if value.dim() == 3 else 1
-    return TEXTURES + term_textures(max(1, count // max(1, len(maps.svbrdf.channels))))
+    """A tile's textures for ``maps``: :data:`TEXTURES`, the term's when the maps have one, and
+    the cast shadows' (:data:`torchspec.view.shadows.SHADOW_TEXTURES`) when they have a height."""
+    textures = TEXTURES
+    if MAP_NAME in maps.extra:
+        value = maps.extra[MAP_NAME]
+        count = value.shape[-1] if value.dim() == 3 else 1
+        textures = textures + term_textures(max(1, count // max(1, len(maps.svbrdf.channels))))
+    return textures + (SHADOW_TEXTURES if "height" in maps.extra else ())
 
 
 def _reduce(planes, names: tuple[str, ...]) -> torch.Tensor:
@@ -216,11 +221,14 @@ class Pyramid:
         kept: the finest level held in memory (0 in memory).
         store: the levels' :class:`~torchspec.view.cache.LevelCache` (``None``: none).
         worker: the background thread (it ends once the levels are made, and written to the cache).
+        shadow_reach: of maps with a height, the reach of their horizon maps (pixels,
+            :func:`torchspec.view.shadows.view_reach`); else ``None``.
     """
 
     def __init__(self, textures, size, planes=None, read=None, *, tile=TILE, keep_texels=KEEP_TEXELS,
                  cache_bytes=CACHE_BYTES, cache=None):  # fmt: skip
         self.textures, self.size, self.tile_size = tuple(textures), tuple(size), tile
+        self.shadow_reach: float | None = None  # maps with a height: how far their horizons look (pixels)
         self.names = tuple(name for _, _, names in self.textures for name in names)
         self.read = read if planes is None else (lambda a, b: torch.stack([p[a:b] for p in planes]))
         sizes = self.levels
@@ -336,8 +344,15 @@ class Pyramid:
 
     @classmethod
     def of_maps(cls, maps: Maps, tile: int = TILE) -> Pyramid:
-        """The pyramid of a fit's maps (:data:`TEXTURES`, and the residual term's)."""
-        return cls.build({**_planes(maps), **term_planes(maps)}, textures_of(maps), tile)
+        """The pyramid of a fit's maps (:data:`TEXTURES`, the residual term's, the cast shadows')."""
+        planes = {**_planes(maps), **term_planes(maps)}
+        height = maps.extra.get("height")
+        reach = None if height is None else view_reach(height.float())
+        if height is not None:
+            planes.update(shadow_planes(height.float(), maps.extra.get("indirect"), 0, height.shape[0], reach))
+        pyramid = cls.build(planes, textures_of(maps), tile)
+        pyramid.shadow_reach = reach
+        return pyramid
 
     @classmethod
     def of_folder(cls, folder, head: Maps, size: tuple[int, int], cache: bool = False, **options) -> Pyramid:
@@ -346,13 +361,19 @@ class Pyramid:
         ``cache_bytes``; ``cache=True``: its held levels cached, :mod:`torchspec.view.cache`)."""
         textures = textures_of(head)
         names = [name for _, _, names in textures for name in names]
+        height = read_height(folder) if "height" in head.extra else None  # whole: a ray looks beyond a band
+        reach = None if height is None else view_reach(height)
 
         def read(start: int, stop: int) -> torch.Tensor:
             band = read_svbrdf(folder, rows=(start, stop), extra_maps=EXTRA_MAPS)
             planes = {**_planes(band), **term_planes(band)}
+            if height is not None:
+                planes.update(shadow_planes(height, band.extra.get("indirect"), start, stop, reach))
             return torch.stack([planes[name] for name in names])
 
-        return cls(textures, size, read=read, cache=folder if cache else None, **options)
+        pyramid = cls(textures, size, read=read, cache=folder if cache else None, **options)
+        pyramid.shadow_reach = reach
+        return pyramid
 
     @property
     def height(self) -> int:

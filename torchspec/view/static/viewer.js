@@ -17,11 +17,18 @@
 // render's block of the capture's positions (manifest near_block) for a frame's own position, else
 // render's block of that one light (Viewer.renderBlock, the rule torchspec.pipeline.tiling.near_block);
 // an extended kernel about that direction, and the residual term at it.
+// Maps with a height (manifest shadows; the tiles' shadow textures: horizon maps and the indirect
+// share, torchspec/view/shadows.py) cast shadows, as torchspec.relight.shaded_render does:
+// term(V r) + b D, V = sigmoid((e - H) / s) with the horizon H interpolated between the maps'
+// azimuths, s the fit's penumbra widened by an extended kernel's spread in elevation
+// (torchspec.model.visibility's probit rule), D the flat diffuse; a near light's V from each
+// pixel's own direction (torchspec.model.visibility.frame_visibility).
 "use strict";
 
 const LAYERS = ["relit", "normal", "diffuse", "specular", "roughness", "model", "quality", "flags", "std", "photo", "physical"];
 const PHOTO_LAYER = 9;
 const TILE_UNITS = 6; // a map tile's first textures' units (then the photograph's, then the term's)
+const SHADOW_UNIT = 14; // the cast shadows' texture array (after the term's seven)
 const MAX_TILES = 160; // textures kept on the GPU (least recently used dropped)
 const MAX_FETCHES = 6;
 const INTERACTIVE_MS = 250; // input this recent: frames at a reduced scale
@@ -61,6 +68,14 @@ uniform sampler2D tTerm0, tTerm1, tTerm2, tTerm3, tTerm4, tTerm5, tTerm6;
 #if CURVE // its encoding, a camera response (torchspec.response.ResponseCurve) per channel
 uniform vec3 uGamma, uOffset, uContrast, uSlope; // uSlope: the curve's slope at code 1
 #endif
+#endif
+#if SHADOWS // horizon maps (SHADOWS azimuths, four a layer) and the indirect share (the next layer, x)
+uniform highp sampler2DArray tShadow;
+uniform int uShadows; // 1: cast shadows on
+uniform float uSoftness; // the fit's penumbra, radians
+uniform mat2 uKernelCov; // the kernel's l-plane covariance at the zenith (0: a point)
+uniform vec2 uKernelOffset; // its mean's offset from the centre
+uniform int uKernelAngular; // 1: the covariance squeezed along the radius by 1 - |c_xy|^2 (an angular kernel)
 #endif
 uniform vec3 uLight, uView, uModelColours[8];
 uniform vec4 uNear; // a near light: its position (image widths from the image's centre) and w = 1; w = 0: distant
@@ -174,6 +189,61 @@ float lightAt(ivec2 ij) {
   gLight = normalize(d);
   return dot(uNear.xyz, uNear.xyz) / dot(d, d);
 }
+
+#if SHADOWS
+// The horizon (radians) at texel ij along azimuth phi, linear between the maps' two azimuths about it.
+float horizonAt(ivec2 ij, float phi) {
+  float f = mod(phi * float(SHADOWS) / (2.0 * PI), float(SHADOWS));
+  int j0 = min(int(f), SHADOWS - 1), j1 = (j0 + 1) % SHADOWS;
+  float a = texelFetch(tShadow, ivec3(ij, j0 / 4), 0)[j0 % 4], b = texelFetch(tShadow, ivec3(ij, j1 / 4), 0)[j1 % 4];
+  return mix(a, b, f - float(j0));
+}
+
+// The light's visibility at texel ij (torchspec.model.visibility): sigmoid((e - H) / s) of its
+// elevation e against the horizon H along its azimuth. A distant light under an extended kernel:
+// e and the azimuth of the kernel's mean, s widened by its spread in elevation (the probit rule of
+// kernel_visibility); a near light: the direction from the pixel's own centre, s the penumbra.
+float seen(ivec2 ij) {
+  vec3 w = gLight;
+  float s2 = uSoftness * uSoftness;
+  if (uNear.w != 0.0) {
+    ivec2 pixel = min(ivec2(floor(uPlace.xy + (vec2(ij) + 0.5) * uPlace.z)), uSize - 1);
+    vec2 centre = vec2(pixel) + 0.5;
+    w = normalize(uNear.xyz - vec3(centre.x / float(uSize.x) - 0.5, (0.5 * float(uSize.y) - centre.y) / float(uSize.x), 0.0));
+  } else if (uKernelCov[0][0] + uKernelCov[1][1] > 0.0) {
+    vec2 l = w.xy + uKernelOffset;
+    float r = length(l), wz2 = max(1.0 - r * r, 1e-6);
+    vec2 u = r > 0.0 ? l / r : vec2(0.0);
+    float radial = r > 0.0 ? dot(u, uKernelCov * u) : 0.5 * (uKernelCov[0][0] + uKernelCov[1][1]);
+    if (uKernelAngular != 0) radial *= 1.0 - dot(w.xy, w.xy);
+    s2 += (PI / 8.0) * radial / wz2;
+    w = vec3(l, sqrt(wz2));
+  }
+  float across = length(w.xy), e = atan(w.z, across);
+  // the azimuth, from |y| and its sign: SwiftShader's atan(-0.0, x) is +-pi whatever x's sign (a
+  // light at 180 degrees took the horizon at 0, at 0 degrees the one at 180)
+  float phi = across <= 0.0 ? 0.0 : atan(abs(w.y), w.x) * (w.y < 0.0 ? -1.0 : 1.0);
+  return 1.0 / (1.0 + exp(-(e - horizonAt(ij, phi)) / sqrt(s2)));
+}
+
+// The flat diffuse's cosine (torchspec.model.indirect.flat_maps rendered: the normal (0, 0, 1),
+// no lobe) under the light: l_z, or under an extended kernel as relit() takes a flat normal's.
+float flatCosine() {
+#if EXTENDED
+  if (uDiffuseRows > 0) return max(effective().z, 0.0);
+  vec3 e1 = normalize(vec3(1.0, 0.0, 0.0) - gLight.x * gLight), e2 = cross(gLight, e1);
+  float front = 0.0;
+  for (int q = 0; q < 64; q++) {
+    if (q >= uNodes) break;
+    vec3 l = nodeDirection(q, e1, e2);
+    if (l.z > 0.0) front += uNode[q].z * l.z;
+  }
+  return front;
+#else
+  return max(gLight.z, 0.0);
+#endif
+}
+#endif
 
 vec3 srgb(vec3 v) {
   v = clamp(v, 0.0, 1.0);
@@ -331,12 +401,20 @@ void main() {
   if (ij.x >= uValid.x || ij.y >= uValid.y) discard;
   vec3 colour;
   float falloff = lightAt(ij); // the value at unit irradiance (the term's too) times the irradiance here
-#if TERM
-  if (uLayer == 0) colour = srgb(withTerm(ij, relit(ij)) * falloff * uExposure);
-#else
-  if (uLayer == 0) colour = srgb(relit(ij) * falloff * uExposure);
+  vec3 value = vec3(0.0), bounce = vec3(0.0); // the relit layers' value at unit light, and the indirect light
+  if (uLayer == 0 || uLayer == 10) value = relit(ij);
+#if SHADOWS
+  if ((uLayer == 0 || uLayer == 10) && uShadows != 0) {
+    value *= seen(ij);
+    bounce = texelFetch(tShadow, ivec3(ij, SHADOWS / 4), 0).x * texelFetch(tKd, ij, 0).rgb / PI * flatCosine();
+  }
 #endif
-  else if (uLayer == 10) colour = srgb(relit(ij) * falloff * uExposure);
+#if TERM
+  if (uLayer == 0) colour = srgb((withTerm(ij, value) + bounce) * falloff * uExposure);
+#else
+  if (uLayer == 0) colour = srgb((value + bounce) * falloff * uExposure);
+#endif
+  else if (uLayer == 10) colour = srgb((value + bounce) * falloff * uExposure);
   else if (uLayer == 1) colour = texelFetch(tGeo, ij, 0).xyz * 0.5 + 0.5;
   else if (uLayer == 2) colour = srgb(texelFetch(tKd, ij, 0).rgb);
   else if (uLayer == 3) colour = srgb(texelFetch(tKs, ij, 0).rgb * uGain);
@@ -405,6 +483,7 @@ class Viewer {
     this.layer = 0;
     this.exposure = 1;
     this.std = 0;
+    this.shadows = Boolean(manifest.shadows); // cast shadows (maps with a height)
     this.compare = manifest.lights.length > 0;
     this.snap = manifest.lights.length > 0;
     this.nodes = manifest.kernel_nodes || [];
@@ -430,7 +509,8 @@ class Viewer {
     const p = gl.createProgram();
     gl.attachShader(p, shader(gl.VERTEX_SHADER, VERTEX));
     const curve = this.m.term_encoding && this.m.term_encoding.transfer === "response" ? this.m.term_encoding : null;
-    const defines = `\n#define EXTENDED ${extended ? 1 : 0}\n#define TERM ${this.m.term || 0}\n#define CURVE ${curve ? 1 : 0}\n`;
+    const shadows = this.m.shadows ? this.m.shadows.azimuths : 0;
+    const defines = `\n#define EXTENDED ${extended ? 1 : 0}\n#define TERM ${this.m.term || 0}\n#define CURVE ${curve ? 1 : 0}\n#define SHADOWS ${shadows}\n`;
     const source = FRAGMENT.replace("\n", defines); // after #version
     gl.attachShader(p, shader(gl.FRAGMENT_SHADER, source));
     gl.linkProgram(p);
@@ -444,6 +524,14 @@ class Viewer {
     ["tGeo", "tRough", "tKd", "tKs", "tKs2", "tStd", "tPhoto"].forEach((n, i) => gl.uniform1i(this.u[n], i));
     for (let i = 0; i < 7; i++) if (this.u[`tTerm${i}`]) gl.uniform1i(this.u[`tTerm${i}`], TILE_UNITS + 1 + i);
     if (curve) ["gamma", "offset", "contrast", "slope"].forEach((n) => gl.uniform3fv(this.u[`u${n[0].toUpperCase()}${n.slice(1)}`], curve[n]));
+    if (shadows) {
+      const sh = this.m.shadows;
+      gl.uniform1i(this.u.tShadow, SHADOW_UNIT);
+      gl.uniform1f(this.u.uSoftness, (sh.softness_deg * Math.PI) / 180);
+      gl.uniformMatrix2fv(this.u.uKernelCov, false, sh.covariance.flat());
+      gl.uniform2fv(this.u.uKernelOffset, sh.offset);
+      gl.uniform1i(this.u.uKernelAngular, sh.angular ? 1 : 0);
+    }
     gl.uniform1f(this.u.uTile, this.m.tile);
     const colours = (this.m.model_colours || []).slice(0, 8);
     gl.uniform1i(this.u.uModels, colours.length);
@@ -566,13 +654,30 @@ class Viewer {
     }
   }
 
+  // A map tile's textures, in file order; the cast shadows' (float16, named shadow*) as one
+  // texture array (entry.shadow): a sampler unit for all of them.
   upload(entry, buffer) {
     const gl = this.gl, n = this.m.tile;
+    const layers = this.m.textures.filter((spec) => spec.name.startsWith("shadow")).length;
     let offset = 0;
     for (const spec of this.m.textures) {
       const f32 = spec.dtype === "float32";
       const data = f32 ? new Float32Array(buffer, offset, n * n * 4) : new Uint16Array(buffer, offset, n * n * 4);
       offset += n * n * 4 * (f32 ? 4 : 2);
+      if (spec.name.startsWith("shadow")) {
+        if (!entry.shadow) {
+          entry.shadow = gl.createTexture();
+          gl.bindTexture(gl.TEXTURE_2D_ARRAY, entry.shadow);
+          gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+          gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+          gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGBA16F, n, n, layers);
+          entry.layer = 0;
+        }
+        gl.bindTexture(gl.TEXTURE_2D_ARRAY, entry.shadow);
+        gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+        gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, entry.layer++, n, n, 1, gl.RGBA, gl.HALF_FLOAT, data);
+        continue;
+      }
       const tex = gl.createTexture();
       gl.bindTexture(gl.TEXTURE_2D, tex);
       gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
@@ -607,6 +712,7 @@ class Viewer {
     const ready = [...this.tiles.entries()].filter(([, t]) => t.state === "ready").sort((a, b) => a[1].used - b[1].used);
     for (const [url, t] of ready.slice(0, this.tiles.size - MAX_TILES)) {
       t.textures.forEach((x) => this.gl.deleteTexture(x));
+      if (t.shadow) this.gl.deleteTexture(t.shadow);
       this.tiles.delete(url);
     }
   }
@@ -644,6 +750,7 @@ class Viewer {
     gl.uniform1i(this.u.uBlock, this.block() || 1);
     gl.uniform1f(this.u.uExposure, this.exposure);
     gl.uniform1i(this.u.uStd, this.std);
+    if (this.u.uShadows) gl.uniform1i(this.u.uShadows, this.shadows ? 1 : 0);
     const target = this.level(), top = this.m.levels.length - 1;
     let complete = true;
     this.queue.clear(); // only what this frame wants is fetched
@@ -712,6 +819,10 @@ class Viewer {
       gl.activeTexture(gl.TEXTURE0 + (t.textures.length === 1 ? TILE_UNITS : i < TILE_UNITS ? i : i + 1));
       gl.bindTexture(gl.TEXTURE_2D, x);
     });
+    if (t.shadow) {
+      gl.activeTexture(gl.TEXTURE0 + SHADOW_UNIT);
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, t.shadow);
+    }
     gl.uniform2i(this.u.uValid, Math.min(n, w - c * n), Math.min(n, h - r * n));
     if (t.scale !== undefined) gl.uniform1f(this.u.uPhotoScale, t.scale);
     gl.uniform3f(this.u.uPlace, c * span, r * span, 2 ** level);
@@ -812,6 +923,7 @@ function describe(m, v) {
     rows.push(["flags", names.join(", ") || "none"]);
   }
   if (m.term) rows.push(["term w", f(v.term_weight)]);
+  if (m.shadows) rows.push(["indirect share", f(v.indirect)]);
   if (m.layers.includes("std")) {
     rows.push(["std normal", `${f(v.std_normal_deg)} deg`], ["std k_d", f(v.std_diffuse)]);
     rows.push(["std k_s", f(v.std_specular)], ["std alpha", f(v.std_roughness)]);
@@ -882,6 +994,7 @@ function showing(viewer) {
   let text = "";
   if (name === "relit") text = term ? "relit: model + residual term" : "relit: the physical maps (the fit has no residual term)";
   if (name === "physical") text = "relit: physical maps only (the residual term off), as a renderer uses them";
+  if (text && viewer.m.shadows) text += viewer.shadows ? ", with their cast shadows" : ", cast shadows off";
   document.getElementById("shown").textContent = text;
 }
 
@@ -911,6 +1024,8 @@ function controls(viewer) {
   distance.oninput = () => ((viewer.distance = distanceOf(Number(distance.value))), viewer.setLight(viewer.light));
   document.getElementById("pixel").onchange = (e) => ((viewer.perPixel = e.target.checked), viewer.onLight(), viewer.request());
   document.getElementById("std").onchange = (e) => ((viewer.std = Number(e.target.value)), viewer.request());
+  document.getElementById("shadows-label").hidden = !m.shadows;
+  document.getElementById("shadows").onchange = (e) => ((viewer.shadows = e.target.checked), showing(viewer), viewer.request());
   document.getElementById("fit").onclick = () => viewer.fit();
   document.getElementById("one").onclick = () => ((viewer.zoom = 1 / devicePixelRatio), viewer.request());
   for (const id of ["snap", "compare", "extended"]) {
@@ -991,13 +1106,16 @@ window.torchspecView = {
       throw e;
     }),
   // Set the view: {light: [x, y(, z)], distance (image widths; null: infinite), pixel, layer, exposure,
-  // snap, compare, extended, zoom, centre, origin} (origin: 1:1, the image's top-left pixel at the
+  // snap, compare, extended, shadows, zoom, centre, origin} (origin: 1:1, the image's top-left pixel at the
   // canvas's; pixel: a near light's direction at each pixel); returns the state it shows (block: the
   // side in pixels of the blocks a near light's direction is taken at, 1 at each pixel, null: distant).
   show(o) {
     const v = this.viewer;
-    for (const key of ["exposure", "snap", "compare", "extended", "zoom", "centre", "std"]) if (key in o) v[key] = o[key];
+    for (const key of ["exposure", "snap", "compare", "extended", "zoom", "centre", "std", "shadows"]) if (key in o) v[key] = o[key];
     v.extended = v.extended && v.nodes.length > 0;
+    v.shadows = v.shadows && Boolean(v.m.shadows);
+    document.getElementById("shadows").checked = v.shadows;
+    showing(v);
     if ("layer" in o) {
       v.layer = LAYERS.indexOf(o.layer);
       [...document.getElementById("layers").children].forEach((b) => b.classList.toggle("on", b.textContent === o.layer));
