@@ -10,6 +10,8 @@ from torchspec.errors import TorchspecError
 from torchspec.model.lights import Kernel, Lights
 from torchspec.model.visibility import (
     elevation,
+    frame_visibilities,
+    frame_visibility,
     horizon,
     kernel_visibility,
     marched_distances,
@@ -144,3 +146,27 @@ def test_a_ray_along_the_images_border_does_not_leave_it_by_a_rounding_error():
     assert rounded[0, 0] < 0
     for found in (horizon(height, rounded), horizon(height, exact), marched_horizon(height, rounded)):
         assert torch.allclose(found[5, :, 0], torch.atan(torch.tensor(1.0, dtype=torch.float64)), atol=1e-6)
+
+
+@pytest.mark.parametrize("light", ["point", "projected", "angular", "near"])
+def test_one_horizon_gives_every_depth_and_penumbra_as_frame_visibility_does(light):
+    rows, cols = torch.meshgrid(torch.arange(24.0, dtype=torch.float64), torch.arange(30.0, dtype=torch.float64),
+                                indexing="ij")  # fmt: skip
+    height = 6.0 * torch.exp(-((rows - 10) ** 2 + (cols - 14) ** 2) / 18.0) + 3.0 * (cols > 22)  # a bump and a step
+    g = torch.Generator().manual_seed(1)
+    directions = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    directions[:, 2] = directions[:, 2].abs() + 0.3
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    kernel = {"point": Kernel("point"), "projected": Kernel("gaussian", "projected", 0.05),
+              "angular": Kernel("gaussian", "angular", 0.08), "near": Kernel("point")}[light]  # fmt: skip
+    one = torch.ones(5, 1, dtype=torch.float64)
+    lights = Lights(directions, kernel, one, one[:, 0])
+    positions = 0.8 * directions if light == "near" else None
+    depths, softnesses = (1.0, 1.5, 2.0), (math.radians(1.0), math.radians(2.0))
+    pairs = list(frame_visibilities(height, lights, positions, depths, softnesses))
+    assert [(d, s) for d, s, _ in pairs] == [(d, s) for d in depths for s in softnesses]
+    for depth, softness, seen in pairs:
+        expected = frame_visibility(height * depth, lights, positions, softness=softness)
+        # a farther reach (the deepest height's, the widest penumbra's margin) moves it by < sigmoid(-8)
+        assert torch.allclose(seen, expected, atol=3.4e-4, rtol=0), (depth, softness)
+        assert float((seen - expected).abs().mean()) < 1e-6
