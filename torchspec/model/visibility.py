@@ -342,27 +342,7 @@ def frame_visibility(
     box-averaged back (a pixel a shadow's edge crosses is partly lit, as its photograph is; 1: at
     the pixels' centres only). ``softness``: the penumbra's width in elevation, radians
     (:func:`visibility`). In the height's dtype and on its device."""
-    if footprint < 1:
-        raise TorchspecError(f"footprint must be a whole number >= 1; got {footprint!r}.")
-    lights = lights.to(device=height.device, dtype=height.dtype)
-    h, w = height.shape
-    fine = height
-    if footprint > 1:  # heights in pixels: a finer pixel is 1 / footprint of one
-        grid = (height * footprint)[None, None]
-        fine = F.interpolate(grid, scale_factor=footprint, mode="bicubic", align_corners=False)[0, 0]
-    if positions is not None:
-        points = image_points(h, w, dtype=height.dtype, device=height.device).reshape(h, w, 1, 3)
-        directions = positions.to(height)[None, None] - points  # (H, W, K, 3)
-        length = torch.linalg.vector_norm(directions, dim=-1, keepdim=True).clamp(min=1e-12)
-        directions = (directions / length).repeat_interleave(footprint, 0).repeat_interleave(footprint, 1)
-        seen = visibility(fine, directions, softness=softness)
-    elif lights.kernel.kind == "unknown":
-        seen = visibility(fine, lights.directions, softness=softness)
-    else:
-        seen = kernel_visibility(fine, lights, softness=softness)
-    if footprint == 1:
-        return seen
-    return F.avg_pool2d(seen.permute(2, 0, 1)[None], footprint)[0].permute(1, 2, 0)
+    return next(frame_visibilities(height, lights, positions, (1.0,), (softness,), footprint))[2]
 
 
 def frame_visibilities(
