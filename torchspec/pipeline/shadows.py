@@ -21,7 +21,8 @@ The alternation (:func:`fit_with_shadows`), judged by left-out frames as the mod
    indirect light of the previous round's maps: :mod:`torchspec.model.indirect`), the indirect share
    of the new maps fitted (:func:`indirect_of`), and the left-out frames predicted times their
    visibility (each penumbra width of :data:`SOFTNESSES_DEG` over the height scaled by each of
-   :data:`DEPTHS`, the best pair kept) plus their indirect
+   :data:`DEPTHS`, all from one horizon: :func:`torchspec.model.visibility.frame_visibilities`;
+   the best pair kept) plus their indirect
    light (kept where it predicts better than none); where that predicts better than the best so
    far by more than the noise would make it (:func:`torchspec.statistics.predicts_better` with
    ``FitConfig.ladder.predict_z``, the whole image as one pixel, every left-out sample in the
