@@ -202,6 +202,9 @@ def test_under_a_kernel_the_penumbra_widens_as_render_does(browser, kernel):
             _assert_on_grid(np.abs(page - expected).max(-1), azimuth)
             point = reference_srgb(maps.svbrdf, tuple(light), shadows=shadows).astype(int)
             assert np.abs(point - expected).max() > 5  # the kernel matters here
+            browser.show(extended=False)  # a point light: its penumbra not widened
+            _assert_on_grid(np.abs(browser.read(0, 0, 48, 32)[..., :3].astype(int) - point).max(-1), azimuth)
+            browser.show(extended=True)
             unshadowed = reference_srgb(maps.svbrdf, tuple(light), kernel=kernel).astype(int)
             assert (np.abs(unshadowed - expected).max(-1) > 20).mean() > 0.01  # and the shadows
 

@@ -528,7 +528,8 @@ class Viewer {
       const sh = this.m.shadows;
       gl.uniform1i(this.u.tShadow, SHADOW_UNIT);
       gl.uniform1f(this.u.uSoftness, (sh.softness_deg * Math.PI) / 180);
-      gl.uniformMatrix2fv(this.u.uKernelCov, false, sh.covariance.flat());
+      // the point light's program (the kernel unticked, or none): the penumbra alone
+      gl.uniformMatrix2fv(this.u.uKernelCov, false, extended ? sh.covariance.flat() : [0, 0, 0, 0]);
       gl.uniform2fv(this.u.uKernelOffset, sh.offset);
       gl.uniform1i(this.u.uKernelAngular, sh.angular ? 1 : 0);
     }
