@@ -170,3 +170,18 @@ def test_one_horizon_gives_every_depth_and_penumbra_as_frame_visibility_does(lig
         # a farther reach (the deepest height's, the widest penumbra's margin) moves it by < sigmoid(-8)
         assert torch.allclose(seen, expected, atol=3.4e-4, rtol=0), (depth, softness)
         assert float((seen - expected).abs().mean()) < 1e-6
+
+
+def test_the_horizons_chunks_change_nothing(monkeypatch):
+    import torchspec.model.visibility as module
+
+    rows, cols = torch.meshgrid(torch.arange(20.0, dtype=F64), torch.arange(26.0, dtype=F64), indexing="ij")
+    height = 5.0 * torch.exp(-((rows - 8) ** 2 + (cols - 12) ** 2) / 12.0)
+    g = torch.Generator().manual_seed(4)
+    directions = torch.randn(5, 3, generator=g, dtype=F64)
+    directions[:, 2] = directions[:, 2].abs() + 0.2
+    per_pixel = directions.expand(20, 26, 5, 3) + 0.05 * torch.randn(20, 26, 5, 3, generator=g, dtype=F64)
+    whole = [horizon(height, directions), horizon(height, per_pixel)]
+    for chunk in (4096, 300, 7):  # pixels, lights and samples split, down to a chunk of pixels at a time
+        monkeypatch.setattr(module, "CHUNK_ELEMENTS", chunk)
+        assert torch.equal(horizon(height, directions), whole[0]) and torch.equal(horizon(height, per_pixel), whole[1])
