@@ -391,7 +391,7 @@ def frame_visibilities(
     widest = math.sqrt(max(softnesses) ** 2 + float(spread.max()))  # one host sync
     reach = shadow_reach(fine * max(depths), directions, margin=8.0 * widest)
     found = horizon(fine, directions, reach=reach)
-    rise = torch.tan(found)
+    rise = torch.tan(found) if any(depth != 1.0 for depth in depths) else None  # not for render's one depth
     e = elevation(directions)
     e = e if directions.dim() == 4 else e.expand(*fine.shape, -1)
     for depth in depths:

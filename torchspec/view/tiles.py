@@ -363,9 +363,10 @@ class Pyramid:
         names = [name for _, _, names in textures for name in names]
         height = read_height(folder) if "height" in head.extra else None  # whole: a ray looks beyond a band
         reach = None if height is None else view_reach(height)
+        band_maps = tuple(name for name in EXTRA_MAPS if name != "height")  # read whole above, not again a band
 
         def read(start: int, stop: int) -> torch.Tensor:
-            band = read_svbrdf(folder, rows=(start, stop), extra_maps=EXTRA_MAPS)
+            band = read_svbrdf(folder, rows=(start, stop), extra_maps=band_maps)
             planes = {**_planes(band), **term_planes(band)}
             if height is not None:
                 planes.update(shadow_planes(height, band.extra.get("indirect"), start, stop, reach))
